@@ -1,0 +1,6 @@
+"""python -m identification_node VERB ..."""
+import sys
+
+from .cli import main
+
+sys.exit(main())
