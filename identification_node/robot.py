@@ -16,7 +16,9 @@ Conventions used everywhere in this package (README, "Conventions"):
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -62,21 +64,41 @@ def read_description(source: str | os.PathLike) -> tuple[str, str, str]:
     return xml, kind, label
 
 
-def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
-    try:
-        if kind == 'urdf':
-            if '<robot' not in xml:
-                raise ValueError('no <robot> element')
-            return pin.buildModelFromXML(xml)
-        # pinocchio reads MJCF from files only.
-        with tempfile.NamedTemporaryFile('w', suffix='.xml', delete=False) as f:
-            f.write(xml)
+@contextlib.contextmanager
+def _captured_stderr_fd(sink: list):
+    """Capture what C++ code writes to file descriptor 2 (urdfdom prints parse errors there)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile('w+') as tmp:
+        os.dup2(tmp.fileno(), 2)
         try:
-            return pin.buildModelFromMJCF(f.name)
+            yield
         finally:
-            os.unlink(f.name)
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            sink.append(tmp.read())
+
+
+def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
+    printed: list[str] = []
+    try:
+        with _captured_stderr_fd(printed):
+            if kind == 'urdf':
+                if '<robot' not in xml:
+                    raise ValueError('no <robot> element')
+                return pin.buildModelFromXML(xml)
+            # pinocchio reads MJCF from files only.
+            with tempfile.NamedTemporaryFile('w', suffix='.xml', delete=False) as f:
+                f.write(xml)
+            try:
+                return pin.buildModelFromMJCF(f.name)
+            finally:
+                os.unlink(f.name)
     except Exception as exc:  # pinocchio raises plain ValueError/RuntimeError with C++ text
-        raise IdentificationError(f'robot {label}: {kind.upper()} does not parse: {exc}') from None
+        detail = ' '.join(' '.join(printed).split())
+        raise IdentificationError(f'robot {label}: {kind.upper()} does not parse: {exc}'
+                                  + (f' ({detail})' if detail else '')) from None
 
 
 def _is_prismatic(joint: pin.JointModel) -> bool:
@@ -236,7 +258,10 @@ class RobotModel:
         """Validate joint-space arrays: (N, n) or (n,) floats, all finite, same N."""
         out = []
         for name, a in zip(('q', 'qd', 'qdd', 'tau'), arrays):
-            a = np.asarray(a, dtype=float)
+            try:
+                a = np.asarray(a, dtype=float)
+            except (TypeError, ValueError):
+                raise IdentificationError(f'{name} is not an array of numbers') from None
             if a.ndim == 1:
                 a = a[None, :]
             if a.ndim != 2 or a.shape[1] != self.dof:
@@ -279,7 +304,7 @@ class RobotModel:
         if out is None:
             out = np.empty(shape)
         elif out.shape != shape:
-            raise ValueError(f'out has shape {out.shape}, expected {shape}')
+            raise IdentificationError(f'out has shape {out.shape}, expected {shape}')
         Q, V, A = self.configuration(q), self._tangent(qd), self._tangent(qdd)
         ni = self.n_inertial
         for k in range(N):  # the unavoidable per-sample pinocchio call
