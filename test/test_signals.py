@@ -1,0 +1,231 @@
+"""Fixed-lag smoother, zero-phase filtering, decimation, derivatives and period averaging."""
+import numpy as np
+import pytest
+
+from identification_node.errors import IdentificationError
+from identification_node.signals import (
+    FixedLagSmoother, central_derivatives, decimate, period_average, zero_phase_lowpass)
+
+
+def _irregular_stamps(rng, n, dt=0.01, jitter=0.4, t0=3.0):
+    return t0 + np.cumsum(dt * rng.uniform(1 - jitter, 1 + jitter, n))
+
+
+def _poly(t, coeffs):
+    """Values, first and second derivatives of polynomials (columns) at t."""
+    ps = [np.polynomial.Polynomial(c) for c in coeffs]
+    return (np.stack([p(t) for p in ps], 1), np.stack([p.deriv()(t) for p in ps], 1),
+            np.stack([p.deriv(2)(t) for p in ps], 1))
+
+
+@pytest.mark.parametrize('order,L', [(2, 3), (3, 5), (3, 1 + 1), (4, 6)])
+def test_exact_on_polynomials_with_irregular_stamps(order, L):
+    rng = np.random.default_rng(order * 10 + L)
+    t = _irregular_stamps(rng, 200)
+    coeffs = rng.normal(size=(4, order + 1))
+    x, xd, xdd = _poly(t - 4.0, coeffs)
+    sm = FixedLagSmoother(4, half_window=L, order=order)
+    tc, v, d, dd = sm.push(t, x)
+    assert tc.size == 200 - 2 * L
+    np.testing.assert_array_equal(tc, t[L:-L])
+    np.testing.assert_allclose(v, x[L:-L], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(d, xd[L:-L], rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(dd, xdd[L:-L], rtol=1e-5, atol=1e-5)
+
+
+def test_not_exact_above_its_order():
+    # A quadratic fit cannot follow a quartic: the check above is not vacuous.
+    t = np.linspace(0, 1, 101)
+    x = (t ** 4)[:, None]
+    _, v, _, dd = FixedLagSmoother(1, half_window=10, order=2).push(t, x)
+    assert np.abs(dd[:, 0] - 12 * t[10:-10] ** 2).max() > 0.01
+
+
+def test_noisy_sine_derivatives():
+    rng = np.random.default_rng(7)
+    f, amp, sigma = 1.3, 0.8, 1e-3
+    t = _irregular_stamps(rng, 4000, dt=0.002, jitter=0.2)
+    w = 2 * np.pi * f
+    clean = amp * np.sin(w * t)
+    x = (clean + rng.normal(0, sigma, t.size))[:, None]
+    tc, v, d, dd = FixedLagSmoother(1, half_window=20, order=3).push(t, x)
+    rms = lambda e: np.sqrt(np.mean(e ** 2))                        # noqa: E731
+    assert rms(v[:, 0] - amp * np.sin(w * tc)) < 0.5 * sigma        # smoothing reduces noise
+    assert rms(d[:, 0] - amp * w * np.cos(w * tc)) < 0.01 * amp * w
+    assert rms(dd[:, 0] + amp * w * w * np.sin(w * tc)) < 0.1 * amp * w * w
+    # ...and beats plain finite differences of the same noisy samples by far.
+    fd, _ = central_derivatives(t, x)
+    assert rms(d[:, 0] - amp * w * np.cos(w * tc)) < 0.2 * rms(
+        fd[20:-20, 0] - amp * w * np.cos(w * t[20:-20]))
+
+
+def test_chunked_equals_one_shot():
+    rng = np.random.default_rng(3)
+    t = _irregular_stamps(rng, 1500)
+    t[700:] += 0.5                                                  # one gap
+    x = rng.normal(size=(1500, 5))
+    one = FixedLagSmoother(5, half_window=8, order=3, max_gap=0.1).push(t, x)
+    sm = FixedLagSmoother(5, half_window=8, order=3, max_gap=0.1)
+    parts, i = [], 0
+    for m in rng.integers(0, 40, 10000):
+        if i >= t.size:
+            break
+        parts.append(sm.push(t[i:i + m], x[i:i + m]))
+        i += m
+    chunked = [np.concatenate(p) for p in zip(*parts)]
+    assert one[0].size == 1500 - 4 * 8
+    for a, b in zip(one, chunked):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
+    # one sample at a time, scalar stamp and (c,) sample
+    sm.reset()
+    single = [sm.push(t[k], x[k]) for k in range(100)]
+    np.testing.assert_allclose(np.concatenate([s[2] for s in single]), one[2][:100 - 16],
+                               rtol=1e-13, atol=1e-13)
+
+
+def test_gap_restarts_the_window():
+    # Different polynomials before and after the gap: any window straddling it would be wrong.
+    rng = np.random.default_rng(4)
+    t1 = _irregular_stamps(rng, 60)
+    t2 = _irregular_stamps(rng, 50, t0=t1[-1] + 1.0)
+    a = _poly(t1 - 3, [[1, 2, -3, 0.5]])
+    b = _poly(t2 - 3, [[-4, 0.5, 7, -2]])
+    sm = FixedLagSmoother(1, half_window=5, order=3, max_gap=0.5)
+    out1 = sm.push(t1, a[0])
+    out2 = sm.push(t2, b[0])
+    np.testing.assert_array_equal(out2[0], t2[5:-5])
+    np.testing.assert_allclose(out1[2], a[1][5:-5], rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(out2[2], b[1][5:-5], rtol=1e-7, atol=1e-7)
+    # The same stream in one call gives the same windows.
+    sm.reset()
+    both = sm.push(np.r_[t1, t2], np.r_[a[0], b[0]])
+    np.testing.assert_array_equal(both[0], np.r_[t1[5:-5], t2[5:-5]])
+    # A gap inside a short segment leaves no output for it.
+    sm.reset()
+    t3 = np.r_[t1[:4], t1[4:] + 2.0]
+    assert sm.push(t3, a[0])[0].size == 60 - 4 - 10
+
+
+def test_delay_and_validation():
+    sm = FixedLagSmoother(2, half_window=7, order=2)
+    assert sm.delay_samples == 7
+    assert sm.delay(100.0) == pytest.approx(0.07)
+    assert sm.push(np.arange(14.0), np.zeros((14, 2)))[0].size == 0   # 2L samples: none yet
+    assert sm.push([14.0], np.zeros((1, 2)))[0].tolist() == [7.0]
+    with pytest.raises(IdentificationError, match='not after'):
+        sm.push([14.0], np.zeros((1, 2)))
+    with pytest.raises(IdentificationError, match='strictly increasing'):
+        sm.push([20.0, 21.0, 21.0], np.zeros((3, 2)))
+    with pytest.raises(IdentificationError, match='NaN'):
+        sm.push([30.0], [[0.0, np.nan]])
+    with pytest.raises(IdentificationError, match=r'expected \(N, 2\)'):
+        sm.push([30.0], np.zeros((1, 3)))
+    with pytest.raises(IdentificationError, match='time stamps'):
+        sm.push([30.0, 31.0], np.zeros((1, 2)))
+    sm.reset()
+    assert sm.push([0.0], np.zeros((1, 2)))[0].size == 0              # reset allows restart
+    for kw in (dict(half_window=0), dict(order=1), dict(order=5), dict(half_window=1, order=3),
+               dict(max_gap=0.0), dict(order=2.5)):
+        with pytest.raises(IdentificationError):
+            FixedLagSmoother(3, **kw)
+    with pytest.raises(IdentificationError, match='rate'):
+        sm.delay(0.0)
+
+
+def test_frequency_response_matches_streaming_output():
+    rate, f, L = 100.0, 7.0, 12
+    sm = FixedLagSmoother(1, half_window=L, order=3)
+    t = np.arange(400) / rate
+    tc, v, d, dd = sm.push(t, np.sin(2 * np.pi * f * t)[:, None])
+    h0, h1, h2 = sm.frequency_response(np.array([f]), rate)
+    z = np.exp(2j * np.pi * f * tc)                                # sin = Im(z)
+    np.testing.assert_allclose(v[:, 0], np.imag(h0 * z), atol=1e-10)
+    np.testing.assert_allclose(d[:, 0], np.imag(h1 * z), atol=1e-8)
+    np.testing.assert_allclose(dd[:, 0], np.imag(h2 * z), atol=1e-6)
+    # Zero phase about the centre, unit DC gain, ideal derivative gains at low frequency.
+    g0, g1, g2 = sm.frequency_response(np.array([0.0, 0.2]), rate)
+    np.testing.assert_allclose(np.imag(g0), 0.0, atol=1e-12)
+    assert g0[0].real == pytest.approx(1.0)
+    w = 2 * np.pi * 0.2
+    assert g1[1] == pytest.approx(1j * w, rel=1e-5)
+    assert g2[1] == pytest.approx(-w * w, rel=1e-2)
+    assert abs(sm.frequency_response(np.array([0.45 * rate]), rate)[0][0]) < 0.1
+
+
+def test_zero_phase_lowpass_has_no_delay():
+    rate = 1000.0
+    t = np.arange(4000) / rate
+    slow = np.sin(2 * np.pi * 2.0 * t)
+    x = np.stack([slow + 0.3 * np.sin(2 * np.pi * 200.0 * t), -slow], 1)
+    y = zero_phase_lowpass(x, rate, cutoff=20.0, order=4)
+    mid = slice(500, -500)
+    # One sample of delay would give an error of 2 pi 2 / 1000 = 1.3e-2.
+    np.testing.assert_allclose(y[mid, 0], slow[mid], atol=1e-4)
+    np.testing.assert_allclose(y[mid, 1], -slow[mid], atol=1e-4)
+    assert zero_phase_lowpass(slow, rate, 20.0).shape == slow.shape
+    with pytest.raises(IdentificationError, match='cutoff'):
+        zero_phase_lowpass(x, rate, cutoff=600.0)
+    with pytest.raises(IdentificationError, match='too few'):
+        zero_phase_lowpass(x[:10], rate, cutoff=20.0)
+    with pytest.raises(IdentificationError, match='NaN'):
+        zero_phase_lowpass(np.r_[slow[:100], np.nan], rate, 20.0)
+
+
+def test_decimate_removes_aliases():
+    rate, factor = 1000.0, 10
+    t = np.arange(5000) / rate
+    slow = np.cos(2 * np.pi * 1.5 * t)
+    fast = 0.5 * np.sin(2 * np.pi * 190.0 * t)     # would alias to 10 Hz at 100 Hz
+    y = decimate(np.stack([slow + fast, slow], 1), factor)
+    assert y.shape == (500, 2)
+    np.testing.assert_allclose(y[30:-30, 0], slow[::factor][30:-30], atol=2e-3)
+    np.testing.assert_allclose(decimate(slow, 1), slow)
+    with pytest.raises(IdentificationError, match='factor'):
+        decimate(slow, 0)
+
+
+def test_central_derivatives_exact_on_quadratics():
+    rng = np.random.default_rng(9)
+    t = _irregular_stamps(rng, 50, jitter=0.6)
+    x, xd, xdd = _poly(t - 3.2, rng.normal(size=(3, 3)))
+    d, dd = central_derivatives(t, x)
+    np.testing.assert_allclose(d, xd, rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(dd, xdd, rtol=1e-6, atol=1e-6)
+    with pytest.raises(IdentificationError, match='increasing'):
+        central_derivatives(t[::-1], x)
+
+
+def test_period_average_recovers_signal_and_noise():
+    rng = np.random.default_rng(11)
+    rate, period, periods = 100.0, 2.0, 30
+    n = int(rate * period)
+    t = np.arange(n * periods + 37) / rate + rng.uniform(-0.1, 0.1, n * periods + 37) / rate
+    sig = np.stack([np.sin(2 * np.pi * t / period) + 0.3 * np.cos(6 * np.pi * t / period),
+                    2.0 * np.sin(4 * np.pi * t / period + 1.0)], 1)
+    sigma = np.array([0.05, 0.2])
+    x = sig + rng.normal(size=sig.shape) * sigma
+    drop = rng.choice(x.shape[0], 40, replace=False)         # dropped messages
+    t, x, sig = np.delete(t, drop), np.delete(x, drop, 0), np.delete(sig, drop, 0)
+    res = period_average(t, x, period)
+    assert res.periods == periods
+    assert res.mean.shape == res.var.shape == (n, 2)
+    assert res.counts.sum() == np.sum(t - t[0] < periods * period - 0.5 / rate)
+    # Per-bin variance estimates with ~29 degrees of freedom, averaged over 200 bins: ~2 %.
+    np.testing.assert_allclose(res.var.mean(axis=0), sigma ** 2, rtol=0.1)
+    truth = np.stack([np.sin(2 * np.pi * (res.t + t[0]) / period)
+                      + 0.3 * np.cos(6 * np.pi * (res.t + t[0]) / period),
+                      2.0 * np.sin(4 * np.pi * (res.t + t[0]) / period + 1.0)], 1)
+    err = (res.mean - truth) / (sigma / np.sqrt(res.counts[:, None]))
+    assert np.sqrt(np.mean(err ** 2)) < 1.5          # ~1 if the mean is unbiased (+ jitter)
+    one = period_average(t, x[:, 1], period)         # 1-D in, 1-D out
+    np.testing.assert_allclose(one.var, res.var[:, 1])
+
+
+def test_period_average_errors():
+    t = np.arange(300) / 100.0
+    with pytest.raises(IdentificationError, match='whole period'):
+        period_average(t, np.sin(t), 2.0)
+    with pytest.raises(IdentificationError, match='period'):
+        period_average(t, np.sin(t), -1.0)
+    with pytest.raises(IdentificationError, match='fewer than 2'):
+        period_average(np.delete(t, [5, 105]), np.delete(np.sin(t), [5, 105]), 1.0)
