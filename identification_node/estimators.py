@@ -1,0 +1,581 @@
+"""Least-squares estimators of (base) inertial parameters: batch and recursive.
+
+Data are regressor rows grouped per sample: ``Y`` (N, n, p) and measured joint torques ``tau``
+(N, n) with tau ~ Y @ theta (SI units of the regressor columns; p parameters, n joints).
+
+Sufficient statistics. Every estimator keeps, per joint j, the upper-triangular factor of the
+augmented data matrix [Y_j | tau_j] (QR, updated by stacking [R_aug; new rows] and re-factoring):
+
+    R_aug_j = [[R_j, z_j], [0, rho_j]],  R_j'R_j = Y_j'Y_j,  R_j'z_j = Y_j'tau_j,
+    ||tau_j - Y_j theta||^2 = ||R_j theta - z_j||^2 + rho_j^2   for every theta.
+
+Memory is O(n p^2) whatever N; recordings merge by stacking factors; per-joint noise weights are
+applied by scaling the factors (feasible GLS) without revisiting the data; normal equations are
+never formed, so the condition number is not squared.
+
+Noise variances use the exact per-joint leverage h_j = w_j trace((A'WA)^-1 A_j'A_j)
+(sum_j h_j = p): E||r_j||^2 = sigma_j^2 (N - h_j), so sigma_j^2 = rss_j / (N - h_j).
+
+Recursive least squares (:class:`RecursiveLeastSquares`) uses the same factors in
+square-root-information form, with *stabilised (regularised) forgetting*::
+
+    J_k(theta) = lam J_{k-1}(theta) + (1 - lam) ||R_min (theta - theta_{k-1})||^2 + new rows.
+
+Why this choice: plain exponential forgetting divides the information by lam every sample, so in
+directions the data do not excite (arm at rest: only gravity rows) the covariance grows as
+lam^-k ("wind-up") until it overflows. The added term keeps the information >= (1 - lam^k)
+R_min'R_min in every direction and pulls unexcited directions towards the previous estimate
+(they do not drift), while excited directions see a bias of order |R_min|^2 / data information.
+Unlike directional forgetting it needs no per-sample rank-one updates, so a whole batch is
+processed exactly by one QR: over a batch of N samples the regularisation weight is 1 - lam^N,
+anchored at the estimate at the start of the batch, and sample k gets weight lam^(N-1-k).
+With lam = 1 the term vanishes and the estimate equals batch least squares.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import IdentificationError
+
+_CHUNK = 4096  # samples per QR: bounds the workspace to ~_CHUNK * n * (p + 1) floats
+_DEFAULT_RCOND = 1e-10  # singular-value ratio (column-scaled) below which a direction is unexcited
+
+
+@dataclass
+class Estimate:
+    """A parameter estimate with its uncertainty.
+
+    theta (p,) in the units of the regressor columns; covariance (p, p) of theta; stddev (p,)
+    its square-root diagonal; rel_stddev (p,) in percent, 100 stddev / |theta| (inf where
+    theta == 0); noise_variance (n,) per joint torque noise variance (N m)^2; num_samples N;
+    rss the residual sum of squares sum ||tau - Y theta||^2 (recursive: forgotten, weighted).
+    """
+    theta: np.ndarray
+    covariance: np.ndarray
+    stddev: np.ndarray
+    rel_stddev: np.ndarray
+    noise_variance: np.ndarray
+    num_samples: int
+    rss: float
+
+    @classmethod
+    def from_covariance(cls, theta: np.ndarray, covariance: np.ndarray,
+                        noise_variance: np.ndarray, num_samples: int, rss: float) -> Estimate:
+        """Build an estimate, deriving stddev and rel_stddev from the covariance."""
+        theta = np.asarray(theta, dtype=float)
+        covariance = np.asarray(covariance, dtype=float)
+        stddev = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+        return cls(theta=theta, covariance=covariance, stddev=stddev,
+                   rel_stddev=_relative(stddev, theta),
+                   noise_variance=np.asarray(noise_variance, dtype=float),
+                   num_samples=int(num_samples), rss=float(rss))
+
+    def predict(self, Y: np.ndarray) -> np.ndarray:
+        """Predicted torques Y @ theta, (N, n) for Y (N, n, p)."""
+        return np.asarray(Y, dtype=float) @ self.theta
+
+
+# -- helpers ----------------------------------------------------------------------------------
+def _relative(stddev: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    with np.errstate(divide='ignore', invalid='ignore'):
+        rel = 100.0 * stddev / np.abs(theta)
+    return np.where(theta == 0, np.inf, rel)
+
+
+def _qr_r(a: np.ndarray) -> np.ndarray:
+    """Upper-triangular R (..., k, k) of the QR factorisation of a (..., m, k), m >= k."""
+    return np.linalg.qr(a, mode='r')
+
+
+def _check_count(name: str, value: int, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise IdentificationError(f'{name} must be an integer >= {minimum}, got {value!r}')
+    return int(value)
+
+
+def _as_float(name: str, a) -> np.ndarray:
+    try:
+        return np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise IdentificationError(f'{name} is not a numeric array: {exc}') from None
+
+
+def _check_finite(name: str, a: np.ndarray) -> None:
+    if not np.isfinite(a).all():
+        k = int(np.argwhere(~np.isfinite(a))[0][0])
+        raise IdentificationError(f'{name} contains NaN or inf (first at sample {k})')
+
+
+def _check_data(Y, tau, num_params: int, num_joints: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Validate Y (N, n, p) and tau (N, n) (one sample: (n, p) and (n,))."""
+    Y, tau = _as_float('regressor', Y), _as_float('torques', tau)
+    if Y.ndim == 2 and tau.ndim == 1:
+        Y, tau = Y[None], tau[None]
+    n = '{n}' if num_joints is None else num_joints
+    if Y.ndim != 3 or Y.shape[2] != num_params or (num_joints is not None
+                                                   and Y.shape[1] != num_joints):
+        raise IdentificationError(
+            f'regressor has shape {Y.shape}; expected (N, {n}, {num_params}) '
+            '(samples, joints, parameters)')
+    if tau.shape != Y.shape[:2]:
+        raise IdentificationError(
+            f'torques have shape {tau.shape}; expected {Y.shape[:2]} (samples, joints) to match '
+            f'the regressor')
+    _check_finite('regressor', Y)
+    _check_finite('torques', tau)
+    return Y, tau
+
+
+def _augmented_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
+                    ) -> np.ndarray:
+    """Per-joint row blocks [Y_j | tau_j] (n, N, p+1), rows optionally scaled by scale (N, n)."""
+    rows = np.concatenate([Y, tau[:, :, None]], axis=2).transpose(1, 0, 2)
+    if scale is not None:
+        rows *= scale.T[:, :, None]
+    return rows
+
+
+def _joint_rss(R_aug: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """||R_j theta - z_j||^2 + rho_j^2 per joint, for factors R_aug (n, p+1, p+1)."""
+    return np.sum((R_aug @ np.append(theta, -1.0)) ** 2, axis=-1)
+
+
+def _leverage(R_aug: np.ndarray, R_inv: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """h_j = w_j trace(P A_j'A_j) with P = R_inv R_inv' (n,)."""
+    p = R_inv.shape[0]
+    return weights * np.sum((R_aug[:, :p, :p] @ R_inv) ** 2, axis=(1, 2))
+
+
+def _column_scale(R: np.ndarray) -> np.ndarray:
+    """Column norms of R, for a scale-invariant rank test on R / d."""
+    d = np.linalg.norm(R, axis=0)
+    # Columns at rounding level (a parameter without effect) must not be scaled up to unit norm.
+    return np.where(d > 1e-12 * d.max(), d, max(d.max(), 1e-300))
+
+
+def _rank(s: np.ndarray, rcond: float) -> int:
+    return int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
+
+
+def _solve(R: np.ndarray, z: np.ndarray, rcond: float, theta_ref: np.ndarray | None = None
+           ) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """Minimise ||R theta - z|| for upper-triangular R.
+
+    Returns theta, the rank, a generalised inverse G of R (R^-1 at full rank) and a boolean
+    mask of the parameters that the data determine. When R is singular, theta is theta_ref
+    (default 0) plus the minimum-norm correction in column-scaled coordinates.
+    """
+    p = R.shape[0]
+    d = _column_scale(R)
+    try:
+        # LU of a triangular matrix does not pivot: this is back substitution (numpy only, so
+        # one BLAS thread pool; scipy's would fight it for the cores).
+        sol = np.linalg.solve(R, np.column_stack([z, np.eye(p)]))
+        R_inv = sol[:, 1:]
+        # kappa_2 <= ||Rs||_F ||Rs^-1||_F: full rank without an SVD in the common case
+        if (np.isfinite(sol).all() and np.linalg.norm(R / d) * np.linalg.norm(d[:, None] * R_inv)
+                < 1.0 / rcond):
+            return sol[:, 0], p, R_inv, np.ones(p, dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
+    U, s, Vt = np.linalg.svd(R / d)
+    rank = _rank(s, rcond)
+    G = (Vt[:rank].T / s[:rank]) @ U[:, :rank].T / d[:, None]
+    ref = np.zeros(p) if theta_ref is None else theta_ref
+    theta = ref + G @ (z - R @ ref)
+    determined = np.linalg.norm(Vt[rank:], axis=0) < 1e-8
+    return theta, rank, G, determined
+
+
+def _covariance(G: np.ndarray, scale: float, determined: np.ndarray) -> np.ndarray:
+    """scale * G G', symmetric; inf variance (and zero correlation) for undetermined params."""
+    cov = scale * (G @ G.T)
+    cov = 0.5 * (cov + cov.T)
+    if not determined.all():
+        cov[~determined, :] = 0.0
+        cov[:, ~determined] = 0.0
+        cov[~determined, ~determined] = np.inf
+    return cov
+
+
+def _excitation_error(num_samples: int, num_joints: int, p: int, rank: int) -> IdentificationError:
+    rows = num_samples * num_joints
+    if rows < p:
+        what = (f'{num_samples} samples x {num_joints} joints = {rows} torque rows for '
+                f'{p} parameters')
+    else:
+        what = (f'the data ({num_samples} samples x {num_joints} joints) do not determine all '
+                f'{p} parameters; excite more joints/directions or use base parameters')
+    return IdentificationError(f'not enough excitation: {what} (rank {rank} < {p})')
+
+
+# -- batch estimators -------------------------------------------------------------------------
+class _BatchAccumulator:
+    """Per-joint QR factors of [Y_j | tau_j], filled by add() and merge()."""
+
+    def __init__(self, num_params: int, num_joints: int, rcond: float = _DEFAULT_RCOND):
+        self.num_params = _check_count('num_params', num_params)
+        self.num_joints = _check_count('num_joints', num_joints)
+        if not (np.isfinite(rcond) and 0 < rcond < 1):
+            raise IdentificationError(f'rcond must be in (0, 1), got {rcond!r}')
+        self.rcond = float(rcond)
+        p1 = self.num_params + 1
+        self._R_aug = np.zeros((self.num_joints, p1, p1))
+        self.num_samples = 0
+
+    def add(self, Y: np.ndarray, tau: np.ndarray) -> None:
+        """Add samples: regressor Y (N, n, p) and torques tau (N, n)."""
+        Y, tau = _check_data(Y, tau, self.num_params, self.num_joints)
+        for start in range(0, Y.shape[0], _CHUNK):
+            rows = _augmented_rows(Y[start:start + _CHUNK], tau[start:start + _CHUNK])
+            self._R_aug = _qr_r(np.concatenate([self._R_aug, rows], axis=1))
+        self.num_samples += Y.shape[0]
+
+    def merge(self, other: _BatchAccumulator) -> _BatchAccumulator:
+        """Add the data of another batch estimator (e.g. another recording); returns self."""
+        if not isinstance(other, _BatchAccumulator):
+            raise IdentificationError(
+                f'cannot merge {type(other).__name__} into a batch estimator')
+        if (other.num_params, other.num_joints) != (self.num_params, self.num_joints):
+            raise IdentificationError(
+                f'cannot merge estimators of different size: {other.num_params} parameters x '
+                f'{other.num_joints} joints into {self.num_params} x {self.num_joints}')
+        self._R_aug = _qr_r(np.concatenate([self._R_aug, other._R_aug], axis=1))
+        self.num_samples += other.num_samples
+        return self
+
+    @property
+    def information(self) -> np.ndarray:
+        """Unweighted information matrix A'A (p, p) of all rows."""
+        R = self._combine(np.ones(self.num_joints))[0]
+        return R.T @ R
+
+    def _combine(self, sqrt_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Factor R (p, p) and z (p,) of all joints, joint j's rows scaled by sqrt_weights[j]."""
+        p = self.num_params
+        stacked = (self._R_aug * sqrt_weights[:, None, None]).reshape(-1, p + 1)
+        R_aug = _qr_r(stacked)
+        return R_aug[:p, :p], R_aug[:p, p]
+
+    def _require_data(self) -> None:
+        if self.num_samples == 0:
+            raise IdentificationError('no samples: add data before solving')
+
+    def _weighted_solve(self, weights: np.ndarray):
+        """theta, G = R^-1, per-joint rss and leverage for joint weights (n,); raises on rank."""
+        R, z = self._combine(np.sqrt(weights))
+        theta, rank, G, _ = _solve(R, z, self.rcond)
+        if rank < self.num_params:
+            raise _excitation_error(self.num_samples, self.num_joints, self.num_params, rank)
+        rows = self.num_samples * self.num_joints
+        if rows <= self.num_params:
+            raise IdentificationError(
+                f'not enough samples: {rows} torque rows for {self.num_params} parameters leave '
+                'no degrees of freedom to estimate the noise')
+        rss = _joint_rss(self._R_aug, theta)
+        lev = _leverage(self._R_aug, G, weights)
+        # max(., 1): a joint whose rows are (almost) all fitted exactly has rss ~ 0 anyway.
+        noise = rss / np.maximum(self.num_samples - lev, 1.0)
+        return theta, G, rss, noise
+
+
+class LeastSquares(_BatchAccumulator):
+    """Ordinary least squares, theta = argmin ||tau - Y theta||^2 over all samples and joints.
+
+    Covariance sigma^2 (A'A)^-1 with sigma^2 = RSS / (N n - p); noise_variance per joint
+    rss_j / (N - h_j) (leverage-corrected).
+    """
+
+    def solve(self) -> Estimate:
+        """Estimate from all data added so far; IdentificationError if not excited enough."""
+        self._require_data()
+        theta, G, rss, noise = self._weighted_solve(np.ones(self.num_joints))
+        sigma2 = rss.sum() / (self.num_samples * self.num_joints - self.num_params)
+        cov = _covariance(G, sigma2, np.ones(self.num_params, dtype=bool))
+        return Estimate.from_covariance(theta, cov, noise, self.num_samples, rss.sum())
+
+
+class WeightedLeastSquares(_BatchAccumulator):
+    """Weighted least squares with per-joint noise variances estimated from the data.
+
+    Radkhah et al. eq. 6, theta = (A' S^-1 A)^-1 A' S^-1 tau with S = diag(sigma_j^2) per joint,
+    as feasible GLS: start from OLS, re-estimate sigma_j^2 = rss_j / (N - h_j) from the residuals,
+    re-solve, until the variances change by less than ``tol`` (relative) or ``iterations``.
+    Covariance (A' S^-1 A)^-1. noise_variance are the sigma_j^2; rss is unweighted.
+    """
+
+    def __init__(self, num_params: int, num_joints: int, *, iterations: int = 20,
+                 tol: float = 1e-8, rcond: float = _DEFAULT_RCOND):
+        super().__init__(num_params, num_joints, rcond)
+        self.iterations = _check_count('iterations', iterations)
+        self.tol = float(tol)
+
+    def solve(self) -> Estimate:
+        """Estimate from all data added so far; IdentificationError if not excited enough."""
+        self._require_data()
+        theta, G, rss, sigma2 = self._weighted_solve(np.ones(self.num_joints))
+        if sigma2.max() <= 0:  # noise-free data: any weights give the same (exact) fit
+            cov = np.zeros((self.num_params, self.num_params))
+            return Estimate.from_covariance(theta, cov, sigma2, self.num_samples, rss.sum())
+        for _ in range(self.iterations):
+            # Floor: a (nearly) noise-free joint must not get an infinite weight.
+            weights = 1.0 / np.maximum(sigma2, 1e-12 * sigma2.max())
+            theta, G, rss, new = self._weighted_solve(weights)
+            converged = np.max(np.abs(new - sigma2) / np.maximum(new, 1e-300)) < self.tol
+            sigma2 = new
+            if converged:
+                break
+        cov = _covariance(G, 1.0, np.ones(self.num_params, dtype=bool))
+        return Estimate.from_covariance(theta, cov, sigma2, self.num_samples, rss.sum())
+
+
+class RidgeRegression(_BatchAccumulator):
+    """Ridge regression on the full (possibly rank-deficient) standard regressor.
+
+    An, Atkeson and Hollerbach eq. 9: psi = (K'K + d I)^-1 K' tau; nearly the least-squares
+    solution of the identifiable part when d << the smallest nonzero eigenvalue of K'K, and
+    close to zero in the unidentifiable directions. Covariance of the linear estimator
+    sigma^2 G K'K G with G = (K'K + d I)^-1 and sigma^2 = RSS / (N n - trace(G K'K)).
+    """
+
+    def __init__(self, num_params: int, num_joints: int, d: float,
+                 rcond: float = _DEFAULT_RCOND):
+        super().__init__(num_params, num_joints, rcond)
+        if not (np.isfinite(d) and d > 0):
+            raise IdentificationError(f'ridge parameter d must be finite and > 0, got {d!r}')
+        self.d = float(d)
+
+    def solve(self) -> Estimate:
+        """Ridge estimate from all data added so far."""
+        self._require_data()
+        p = self.num_params
+        R, z = self._combine(np.ones(self.num_joints))
+        ridge_rows = np.hstack([np.sqrt(self.d) * np.eye(p), np.zeros((p, 1))])
+        Rr_aug = _qr_r(np.vstack([np.column_stack([R, z]), ridge_rows]))
+        Rr = Rr_aug[:p, :p]
+        sol = np.linalg.solve(Rr, np.column_stack([Rr_aug[:p, p], np.eye(p)]))
+        theta, Rr_inv = sol[:, 0], sol[:, 1:]
+        dof = self.num_samples * self.num_joints - np.sum((R @ Rr_inv) ** 2)
+        if dof < 1:
+            raise IdentificationError(
+                f'not enough samples: {self.num_samples * self.num_joints} torque rows leave no '
+                'degrees of freedom to estimate the noise')
+        rss = _joint_rss(self._R_aug, theta)
+        lev = _leverage(self._R_aug, Rr_inv, np.ones(self.num_joints))
+        noise = rss / np.maximum(self.num_samples - lev, 1.0)
+        M = Rr_inv @ (Rr_inv.T @ R.T)  # G K'K G = M M'
+        cov = _covariance(M, rss.sum() / dof, np.ones(p, dtype=bool))
+        return Estimate.from_covariance(theta, cov, noise, self.num_samples, rss.sum())
+
+
+# -- recursive least squares ------------------------------------------------------------------
+def _information_factor(name: str, value, p: int) -> np.ndarray:
+    """Upper-triangular R with R'R = value: scalar (times I), (p,) diagonal or (p, p) SPD."""
+    M = _as_float(name, value)
+    if not np.isfinite(M).all():
+        raise IdentificationError(f'{name} must be finite')
+    if M.ndim == 0 or M.shape == (p,):
+        if np.any(M < 0):
+            raise IdentificationError(f'{name} must be >= 0, got {value!r}')
+        return np.diag(np.broadcast_to(np.sqrt(M), (p,))).copy()
+    if M.shape != (p, p) or not np.allclose(M, M.T, rtol=1e-10, atol=0):
+        raise IdentificationError(
+            f'{name} must be a scalar, ({p},) or a symmetric ({p}, {p}) matrix; got shape '
+            f'{M.shape}')
+    w, V = np.linalg.eigh(M)
+    if w.min() < -1e-12 * max(w.max(), 0.0):
+        raise IdentificationError(f'{name} must be positive semi-definite')
+    return _qr_r((V * np.sqrt(np.maximum(w, 0.0))).T)
+
+
+class RecursiveLeastSquares:
+    """Recursive least squares in square-root information form with stabilised forgetting.
+
+    State: per-joint factors of the forgotten, weighted data (see module docstring) and one
+    factor for the prior and the forgetting regulariser; their stack gives the upper-triangular
+    R (R'R = information), z = R theta. The covariance sigma^2 (R'R)^-1 is symmetric positive
+    (semi-)definite by construction.
+
+    forgetting lam in (0, 1]: sample k of a batch of N is weighted lam^(N-1-k) relative to the
+    last. min_information: R_min'R_min (scalar times I, (p,) diagonal or (p, p)), the floor the
+    information approaches in every direction under forgetting, in units of the (weighted)
+    information of the rows; unused when lam == 1. prior_information / theta0: an optional
+    prior theta0 with that information (forgotten like data); with none, theta starts at theta0
+    (default 0) and is the minimum-norm (column-scaled) solution until the data excite all
+    directions. ``num_joints`` is taken from the first update when not given.
+    """
+
+    def __init__(self, num_params: int, forgetting: float = 1.0,
+                 min_information=1e-6, *, num_joints: int | None = None,
+                 prior_information=0.0, theta0: np.ndarray | None = None,
+                 rcond: float = _DEFAULT_RCOND):
+        self.num_params = p = _check_count('num_params', num_params)
+        if not (np.isfinite(forgetting) and 0 < forgetting <= 1):
+            raise IdentificationError(f'forgetting factor must be in (0, 1], got {forgetting!r}')
+        if not (np.isfinite(rcond) and 0 < rcond < 1):
+            raise IdentificationError(f'rcond must be in (0, 1), got {rcond!r}')
+        self.forgetting = float(forgetting)
+        self.rcond = float(rcond)
+        self._R_min = _information_factor('min_information', min_information, p)
+        R0 = _information_factor('prior_information', prior_information, p)
+        theta0 = np.zeros(p) if theta0 is None else _as_float('theta0', theta0)
+        if theta0.shape != (p,) or not np.isfinite(theta0).all():
+            raise IdentificationError(
+                f'theta0 must be {p} finite values, got shape {theta0.shape}')
+        self._theta0 = theta0.copy()
+        self._prior_aug = np.zeros((p + 1, p + 1))
+        self._prior_aug[:p, :p] = R0
+        self._prior_aug[:p, p] = R0 @ theta0
+        self._num_joints = None if num_joints is None else _check_count('num_joints', num_joints)
+        self.reset()
+
+    # -- state ----------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget all data: back to the prior."""
+        p1 = self.num_params + 1
+        self._reg_aug = self._prior_aug.copy()
+        n = self._num_joints or 0
+        self._joint_aug = np.zeros((n, p1, p1))
+        self._count = np.zeros(n)
+        self.num_samples = 0
+        self._refresh()
+
+    def _refresh(self) -> None:
+        p = self.num_params
+        stacked = np.concatenate([self._reg_aug, self._joint_aug.reshape(-1, p + 1)])
+        total = _qr_r(stacked)
+        self._R = total[:p, :p]
+        self._theta, self._rank, self._G, self._determined = _solve(
+            self._R, total[:p, p], self.rcond, self._theta0)
+
+    def update(self, Y: np.ndarray, tau: np.ndarray, weights: np.ndarray | None = None
+               ) -> np.ndarray:
+        """Process a batch: regressor Y (N, n, p), torques tau (N, n), optional weights
+        (broadcastable to (N, n), >= 0) multiplying the squared residuals. Returns theta."""
+        Y, tau = _check_data(Y, tau, self.num_params, self._num_joints)
+        N, n = tau.shape
+        if weights is not None:
+            w = _as_float('weights', weights)
+            try:
+                w = np.broadcast_to(w, (N, n))
+            except ValueError:
+                raise IdentificationError(
+                    f'weights have shape {w.shape}; expected broadcastable to {(N, n)}') from None
+            if not np.isfinite(w).all() or np.any(w < 0):
+                raise IdentificationError('weights must be finite and >= 0')
+        if N == 0:
+            return self.theta
+        if self._num_joints is None:
+            self._num_joints = n
+            self.reset()
+        lam = self.forgetting
+        # log-space powers: lam^(N-1-k) underflows to 0 harmlessly for long batches
+        decay = np.exp(np.arange(N - 1, -1, -1) * np.log(lam))
+        row_w = decay[:, None] if weights is None else decay[:, None] * w
+        used = np.ones((N, n)) if weights is None else (w > 0)
+        for start in range(0, N, _CHUNK):
+            stop = min(start + _CHUNK, N)
+            # decay is relative to the batch end: the old factor is scaled once, by lam^N
+            f_prev = 1.0 if start else lam ** N
+            rows = _augmented_rows(Y[start:stop], tau[start:stop], np.sqrt(row_w[start:stop]))
+            self._joint_aug = _qr_r(np.concatenate([np.sqrt(f_prev) * self._joint_aug, rows],
+                                                   axis=1))
+        self._count = lam ** N * self._count + (decay[:, None] * used).sum(axis=0)
+        f = lam ** N
+        if f < 1.0:
+            p = self.num_params
+            anchor = np.column_stack([self._R_min, self._R_min @ self._theta])
+            self._reg_aug = _qr_r(np.vstack([np.sqrt(f) * self._reg_aug,
+                                             np.sqrt(1.0 - f) * anchor]))[:p + 1]
+        self.num_samples += N
+        self._refresh()
+        return self.theta
+
+    # -- results --------------------------------------------------------------------------
+    @property
+    def num_joints(self) -> int | None:
+        return self._num_joints
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Current estimate (p,)."""
+        return self._theta.copy()
+
+    @property
+    def rank(self) -> int:
+        """Numerical rank of the information matrix (column-scaled, rcond)."""
+        return self._rank
+
+    @property
+    def information(self) -> np.ndarray:
+        """Information matrix R'R (p, p), including prior and forgetting regulariser."""
+        return self._R.T @ self._R
+
+    @property
+    def data_information(self) -> np.ndarray:
+        """Forgotten, weighted information of the data alone, sum_j Y_j'Y_j (p, p)."""
+        p = self.num_params
+        R = self._joint_aug[:, :p, :p]
+        return np.einsum('jki,jkl->il', R, R)
+
+    def _information_eigenvalues(self) -> np.ndarray:
+        return np.linalg.svd(self._R, compute_uv=False) ** 2
+
+    @property
+    def min_eigenvalue(self) -> float:
+        """Smallest eigenvalue of the information matrix (excitation monitor)."""
+        return float(self._information_eigenvalues()[-1])
+
+    @property
+    def condition_number(self) -> float:
+        """Condition number of the information matrix (inf when singular)."""
+        ev = self._information_eigenvalues()
+        return float(ev[0] / ev[-1]) if ev[-1] > 0 else np.inf
+
+    def _joint_rss(self) -> np.ndarray:
+        return _joint_rss(self._joint_aug, self._theta)
+
+    @property
+    def residual_rms(self) -> np.ndarray:
+        """Per-joint RMS of the (weighted) residuals at the current theta, with the same
+        forgetting as the data (n,); 0 for a joint without samples."""
+        with np.errstate(invalid='ignore', divide='ignore'):
+            ms = self._joint_rss() / self._count
+        return np.sqrt(np.where(self._count > 0, ms, 0.0))
+
+    @property
+    def noise_variance(self) -> float:
+        """sigma^2 = forgotten weighted RSS / (forgotten row count - rank); inf while unknown."""
+        dof = self._count.sum() - self._rank
+        return float(self._joint_rss().sum() / dof) if dof >= 1 else np.inf
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """sigma^2 (R'R)^-1 (p, p); inf variance for parameters the data do not determine."""
+        sigma2 = self.noise_variance
+        if not np.isfinite(sigma2):
+            return np.diag(np.full(self.num_params, np.inf))
+        return _covariance(self._G, sigma2, self._determined)
+
+    @property
+    def stddev(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    @property
+    def rel_stddev(self) -> np.ndarray:
+        """100 stddev / |theta| in percent (inf where theta == 0)."""
+        return _relative(self.stddev, self._theta)
+
+    def estimate(self) -> Estimate:
+        """The current estimate as an :class:`Estimate` (noise_variance per joint)."""
+        rss = self._joint_rss()
+        lev = _leverage(self._joint_aug, self._G, np.ones(rss.shape[0]))
+        dof = self._count - lev
+        with np.errstate(invalid='ignore', divide='ignore'):
+            noise = np.where(dof >= 1, rss / dof, np.inf)
+        return Estimate.from_covariance(self.theta, self.covariance, noise, self.num_samples,
+                                        rss.sum())
+
+    snapshot = estimate
