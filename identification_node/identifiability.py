@@ -11,7 +11,7 @@ column, and dependent columns only ever combine with earlier ones.
 from __future__ import annotations
 
 import re
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -204,6 +204,19 @@ class BaseParameters:
         if self._pinv is None:
             self._pinv = np.linalg.pinv(self.K)
         return phi_ref + (beta - phi_ref @ self.K.T) @ self._pinv.T
+
+    def combination(self, terms: Mapping[str, float]) -> np.ndarray:
+        """Weights w with w @ beta = sum(coef * phi[name]) for every phi reproducing beta;
+        IdentificationError when the combination is not identifiable."""
+        c = np.zeros(self.num_params)
+        for name, coef in terms.items():
+            if name not in self.param_names:
+                raise IdentificationError(f'unknown parameter {name!r}')
+            c[self.param_names.index(name)] = coef
+        w = np.linalg.lstsq(self.K.T, c, rcond=None)[0]
+        if np.linalg.norm(self.K.T @ w - c) > 1e-8 * max(1.0, np.linalg.norm(c)):
+            raise IdentificationError(f'{format_expression(dict(terms))} is not identifiable')
+        return w
 
     # -- report -----------------------------------------------------------------------------------
     def to_dict(self, phi_model: np.ndarray | None = None) -> dict:

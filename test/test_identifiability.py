@@ -7,26 +7,15 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from identification_node import papers
 from identification_node.errors import IdentificationError
 from identification_node.identifiability import BaseParameters, sample_motion
 from identification_node.robot import LINK_PARAMS, load_robot
 
 PANDA = str(Path(__file__).resolve().parent / 'fixtures' / 'panda_like.urdf')
 
-# An, Atkeson, Hollerbach (1986), Table 1: CAD parameters per link, in LINK_PARAMS order.
-MIT_TABLE1 = np.array([
-    [67.13, 0.0, 2.432, 35.8257, 23.1568, 0.0, -0.3145, 20.4472, -1.2948, 0.7418],
-    [53.01, 0.0, 3.4081, 16.6505, 7.9088, 0.0, 0.0, 7.6766, -1.5036, 0.6807],
-    [19.67, 0.3108, 0.0, 0.3268, 0.1825, 0.0, -0.0166, 0.4560, 0.0, 0.3900]]).ravel()
-# Table 3 (l2 = 0.45 m), subscripts decoded: combination -> CAD value.
-MIT_TABLE3 = [
-    ({'link2.Iyz': 1.0, 'link3.mz': 0.45}, -1.3565),
-    ({'link3.Ixx': 1.0, 'link3.Iyy': -1.0}, -0.2702),  # paper typo: Table 1 gives -0.2735
-    ({'link2.Izz': 1.0, 'link3.Ixx': 1.0}, 0.8632),
-    ({'link1.Izz': 1.0, 'link2.Ixx': 1.0, 'link3.Ixx': 1.0, 'link3.m': 0.45 ** 2}, 12.8169),
-    ({'link2.Ixx': 1.0, 'link2.Iyy': -1.0, 'link3.Ixx': 1.0}, 0.4147),
-    ({'link3.mz': 1.0, 'link2.my': -1.0}, -3.0814),
-]
+MIT_TABLE1 = np.array(papers.MIT_TABLE1).ravel()
+MIT_TABLE3 = [(terms, cad) for terms, _, cad in papers.MIT_TABLE3]
 # Table 2: unmarked estimates (identifiable alone), 0.0* (unidentifiable), dagger (combinations).
 MIT_IDENTIFIABLE = ['link2.mx', 'link2.Ixy', 'link2.Ixz', 'link3.mx', 'link3.my', 'link3.Ixy',
                     'link3.Ixz', 'link3.Iyz', 'link3.Izz']
@@ -340,3 +329,13 @@ def test_panda_like_fixture_follows_the_dh_table():
     phi = robot.phi_model.reshape(7, 10)
     assert np.all(np.abs(phi) > 1e-6), 'every inertial parameter nonzero'
     assert all(_consistent(m.inertias[j]) for j in robot.joint_ids)
+
+
+def test_table3_combinations_evaluate_from_the_base_parameters(mit):
+    robot, base = mit
+    beta = base.to_base(robot.phi_model)
+    for terms, _, cad in papers.MIT_TABLE3:
+        direct = sum(c * robot.phi_model[robot.param_names.index(n)] for n, c in terms.items())
+        assert base.combination(terms) @ beta == pytest.approx(direct, abs=1e-9)
+    with pytest.raises(IdentificationError, match='not identifiable'):
+        base.combination({'link1.m': 1.0})

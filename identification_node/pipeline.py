@@ -1,0 +1,555 @@
+"""The identification pipeline: stamped joint states and currents in, base-parameter estimate out.
+
+One plain class, fed by the ROS node's callbacks (which only copy the message) and by bag
+replay alike. ``add_joint_state`` / ``add_currents`` queue records; ``process`` does the
+numerical work for everything queued, in batches:
+
+1. validation per message (counted rejections by reason, never an exception or a NaN),
+2. stamp order (out of order or repeated stamps are rejected; a backward jump larger than
+   ``restart_jump`` is taken as a restarted stream),
+3. alignment of motor currents to joint states by header stamp (nearest within
+   ``align_tolerance``),
+4. torque from the configured torque sources,
+5. the fixed-lag smoother on positions (and measured velocities) and on torque alike, giving
+   q, qd, qdd and tau for the window centre, ``delay`` seconds behind the newest sample,
+6. regressor, base regressor, recursive least squares (unless frozen), predicted torque.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .errors import IdentificationError
+from .estimators import RecursiveLeastSquares
+from .identifiability import BaseParameters
+from .records import JointStateRecord
+from .robot import RobotModel
+from .signals import FixedLagSmoother, smoothing_noise_gain
+from .torque import JointTorqueConfig, TorqueConverter
+
+REJECT_REASONS = (
+    'empty', 'length_mismatch', 'duplicate_names', 'missing_joints', 'non_finite',
+    'missing_velocity', 'missing_effort', 'out_of_order', 'repeated_stamp', 'no_current',
+    'unmatched_current', 'unknown_channels', 'stream_restart',
+)
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of the pipeline (the node's ROS parameters map onto these fields)."""
+    torque: Mapping[str, JointTorqueConfig] = field(default_factory=dict)
+    forgetting: float = 1.0
+    half_window: int = 10
+    smoother_order: int = 3
+    max_gap: float = 0.05
+    velocity: str = 'auto'
+    align_tolerance: float = 0.002
+    hold_time: float = 0.1
+    restart_jump: float = 1.0
+    joint_noise_std: Sequence[float] = ()
+    converged_ratio: float = 0.1
+    max_condition: float = 1e8
+    min_samples: int = 1000
+
+    def validate(self, dof: int) -> None:
+        """Raise IdentificationError naming the first bad field."""
+        checks = [
+            ('forgetting', 0.9 <= self.forgetting <= 1.0, 'in [0.9, 1.0]'),
+            ('half_window', int(self.half_window) >= 1, '>= 1'),
+            ('smoother_order', 2 <= int(self.smoother_order) <= min(4, 2 * self.half_window),
+             'in [2, min(4, 2 * half_window)]'),
+            ('max_gap', self.max_gap > 0, '> 0'),
+            ('velocity', self.velocity in ('auto', 'measured', 'differentiate'),
+             "'auto', 'measured' or 'differentiate'"),
+            ('align_tolerance', self.align_tolerance > 0, '> 0'),
+            ('hold_time', self.hold_time > 0, '> 0'),
+            ('restart_jump', self.restart_jump > 0, '> 0'),
+            ('joint_noise_std', len(self.joint_noise_std) in (0, dof)
+             and all(s > 0 for s in self.joint_noise_std), f'empty or {dof} values > 0'),
+            ('converged_ratio', self.converged_ratio > 0, '> 0'),
+            ('max_condition', self.max_condition > 1, '> 1'),
+            ('min_samples', int(self.min_samples) >= 0, '>= 0'),
+        ]
+        for name, ok, expected in checks:
+            value = getattr(self, name)
+            if not ok or (isinstance(value, float) and not math.isfinite(value)):
+                raise IdentificationError(f'parameter {name} = {value!r} must be {expected}')
+
+
+@dataclass
+class PipelineOutput:
+    """Samples processed by one ``process`` call, stamped with their own header stamps
+    (``stamps_ns``, int64 ns)."""
+    stamps_ns: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    measured: np.ndarray
+    predicted: np.ndarray
+
+    @classmethod
+    def empty(cls, dof: int) -> PipelineOutput:
+        z = np.empty((0, dof))
+        return cls(np.empty(0, dtype=np.int64), z, z, z, z, z)
+
+
+@dataclass
+class EstimateReport:
+    """The running estimate: base parameters with standard deviations, and health figures."""
+    names: list
+    values: np.ndarray
+    stddev: np.ndarray
+    num_samples: int
+    stamp: float
+    condition_number: float
+    min_eigenvalue: float
+    residual_rms: np.ndarray
+    converged: bool
+    frozen: bool
+
+
+class IdentificationPipeline:
+    """Identification of ``robot``'s base parameters from streamed samples (see module doc)."""
+
+    def __init__(self, robot: RobotModel, config: PipelineConfig | None = None,
+                 base: BaseParameters | None = None):
+        self.robot = robot
+        self.config = config or PipelineConfig()
+        self.config.validate(robot.dof)
+        unknown = set(self.config.torque) - set(robot.joint_names)
+        if unknown:
+            raise IdentificationError(f'torque sources name unknown joints {sorted(unknown)}')
+        self.base = base or BaseParameters.from_robot(robot)
+        configs = [self.config.torque.get(j, JointTorqueConfig()) for j in robot.joint_names]
+        self.converter = TorqueConverter(robot.joint_names, configs)
+        self._channels = {name: (i, k) for name, i, k in self.converter.current_channel_slots()}
+        self._channel_index = tuple(np.array(list(self._channels.values()), dtype=int)
+                                    .reshape(-1, 2).T)
+        # Torque noise is smoothed too: its residual variance understates the white noise the
+        # estimate averages by the smoother's noise gain (see smoothing_noise_gain).
+        self._cov_scale = 1.0 / smoothing_noise_gain(int(self.config.half_window),
+                                                     int(self.config.smoother_order))
+        # Inverse-variance weights per joint (RLS weights multiply squared residuals).
+        self._weights = (np.asarray(self.config.joint_noise_std, dtype=float) ** -2
+                         if len(self.config.joint_noise_std) else None)
+        self._js_queue: collections.deque = collections.deque()
+        self._cur_queue: collections.deque = collections.deque()
+        self._index_cache: dict[tuple, np.ndarray | str] = {}
+        self.frozen = False
+        self.reset()
+
+    # -- input: called from callbacks, so nothing but a copy -------------------------------------
+    def add_joint_state(self, record: JointStateRecord) -> None:
+        self._js_queue.append(record)
+
+    def add_currents(self, record: JointStateRecord) -> None:
+        self._cur_queue.append(record)
+
+    @property
+    def pending(self) -> int:
+        return len(self._js_queue) + len(self._cur_queue)
+
+    # -- state ----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the estimate and all buffered data; counters restart too."""
+        n, b = self.robot.dof, self.base.num_base
+        self.rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting)
+        self.rejected = dict.fromkeys(REJECT_REASONS, 0)
+        self.restarts = 0
+        self.received = 0
+        self.used = 0
+        self._velocity_mode: str | None = (None if self.config.velocity == 'auto'
+                                           else self.config.velocity)
+        self._last_stamp = -math.inf
+        self._last_output_stamp = math.nan
+        self._epoch_ns: int | None = None
+        self._newest_js = -math.inf
+        self._pending_js = _Samples.empty(n)
+        self._currents = _Samples.empty(n, with_currents=True)
+        self._smoother: FixedLagSmoother | None = None
+        # Per-joint sums for the torque error of any estimate: sum Yb'Yb, Yb'tau, tau'tau.
+        self.gram = np.zeros((n, b, b))
+        self.cross = np.zeros((n, b))
+        self.tau_sq = np.zeros(n)
+        self._res_sq = np.zeros(n)
+        self._res_count = 0.0
+        for q in (self._js_queue, self._cur_queue):
+            q.clear()
+
+    @property
+    def delay(self) -> float:
+        """Smoother delay in samples; multiply by the sample period for seconds."""
+        return float(self.config.half_window)
+
+    # -- processing -----------------------------------------------------------------------------
+    def process(self, flush: bool = False) -> PipelineOutput:
+        """Work through everything queued. ``flush`` decides joint states still waiting for
+        currents (end of a bag) instead of holding them for ``hold_time``."""
+        n = self.robot.dof
+        js = self._take(self._js_queue)
+        cur = self._take(self._cur_queue)
+        if cur:
+            self._currents = self._currents.concat(self._convert_currents(cur))
+        if js:
+            new = self._convert_joint_states(js)  # may restart the stream: read pending after
+            self._pending_js = self._pending_js.concat(new)
+        ready = self._decide_ready(flush)
+        if ready is None or len(ready.stamps) == 0:
+            return PipelineOutput.empty(n)
+        return self._estimate(ready)
+
+    @staticmethod
+    def _take(queue: collections.deque) -> list:
+        out = []
+        while queue:
+            out.append(queue.popleft())
+        return out
+
+    def _seconds(self, stamps_ns: list[int]) -> np.ndarray:
+        """Stamps as float seconds since the pipeline's epoch (its first stamp), exact to the
+        nanosecond for spans of days."""
+        if self._epoch_ns is None:
+            self._epoch_ns = int(stamps_ns[0])
+        return (np.asarray(stamps_ns, dtype=np.int64) - self._epoch_ns).astype(float) * 1e-9
+
+    def _reject(self, reason: str, count: int = 1) -> None:
+        self.rejected[reason] += int(count)
+
+    def _joint_index(self, names: tuple) -> np.ndarray | str:
+        idx = self._index_cache.get(names)
+        if idx is None:
+            pos = {name: i for i, name in enumerate(names)}
+            if len(pos) != len(names):
+                idx = 'duplicate_names'
+            elif any(j not in pos for j in self.robot.joint_names):
+                idx = 'missing_joints'
+            else:
+                idx = np.array([pos[j] for j in self.robot.joint_names])
+            if len(self._index_cache) > 256:
+                self._index_cache.clear()
+            self._index_cache[names] = idx
+        return idx
+
+    def _convert_joint_states(self, records: list) -> _Samples:
+        """Validate joint-state records and order them by stamp; rejects are counted."""
+        n = self.robot.dof
+        self.received += len(records)
+        stamps: list[int] = []
+        q, qd, eff = [], [], []
+        need_effort = bool(self.converter.measured_joints)
+        for r in records:
+            reason = self._structure_problem(r)
+            if reason is None and self._velocity_mode is None:
+                self._velocity_mode = 'measured' if len(r.velocity) else 'differentiate'
+            if reason is None and self._velocity_mode == 'measured' and not len(r.velocity):
+                reason = 'missing_velocity'
+            if reason is None and need_effort and not len(r.effort):
+                reason = 'missing_effort'
+            if reason is not None:
+                self._reject(reason)
+                continue
+            idx = self._index_cache[r.names]
+            stamps.append(int(r.stamp_ns))
+            q.append(np.asarray(r.position, dtype=float)[idx])
+            qd.append(np.asarray(r.velocity, dtype=float)[idx] if len(r.velocity)
+                      else np.full(n, np.nan))
+            eff.append(np.asarray(r.effort, dtype=float)[idx] if len(r.effort)
+                       else np.full(n, np.nan))
+        if not stamps:
+            return _Samples.empty(n)
+        s = _Samples(self._seconds(stamps), np.array(q), np.array(qd), np.array(eff))
+        finite = np.isfinite(s.q).all(axis=1)
+        if self._velocity_mode == 'measured':
+            finite &= np.isfinite(s.qd).all(axis=1)
+        measured = list(self.converter.measured_joints)
+        if measured:
+            cols = [self.robot.joint_names.index(j) for j in measured]
+            finite &= np.isfinite(s.eff[:, cols]).all(axis=1)
+        self._reject('non_finite', np.count_nonzero(~finite))
+        return self._in_order(s.select(finite))
+
+    def _structure_problem(self, r) -> str | None:
+        if not len(r.names) or not len(r.position):
+            return 'empty'
+        k = len(r.names)
+        if len(r.position) != k or len(r.velocity) not in (0, k) or len(r.effort) not in (0, k):
+            return 'length_mismatch'
+        idx = self._joint_index(tuple(r.names))
+        return idx if isinstance(idx, str) else None
+
+    def _in_order(self, s: _Samples) -> _Samples:
+        """Keep samples whose stamp exceeds every stamp accepted before; a backward jump of
+        more than ``restart_jump`` starts a new stream (the smoother restarts)."""
+        parts = []
+        while len(s.stamps):
+            prior = np.maximum.accumulate(np.concatenate([[self._last_stamp], s.stamps]))[:-1]
+            jump = np.flatnonzero(prior - s.stamps > self.config.restart_jump)
+            k = int(jump[0]) if len(jump) else len(s.stamps)
+            head, prior = s.head(k), prior[:k]
+            keep = head.stamps > prior
+            self._reject('repeated_stamp', np.count_nonzero(head.stamps == prior))
+            self._reject('out_of_order', np.count_nonzero(head.stamps < prior))
+            parts.append(head.select(keep))
+            if len(head.stamps):
+                self._last_stamp = max(self._last_stamp, float(head.stamps.max()))
+            if k == len(s.stamps):
+                break
+            self._start_new_stream(parts)
+            self._last_stamp = -math.inf
+            s = s.tail(k)
+        out = _Samples.empty(self.robot.dof)
+        for part in parts:
+            out = out.concat(part)
+        return out
+
+    def _start_new_stream(self, parts: list) -> None:
+        """The stream restarted with earlier stamps: what the old stream left pending (not yet
+        through the smoother) is dropped and counted as 'stream_restart'."""
+        self.restarts += 1
+        self._reject('stream_restart', sum(len(p.stamps) for p in parts)
+                     + len(self._pending_js.stamps))
+        parts.clear()
+        self._smoother = None
+        self._pending_js = _Samples.empty(self.robot.dof)
+        self._currents = _Samples.empty(self.robot.dof, with_currents=True)
+        self._newest_js = -math.inf
+
+    def _convert_currents(self, records: list) -> _Samples:
+        """Validate current records into (stamps, currents (N, n, 3), electrical angle)."""
+        n = self.robot.dof
+        rows = []
+        for r in records:
+            k = len(r.names)
+            if not k or not len(r.effort):
+                self._reject('empty')
+                continue
+            if len(r.effort) != k or len(r.position) not in (0, k):
+                self._reject('length_mismatch')
+                continue
+            cur = np.full((n, 3), np.nan)
+            theta = np.full(n, np.nan)
+            known = 0
+            for name, value, angle in zip(r.names, r.effort, r.position if len(r.position)
+                                          else [math.nan] * k):
+                ch = self._channels.get(name)
+                if ch is not None:
+                    known += 1
+                    cur[ch] = value
+                    theta[ch[0]] = angle
+            if known < len(self._channels):
+                self._reject('unknown_channels' if known == 0 else 'missing_joints')
+                continue
+            if not np.isfinite(cur[self._channel_index]).all():
+                self._reject('non_finite')
+                continue
+            rows.append((int(r.stamp_ns), cur, theta))
+        if not rows:
+            return _Samples.empty(n, with_currents=True)
+        stamps = self._seconds([r[0] for r in rows])
+        order = np.argsort(stamps, kind='stable')
+        return _Samples(stamps[order], np.zeros((len(rows), 0)), np.zeros((len(rows), 0)),
+                        np.zeros((len(rows), 0)),
+                        np.array([r[1] for r in rows])[order],
+                        np.array([r[2] for r in rows])[order])
+
+    def _decide_ready(self, flush: bool) -> _Samples | None:
+        """Joint states whose currents are known (or will never come), with torque attached."""
+        s = self._pending_js
+        if len(s.stamps) == 0:
+            return None
+        self._newest_js = max(self._newest_js, float(s.stamps[-1]))
+        if not self.converter.needs_currents:
+            self._pending_js = _Samples.empty(self.robot.dof)
+            return self._with_torque(s, None, None)
+        cur = self._currents
+        newest_cur = cur.stamps[-1] if len(cur.stamps) else -math.inf
+        if flush:
+            decided = np.ones(len(s.stamps), dtype=bool)
+        else:
+            decided = ((s.stamps + self.config.align_tolerance <= newest_cur)
+                       | (s.stamps <= self._newest_js - self.config.hold_time))
+        # decided is a prefix: stamps are increasing.
+        k = int(np.count_nonzero(decided))
+        ready, self._pending_js = s.head(k), s.tail(k)
+        if k == 0:
+            return None
+        match = self._nearest(cur.stamps, ready.stamps)
+        ok = match >= 0
+        self._reject('no_current', np.count_nonzero(~ok))
+        used = np.zeros(len(cur.stamps), dtype=bool)
+        used[match[ok]] = True
+        # Currents older than what the next joint state could still match are done with.
+        horizon = (self._pending_js.stamps[0] if len(self._pending_js.stamps)
+                   else ready.stamps[-1]) - self.config.align_tolerance
+        if flush:
+            horizon = math.inf
+        done = cur.stamps < horizon
+        self._reject('unmatched_current', np.count_nonzero(done & ~used & ~cur.used))
+        cur.used |= used
+        self._currents = cur.select(~done)
+        ready = ready.select(ok)
+        m = match[ok]
+        return self._with_torque(ready, cur.currents[m], cur.theta[m])
+
+    def _nearest(self, ref: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Index of the nearest ``ref`` stamp within tolerance for each ``t``, else -1."""
+        if len(ref) == 0:
+            return np.full(len(t), -1)
+        hi = np.clip(np.searchsorted(ref, t), 1, len(ref) - 1) if len(ref) > 1 else \
+            np.zeros(len(t), dtype=int)
+        lo = np.maximum(hi - 1, 0)
+        pick = np.where(np.abs(ref[lo] - t) <= np.abs(ref[hi] - t), lo, hi)
+        return np.where(np.abs(ref[pick] - t) <= self.config.align_tolerance, pick, -1)
+
+    def _with_torque(self, s: _Samples, currents, theta) -> _Samples:
+        s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)
+        ok = np.isfinite(s.tau).all(axis=1)
+        self._reject('non_finite', np.count_nonzero(~ok))
+        return s.select(ok)
+
+    def _estimate(self, s: _Samples) -> PipelineOutput:
+        n = self.robot.dof
+        measured_velocity = self._velocity_mode == 'measured'
+        channels = [s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau]
+        if self._smoother is None:
+            self._smoother = FixedLagSmoother(
+                len(channels) * n, half_window=int(self.config.half_window),
+                order=int(self.config.smoother_order), max_gap=self.config.max_gap)
+        t, x, xd, xdd = self._smoother.push(s.stamps, np.hstack(channels))
+        if len(t) == 0:
+            return PipelineOutput.empty(n)
+        q = x[:, :n]
+        qd, qdd = (x[:, n:2 * n], xd[:, n:2 * n]) if measured_velocity else (xd[:, :n],
+                                                                             xdd[:, :n])
+        tau = x[:, -n:]
+        Yb = self.base.base_regressor(self.robot.regressor(q, qd, qdd))
+        if not self.frozen:
+            self.rls.update(Yb, tau, self._weights)
+            self.used += len(t)
+        predicted = Yb @ self.rls.theta
+        self.gram += np.einsum('knp,knq->npq', Yb, Yb)
+        self.cross += np.einsum('knp,kn->np', Yb, tau)
+        self.tau_sq += np.einsum('kn,kn->n', tau, tau)
+        self._res_sq += ((tau - predicted) ** 2).sum(axis=0)
+        self._res_count += len(t)
+        stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
+        self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
+        return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
+
+    # -- results --------------------------------------------------------------------------------
+    def residual_rms(self) -> np.ndarray:
+        """Per-joint RMS of measured minus predicted torque over the samples seen (N m)."""
+        if self._res_count == 0:
+            return np.full(self.robot.dof, np.nan)
+        return np.sqrt(self._res_sq / self._res_count)
+
+    def relative_error(self, theta: np.ndarray | None = None) -> np.ndarray:
+        """Per-joint 100 ||tau - Yb theta|| / ||tau|| (percent) over every processed sample,
+        for ``theta`` (default: the current estimate)."""
+        theta = self.rls.theta if theta is None else np.asarray(theta, dtype=float)
+        err = (self.tau_sq - 2 * self.cross @ theta
+               + np.einsum('p,npq,q->n', theta, self.gram, theta))
+        with np.errstate(invalid='ignore', divide='ignore'):
+            return 100.0 * np.sqrt(np.maximum(err, 0.0) / self.tau_sq)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance of the base estimate (see ``_cov_scale``)."""
+        return self.rls.covariance * self._cov_scale
+
+    @property
+    def stddev(self) -> np.ndarray:
+        return self.rls.stddev * math.sqrt(self._cov_scale)
+
+    def excitation(self) -> tuple[float, float]:
+        """(condition number, smallest eigenvalue) of the information the data brought, without
+        the forgetting regulariser: how well the motion excites the base parameters."""
+        ev = np.linalg.eigvalsh(self.rls.data_information)
+        if ev[-1] <= 0:
+            return math.inf, 0.0
+        return (float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf), float(max(ev[0], 0.0))
+
+    def converged(self) -> bool:
+        """Excited, enough samples, and the parameter uncertainty contributes less than
+        ``converged_ratio`` of the residual torque RMS on every joint."""
+        if self.rls.num_samples < self.config.min_samples:
+            return False
+        if not self.excitation()[0] <= self.config.max_condition:
+            return False
+        rms = self.residual_rms()
+        # Mean predicted-torque variance from the covariance: trace(P G_j) / N per joint.
+        var = np.einsum('pq,nqp->n', self.covariance, self.gram) / max(self._res_count, 1)
+        return bool(np.all(np.sqrt(np.maximum(var, 0)) <= self.config.converged_ratio * rms))
+
+    def estimate(self) -> EstimateReport:
+        """A snapshot of the running estimate."""
+        cond, min_eig = self.excitation()
+        return EstimateReport(
+            names=list(self.base.names), values=self.rls.theta.copy(),
+            stddev=self.stddev, num_samples=int(self.rls.num_samples),
+            stamp=self._last_output_stamp, condition_number=cond, min_eigenvalue=min_eig,
+            residual_rms=self.residual_rms(),
+            converged=self.converged(), frozen=self.frozen)
+
+    def standard_parameters(self) -> np.ndarray:
+        """The full standard parameter vector closest to the model's own that reproduces the
+        base estimate (for the identified URDF)."""
+        return self.base.closest_standard(self.rls.theta, self.robot.phi_model)
+
+
+@dataclass
+class _Samples:
+    """Validated samples in stamp order (internal)."""
+    stamps: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    eff: np.ndarray
+    currents: np.ndarray | None = None
+    theta: np.ndarray | None = None
+    used: np.ndarray | None = None
+    tau: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.currents is not None and self.used is None:
+            self.used = np.zeros(len(self.stamps), dtype=bool)
+
+    @classmethod
+    def empty(cls, n: int, with_currents: bool = False) -> _Samples:
+        z = np.empty((0, n))
+        if with_currents:
+            return cls(np.empty(0), z, z, z, np.empty((0, n, 3)), z)
+        return cls(np.empty(0), z, z, z)
+
+    def _map(self, fn) -> _Samples:
+        return dataclasses.replace(self, **{
+            f.name: fn(getattr(self, f.name)) for f in dataclasses.fields(self)
+            if getattr(self, f.name) is not None})
+
+    def select(self, mask: np.ndarray) -> _Samples:
+        return self._map(lambda a: a[mask])
+
+    def head(self, k: int) -> _Samples:
+        return self._map(lambda a: a[:k])
+
+    def tail(self, k: int) -> _Samples:
+        return self._map(lambda a: a[k:])
+
+    def concat(self, other: _Samples) -> _Samples:
+        if len(self.stamps) == 0:
+            return other
+        if len(other.stamps) == 0:
+            return self
+        if self.currents is not None:
+            # Current messages may interleave: keep the buffer sorted by stamp.
+            merged = dataclasses.replace(self, **{
+                f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])
+                for f in dataclasses.fields(self) if getattr(self, f.name) is not None})
+            return merged.select(np.argsort(merged.stamps, kind='stable'))
+        return dataclasses.replace(self, **{
+            f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])
+            for f in dataclasses.fields(self) if getattr(self, f.name) is not None})

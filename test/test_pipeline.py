@@ -1,0 +1,221 @@
+"""The identification pipeline on simulated streams with known parameters (no ROS)."""
+import numpy as np
+import pytest
+
+from identification_node.identifiability import BaseParameters
+from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+from identification_node.records import JointStateRecord
+from identification_node.robot import load_robot
+from identification_node.simulation import SensorNoise, simulate_kinematic
+from identification_node.torque import JointTorqueConfig, TorqueConverter
+from identification_node.trajectories import FourierTrajectory
+
+RATE = 1000.0
+T0_NS = 1_700_000_000_123_456_789   # epoch-sized stamps: nanoseconds must survive
+ROBOT = load_robot('mit_dd_arm')
+BASE = BaseParameters.from_robot(ROBOT)
+TRUE = BASE.to_base(ROBOT.phi_model)
+THREE_PHASE = {j: JointTorqueConfig(source='three_phase', kt=kt, pole_pairs=8, angle_offset=0.3)
+               for j, kt in zip(ROBOT.joint_names, (12.0, 6.0, 6.0))}
+
+
+def simulate(duration=20.0, noise=SensorNoise(torque_std=0.5), converter=None, seed=1):
+    traj = FourierTrajectory.random(ROBOT, harmonics=4, period=10.0, seed=seed)
+    t = np.arange(int(duration * RATE)) / RATE
+    return simulate_kinematic(ROBOT, None, traj, t, noise, seed=seed, converter=converter)
+
+
+def stamps(sim):
+    return T0_NS + np.round(sim.t * 1e9).astype(np.int64)
+
+
+def joint_records(sim, velocity=True, effort=True):
+    """Messages with the joints shuffled and a gripper joint the model does not know."""
+    names = ('gripper', 'joint3', 'joint1', 'joint2')
+    order = [2, 0, 1]
+    out = []
+    for k, ns in enumerate(stamps(sim)):
+        pos = np.concatenate([[0.01], sim.q_meas[k, order]])
+        vel = np.concatenate([[0.0], sim.qd_meas[k, order]]) if velocity else np.empty(0)
+        eff = np.concatenate([[0.0], sim.tau_meas[k, order]]) if effort else np.empty(0)
+        out.append(JointStateRecord(int(ns), names, pos, vel, eff))
+    return out
+
+
+def current_records(sim, converter, offset_ns=300_000):
+    slots = converter.current_channel_slots()
+    names = tuple(name for name, _, _ in slots)
+    cur = np.stack([sim.currents[:, i, k] for _, i, k in slots], axis=1)
+    return [JointStateRecord(int(ns) + offset_ns, names, np.empty(0), np.empty(0), cur[k])
+            for k, ns in enumerate(stamps(sim))]
+
+
+def feed(pipeline, js, cur=None, chunk=50):
+    """Interleave the streams in chunks as a node's callbacks would, processing each chunk."""
+    outs = []
+    for start in range(0, len(js), chunk):
+        for r in js[start:start + chunk]:
+            pipeline.add_joint_state(r)
+        for r in (cur or [])[start:start + chunk]:
+            pipeline.add_currents(r)
+        outs.append(pipeline.process())
+    outs.append(pipeline.process(flush=True))
+    return {name: np.concatenate([getattr(o, name) for o in outs])
+            for name in ('stamps_ns', 'q', 'qd', 'qdd', 'measured', 'predicted')}
+
+
+def index_of(sim, stamps_ns):
+    return np.round((stamps_ns - T0_NS) * 1e-9 * RATE).astype(int)
+
+
+def assert_within_3_sigma(est):
+    err = np.abs(est.values - TRUE)
+    assert np.all(err <= 3 * est.stddev), (err / est.stddev).round(2)
+
+
+def test_measured_torque_converges_to_truth():
+    sim = simulate()
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    out = feed(p, joint_records(sim))
+    est = p.estimate()
+    assert sum(p.rejected.values()) == 0
+    assert est.num_samples == len(sim) - 2 * p.config.half_window
+    assert_within_3_sigma(est)
+    # Output stamps are the samples' own stamps, to the nanosecond.
+    k = index_of(sim, out['stamps_ns'])
+    assert np.array_equal(out['stamps_ns'], stamps(sim)[k])
+    # The torque the final estimate predicts, against the raw measured torque.
+    Yb = BASE.base_regressor(ROBOT.regressor(sim.q[k], sim.qd[k], sim.qdd[k]))
+    rms = np.sqrt(np.mean((Yb @ est.values - sim.tau_meas[k]) ** 2, axis=0))
+    assert np.all(rms <= 1.2 * 0.5), rms
+    # The running prediction over the last half agrees too, and the run converged.
+    half = len(k) // 2
+    run_rms = np.sqrt(np.mean((out['predicted'][half:] - sim.tau_meas[k[half:]]) ** 2, axis=0))
+    assert np.all(run_rms <= 1.2 * 0.5), run_rms
+    assert est.converged
+    # relative_error from running sums equals the direct computation over the smoothed data.
+    Yb = BASE.base_regressor(ROBOT.regressor(out['q'], out['qd'], out['qdd']))
+    direct = 100 * (np.linalg.norm(out['measured'] - Yb @ est.values, axis=0)
+                    / np.linalg.norm(out['measured'], axis=0))
+    np.testing.assert_allclose(p.relative_error(), direct, rtol=1e-6)
+
+
+def test_three_phase_currents_converge_to_truth():
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    current_std = 0.02
+    sim = simulate(noise=SensorNoise(current_std=current_std), converter=converter)
+    p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
+    out = feed(p, joint_records(sim, effort=False), current_records(sim, converter))
+    assert sum(p.rejected.values()) == 0, p.rejected
+    est = p.estimate()
+    assert_within_3_sigma(est)
+    k = index_of(sim, out['stamps_ns'])
+    torque_std = np.array([12.0, 6.0, 6.0]) * current_std * np.sqrt(1.5)
+    raw = converter.torque(sim.q_meas[k], currents=sim.currents[k])
+    Yb = BASE.base_regressor(ROBOT.regressor(sim.q[k], sim.qd[k], sim.qdd[k]))
+    rms = np.sqrt(np.mean((Yb @ est.values - raw) ** 2, axis=0))
+    assert np.all(rms <= 1.2 * torque_std), (rms, torque_std)
+
+
+def test_differentiated_positions_without_velocity():
+    sim = simulate(noise=SensorNoise(torque_std=0.5, encoder_counts=2 ** 20))
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    feed(p, joint_records(sim, velocity=False))
+    assert p._velocity_mode == 'differentiate'
+    assert_within_3_sigma(p.estimate())
+
+
+def test_chunking_does_not_change_the_result():
+    sim = simulate(duration=4.0)
+    js = joint_records(sim)
+    results = []
+    for chunk in (7, 100, 1000):
+        p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+        feed(p, js, chunk=chunk)
+        results.append(p.estimate().values)
+    np.testing.assert_allclose(results[0], results[1], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(results[0], results[2], rtol=1e-9, atol=1e-12)
+
+
+def test_bad_messages_are_counted_and_the_estimate_stays_finite():
+    sim = simulate(duration=6.0)
+    js = joint_records(sim)
+    good = len(js)
+    r = js[3000]
+    bad = [
+        r._replace(stamp_ns=r.stamp_ns + 1, position=np.array([0.0, np.nan, 0.1, 0.2])),
+        r._replace(stamp_ns=r.stamp_ns + 2, effort=np.array([0.0, np.inf, 0.1, 0.2])),
+        r._replace(stamp_ns=r.stamp_ns + 3, names=('joint1', 'joint2', 'elbow', 'gripper')),
+        r._replace(stamp_ns=r.stamp_ns + 4, position=r.position[:2]),
+        r._replace(stamp_ns=r.stamp_ns + 5, names=(), position=np.empty(0),
+                   velocity=np.empty(0), effort=np.empty(0)),
+        r._replace(stamp_ns=r.stamp_ns + 6, names=('joint1', 'joint1', 'joint2', 'joint3')),
+        r._replace(stamp_ns=r.stamp_ns + 7, velocity=np.array([1.0])),
+    ]
+    # A repeated and an out-of-order stamp, after the good message they refer to.
+    stream = js[:3001] + bad + [js[3000], js[2990]] + js[3001:]
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    feed(p, stream)
+    expected = {'non_finite': 2, 'missing_joints': 1, 'length_mismatch': 2, 'empty': 1,
+                'duplicate_names': 1, 'repeated_stamp': 1, 'out_of_order': 1}
+    assert {k: v for k, v in p.rejected.items() if v} == expected
+    assert p.received == good + len(bad) + 2
+    est = p.estimate()
+    assert np.all(np.isfinite(est.values)) and np.all(np.isfinite(est.stddev))
+    assert_within_3_sigma(est)
+
+
+def test_currents_with_no_joint_state_and_joint_states_with_no_current():
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    sim = simulate(duration=3.0, noise=SensorNoise(current_std=0.01), converter=converter)
+    js = joint_records(sim, effort=False)
+    cur = current_records(sim, converter)
+    # 100 joint states lose their currents; 50 currents lose their joint states.
+    cur_kept = cur[:1000] + cur[1100:]
+    js_kept = js[:2000] + js[2050:]
+    # Currents lag by 0.3 ms; a 0.5 ms tolerance keeps neighbours (1 ms apart) from matching.
+    p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE, align_tolerance=5e-4),
+                               BASE)
+    feed(p, js_kept, cur_kept)
+    assert p.rejected['no_current'] == 100
+    assert p.rejected['unmatched_current'] == 50
+    assert np.all(np.isfinite(p.estimate().values))
+
+
+def test_stream_stops_and_restarts():
+    sim = simulate(duration=6.0)
+    js = joint_records(sim)
+    shift = -10 * 10 ** 9   # the restarted stream's clock is 10 s earlier
+    restarted = [r._replace(stamp_ns=r.stamp_ns + shift) for r in js[4000:]]
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    # A pause (gap > max_gap: the smoother restarts), then a restart with earlier stamps.
+    feed(p, js[:2000] + js[2500:4000] + restarted)
+    assert p.restarts == 1
+    assert sum(p.rejected.values()) == 0
+    assert np.all(np.isfinite(p.estimate().values))
+    # Each smoother restart loses one window: 3 segments.
+    assert p.used == len(js) - 500 - 3 * 2 * p.config.half_window
+
+
+def test_freeze_and_reset():
+    sim = simulate(duration=3.0)
+    js = joint_records(sim)
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    feed(p, js[:1500])
+    before = p.estimate()
+    p.frozen = True
+    feed(p, js[1500:])
+    after = p.estimate()
+    assert after.num_samples == before.num_samples
+    np.testing.assert_array_equal(after.values, before.values)
+    p.reset()
+    assert p.estimate().num_samples == 0 and p.received == 0
+
+
+@pytest.mark.parametrize('field, value', [
+    ('forgetting', 1.5), ('half_window', 0), ('velocity', 'guess'), ('align_tolerance', -1.0),
+    ('joint_noise_std', [1.0]), ('max_gap', float('nan'))])
+def test_bad_configuration_names_the_parameter(field, value):
+    from identification_node.errors import IdentificationError
+    with pytest.raises(IdentificationError, match=field):
+        IdentificationPipeline(ROBOT, PipelineConfig(**{field: value}), BASE)
