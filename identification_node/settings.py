@@ -1,0 +1,190 @@
+"""Settings of the node and of offline replay, from one flat parameter dictionary.
+
+The keys are the node's ROS parameter names (see config/identification.yaml); a YAML file in
+the ROS parameter-file layout (``node: {ros__parameters: {...}}``) or a plain mapping works,
+nested keys being joined with dots. Values are validated here, once, for the node and the CLI
+alike: a bad value raises IdentificationError naming the parameter.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from .errors import IdentificationError
+from .pipeline import IdentificationPipeline, PipelineConfig
+from .robot import RobotModel, load_robot
+from .torque import JointTorqueConfig
+
+# name: (default, description). Per-joint lists hold one value for every joint, or one per
+# identified joint in the order of `joints`.
+PARAMETERS: dict[str, tuple[Any, str]] = {
+    'robot': ('mit_dd_arm', 'bundled robot name or URDF/MJCF file path'),
+    'robot_description': ('', 'URDF XML; when set it is used instead of `robot`'),
+    'joints': ([], 'identified joints in this order (empty: all movable joints)'),
+    'extras': ([], 'per-joint extra columns among fv, fc, fo, Ia'),
+    'coulomb_velocity': (0.0, 'rad/s; > 0 smooths the Coulomb sign as tanh(qd / value)'),
+    'torque_source': (['measured'], 'per joint: measured, current or three_phase'),
+    'kt': ([1.0], 'per joint motor torque constant, N m/A'),
+    'gear_ratio': ([1.0], 'per joint gear ratio (joint torque = ratio * motor torque)'),
+    'pole_pairs': ([1], 'per joint motor pole pairs'),
+    'angle_offset': ([0.0], 'per joint electrical angle offset, rad'),
+    'phase_order': (['abc'], 'per joint phase order: abc or acb'),
+    'forgetting_factor': (1.0, 'RLS forgetting factor per sample in [0.9, 1]; 1 = none'),
+    'smoother.half_window': (10, 'fixed-lag smoother half window, samples (the delay)'),
+    'smoother.order': (3, 'polynomial order of the smoother'),
+    'smoother.max_gap': (0.05, 's; a larger stamp gap restarts the smoother'),
+    'velocity_source': ('auto', 'auto, measured or differentiate'),
+    'align_tolerance': (0.002, 's; currents are matched to joint states within this'),
+    'hold_time': (0.1, 's to wait for currents before a joint state is given up'),
+    'restart_jump': (1.0, 's; a larger backward stamp jump is a restarted stream'),
+    'joint_noise_std': ([], 'per joint torque noise std for weighting, N m (empty: equal)'),
+    'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
+    'max_condition': (1e8, 'largest information condition number counted as excited'),
+    'min_samples': (1000, 'samples needed before convergence is declared'),
+    'process_period': (0.002, 's between batch processing runs'),
+    'publish.effort_rate': (0.0, 'Hz for predicted/measured effort; 0 = every sample'),
+    'publish.estimate_rate': (1.0, 'Hz for base_parameters, estimate.* and robot_description'),
+    'publish.diagnostics_rate': (1.0, 'Hz for /diagnostics'),
+    'output_directory': ('identification_output', 'directory the save service writes into'),
+}
+PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
+
+
+def flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:
+    """Nested mapping to dotted keys."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            out.update(flatten(value, name + '.'))
+        else:
+            out[name] = value
+    return out
+
+
+def read_parameter_file(path: str | Path) -> dict[str, Any]:
+    """The parameters of a ROS parameter YAML file (first node's ros__parameters) or of a
+    plain YAML mapping, flattened."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise IdentificationError(f'cannot read parameter file {path}: {exc}') from None
+    if not isinstance(data, Mapping):
+        raise IdentificationError(f'parameter file {path} does not hold a mapping')
+    for value in data.values():
+        if isinstance(value, Mapping) and 'ros__parameters' in value:
+            return flatten(value['ros__parameters'])
+    return flatten(data)
+
+
+@dataclass
+class Settings:
+    """Validated settings; ``build`` turns them into the robot and the pipeline."""
+    values: dict[str, Any]
+
+    @classmethod
+    def from_dict(cls, given: Mapping[str, Any]) -> Settings:
+        given = flatten(given)
+        unknown = sorted(set(given) - set(PARAMETERS))
+        if unknown:
+            raise IdentificationError(f'unknown parameter(s) {unknown}; known: '
+                                      f'{sorted(PARAMETERS)}')
+        values = {k: default for k, (default, _) in PARAMETERS.items()}
+        values.update(given)
+        for name, (default, _) in PARAMETERS.items():
+            values[name] = _coerce(name, values[name], default)
+        for name in ('process_period', 'publish.estimate_rate', 'publish.diagnostics_rate'):
+            if not values[name] > 0:
+                raise IdentificationError(f'parameter {name} = {values[name]} must be > 0')
+        if values['publish.effort_rate'] < 0:
+            raise IdentificationError('parameter publish.effort_rate must be >= 0')
+        if not str(values['output_directory']).strip():
+            raise IdentificationError('parameter output_directory must not be empty')
+        return cls(values)
+
+    def __getitem__(self, name: str) -> Any:
+        return self.values[name]
+
+    @property
+    def output_directory(self) -> Path:
+        return Path(self.values['output_directory']).expanduser().resolve()
+
+    def load_robot(self) -> RobotModel:
+        v = self.values
+        source = v['robot_description'] if v['robot_description'].strip() else v['robot']
+        return load_robot(source, v['joints'] or None, extras=v['extras'],
+                          coulomb_velocity=v['coulomb_velocity'])
+
+    def torque_configs(self, joints: list[str]) -> dict[str, JointTorqueConfig]:
+        per_joint = {}
+        for name in PER_JOINT:
+            value = self.values[name]
+            if len(value) not in (1, len(joints)):
+                raise IdentificationError(
+                    f'parameter {name} has {len(value)} values; give 1 or one per joint '
+                    f'({len(joints)}: {joints})')
+            per_joint[name] = value * len(joints) if len(value) == 1 else value
+        out = {}
+        for i, joint in enumerate(joints):
+            try:
+                out[joint] = JointTorqueConfig.from_dict({
+                    'source': per_joint['torque_source'][i], 'kt': per_joint['kt'][i],
+                    'gear_ratio': per_joint['gear_ratio'][i],
+                    'pole_pairs': per_joint['pole_pairs'][i],
+                    'angle_offset': per_joint['angle_offset'][i],
+                    'phase_order': per_joint['phase_order'][i]})
+            except IdentificationError as exc:
+                raise IdentificationError(f'torque parameters of joint {joint}: {exc}') from None
+        return out
+
+    def pipeline_config(self, joints: list[str]) -> PipelineConfig:
+        v = self.values
+        return PipelineConfig(
+            torque=self.torque_configs(joints), forgetting=v['forgetting_factor'],
+            half_window=v['smoother.half_window'], smoother_order=v['smoother.order'],
+            max_gap=v['smoother.max_gap'], velocity=v['velocity_source'],
+            align_tolerance=v['align_tolerance'], hold_time=v['hold_time'],
+            restart_jump=v['restart_jump'], joint_noise_std=v['joint_noise_std'],
+            converged_ratio=v['converged_ratio'], max_condition=v['max_condition'],
+            min_samples=v['min_samples'])
+
+    def build(self, robot: RobotModel | None = None) -> IdentificationPipeline:
+        """The pipeline these settings describe (loading the robot unless given)."""
+        robot = robot or self.load_robot()
+        return IdentificationPipeline(robot, self.pipeline_config(robot.joint_names))
+
+
+def _coerce(name: str, value: Any, default: Any) -> Any:
+    """Value converted to the default's type, or IdentificationError naming the parameter."""
+    def bad(expected: str) -> IdentificationError:
+        return IdentificationError(f'parameter {name} = {value!r} must be {expected}')
+
+    if isinstance(default, list):
+        if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
+            value = [value]
+        value = list(value)
+        kind = type(default[0]) if default else (float if name == 'joint_noise_std' else str)
+        return [_coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise bad('true or false')
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise bad('an integer')
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad('a number')
+        if not math.isfinite(value):
+            raise bad('finite')
+        return float(value)
+    if not isinstance(value, str):
+        raise bad('a string')
+    return value
