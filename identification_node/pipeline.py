@@ -52,6 +52,7 @@ class PipelineConfig:
     hold_time: float = 0.1
     restart_jump: float = 1.0
     joint_noise_std: Sequence[float] = ()
+    coulomb_exclusion_speed: float = 0.1
     converged_ratio: float = 0.1
     max_condition: float = 1e8
     min_samples: int = 1000
@@ -71,6 +72,7 @@ class PipelineConfig:
             ('restart_jump', self.restart_jump > 0, '> 0'),
             ('joint_noise_std', len(self.joint_noise_std) in (0, dof)
              and all(s > 0 for s in self.joint_noise_std), f'empty or {dof} values > 0'),
+            ('coulomb_exclusion_speed', self.coulomb_exclusion_speed >= 0, '>= 0'),
             ('converged_ratio', self.converged_ratio > 0, '> 0'),
             ('max_condition', self.max_condition > 1, '> 1'),
             ('min_samples', int(self.min_samples) >= 0, '>= 0'),
@@ -161,6 +163,7 @@ class IdentificationPipeline:
         self.rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting)
         self.rejected = dict.fromkeys(REJECT_REASONS, 0)
         self.restarts = 0
+        self.excluded_rows = 0
         self.received = 0
         self.used = 0
         self._velocity_mode: str | None = (None if self.config.velocity == 'auto'
@@ -429,7 +432,7 @@ class IdentificationPipeline:
         tau = x[:, -n:]
         Yb = self.base.base_regressor(self.robot.regressor(q, qd, qdd))
         if not self.frozen:
-            self.rls.update(Yb, tau, self._weights)
+            self.rls.update(Yb, tau, self._row_weights(t, qd, qdd))
             self.used += len(t)
         predicted = Yb @ self.rls.theta
         self.gram += np.einsum('knp,knq->npq', Yb, Yb)
@@ -440,6 +443,21 @@ class IdentificationPipeline:
         stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
+
+    def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
+        """Per (sample, joint) weights: the joint weights, and zero for a joint's equation while
+        its smoothing window may hold a velocity reversal, |qd| < v_min + |qdd| T_half, when
+        Coulomb friction is identified: there the friction torque turns faster than the
+        smoother resolves (and stiction is not modelled at all)."""
+        if 'fc' not in self.robot.extras:
+            return self._weights
+        period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        reach = self.config.coulomb_exclusion_speed + np.abs(qdd) * period * self.delay
+        slow = np.abs(qd) < reach
+        self.excluded_rows += int(np.count_nonzero(slow))
+        w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
+        w[slow] = 0.0
+        return w
 
     # -- results --------------------------------------------------------------------------------
     def residual_rms(self) -> np.ndarray:
@@ -476,15 +494,16 @@ class IdentificationPipeline:
 
     def converged(self) -> bool:
         """Excited, enough samples, and the parameter uncertainty contributes less than
-        ``converged_ratio`` of the residual torque RMS on every joint."""
+        ``converged_ratio`` of the torque noise on every joint (the residual RMS of the
+        smoothed torque, scaled back to the raw noise level like the covariance)."""
         if self.rls.num_samples < self.config.min_samples:
             return False
         if not self.excitation()[0] <= self.config.max_condition:
             return False
-        rms = self.residual_rms()
+        noise = self.residual_rms() * math.sqrt(self._cov_scale)
         # Mean predicted-torque variance from the covariance: trace(P G_j) / N per joint.
         var = np.einsum('pq,nqp->n', self.covariance, self.gram) / max(self._res_count, 1)
-        return bool(np.all(np.sqrt(np.maximum(var, 0)) <= self.config.converged_ratio * rms))
+        return bool(np.all(np.sqrt(np.maximum(var, 0)) <= self.config.converged_ratio * noise))
 
     def estimate(self) -> EstimateReport:
         """A snapshot of the running estimate."""

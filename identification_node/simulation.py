@@ -224,6 +224,7 @@ class ArmSimulator:
         self.q, self.qd = q[0].copy(), qd[0].copy()
         self.t0, self._k = float(t0), 0
         self.t = self.t0
+        self._tau = None   # actuator torque at the current time (None: not commanded yet)
         self._noise = SensorNoise() if noise is None else noise
         self._rng = np.random.default_rng(seed)
         self._converter = (default_converter(self.robot.joint_names) if converter is None
@@ -242,35 +243,45 @@ class ArmSimulator:
 
     def _advance(self, q_r: np.ndarray, qd_r: np.ndarray, qdd_r: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-        """Control torque at the current state, integrate one sample period (RK4); returns
-        (tau, qdd at the start of the period)."""
+        """Command a torque at the current state and integrate one sample period (RK4).
+
+        The actuator torque is continuous, as a real drive's current loop makes it: over the
+        period it ramps from its present value to the new command. Returns the instantaneous
+        torque and acceleration at the start of the period, so every sample is consistent
+        (tau = Y(q, qd, qdd) phi at the sample time) and smooth for differentiation; a
+        zero-order hold would make qdd jump at every sample, half a sample off any symmetric
+        derivative estimate."""
         q, qd = self.q, self.qd
         v = qdd_r + self.kd * (qd_r - qd) + self.kp * (q_r - q)
         # Friction is fed forward at the reference velocity: at the measured one, sign(qd)
         # chatters around zero speed on light joints (a wrist's 1e-4 kg m^2).
         nom = self._nominal
-        tau = nom.inverse(q, qd, v) - nom.friction(qd) + nom.friction(qd_r)
+        command = nom.inverse(q, qd, v) - nom.friction(qd) + nom.friction(qd_r)
+        start = command if self._tau is None else self._tau
         f = self._true.forward
         h = 1.0 / (self.rate * self.substeps)
         qdd0 = None
-        for _ in range(self.substeps):
-            a1 = f(q, qd, tau)
+        for i in range(self.substeps):
+            tau0 = start + (command - start) * (i / self.substeps)
+            tau1 = start + (command - start) * ((i + 1) / self.substeps)
+            tau_mid = 0.5 * (tau0 + tau1)
+            a1 = f(q, qd, tau0)
             if qdd0 is None:
                 qdd0 = a1
             v2 = qd + 0.5 * h * a1
-            a2 = f(q + 0.5 * h * qd, v2, tau)
+            a2 = f(q + 0.5 * h * qd, v2, tau_mid)
             v3 = qd + 0.5 * h * a2
-            a3 = f(q + 0.5 * h * v2, v3, tau)
+            a3 = f(q + 0.5 * h * v2, v3, tau_mid)
             v4 = qd + h * a3
-            a4 = f(q + h * v3, v4, tau)
+            a4 = f(q + h * v3, v4, tau1)
             q = q + h / 6.0 * (qd + 2.0 * v2 + 2.0 * v3 + v4)
             qd = qd + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
             raise IdentificationError(f'simulation diverged at t = {self.t:.4f} s')
-        self.q, self.qd = q, qd
+        self.q, self.qd, self._tau = q, qd, command
         self._k += 1
         self.t = self.t0 + self._k / self.rate  # no drift from summing 1/rate
-        return tau, qdd0
+        return start, qdd0
 
     # -- batch ------------------------------------------------------------------------------------
     def run(self, trajectory: Trajectory, duration: float | None = None,

@@ -1,0 +1,115 @@
+"""``simulate``: the simulated arm, as fast as the machine allows, into a rosbag2 bag.
+
+Writes /joint_states (position, velocity, effort), /motor_currents when the settings' torque
+sources use currents (channels ``<joint>/ia`` ..., amperes in effort, electrical angle in
+position), /robot_description (latched) and /clock, with header stamps and log times at the
+simulated sample times plus ``--stamp-offset``; and ``true_parameters.yaml`` in the bag
+directory with the parameters the arm was simulated with.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from . import add_robot_arguments, add_settings_arguments, settings_from_args
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_robot_arguments(parser, required=False)
+    add_settings_arguments(parser)
+    parser.add_argument('--trajectory', default='fourier',
+                        help="paper_moves, table1, fourier, or a .yaml/.csv file")
+    parser.add_argument('--duration', type=float, default=None,
+                        help='s (default: the trajectory duration or one period)')
+    parser.add_argument('--rate', type=float, default=1000.0, help='sample rate, Hz')
+    parser.add_argument('--out', required=True, help='bag directory to create')
+    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    parser.add_argument('--overwrite', action='store_true')
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--stamp-offset', type=float, default=0.0, help='s added to stamps')
+    noise = parser.add_argument_group('sensor noise')
+    noise.add_argument('--position-std', type=float, default=0.0, help='rad')
+    noise.add_argument('--encoder-counts', type=int, default=0, help='per revolution, 0: none')
+    noise.add_argument('--velocity-std', type=float, default=0.0, help='rad/s')
+    noise.add_argument('--torque-std', type=float, default=0.0, help='N m')
+    noise.add_argument('--current-std', type=float, default=0.0, help='A')
+    parser.add_argument('--no-velocity', action='store_true', help='omit JointState.velocity')
+    parser.add_argument('--no-effort', action='store_true', help='omit JointState.effort')
+    parser.add_argument('--clock', action='store_true', help='also write /clock')
+    parser.add_argument('--true-parameters', metavar='FILE',
+                        help='YAML mapping of standard parameter names to the values to '
+                        'simulate instead of the model\'s own (e.g. joint1.fv: 0.5)')
+
+
+def true_parameters(robot, path: str | None):
+    """The robot's own standard parameters with the overrides of a YAML file."""
+    import yaml
+
+    from ..errors import IdentificationError
+    phi = robot.phi_model
+    if not path:
+        return phi
+    try:
+        given = yaml.safe_load(open(path)) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise IdentificationError(f'cannot read true parameters {path}: {exc}') from None
+    if not isinstance(given, dict):
+        raise IdentificationError(f'{path} must map parameter names to values')
+    for name, value in given.items():
+        if not isinstance(value, (int, float)):
+            raise IdentificationError(f'{path}: {name} = {value!r} is not a number')
+        phi[robot.param_index(name)] = float(value)
+    return phi
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..bagio import BagWriter, JOINT_STATE
+    from ..fileio import atomic_write_yaml
+    from ..identifiability import BaseParameters
+    from ..simulation import ArmSimulator, SensorNoise
+    from ..torque import TorqueConverter
+    from ..trajectories import load_trajectory
+
+    settings = settings_from_args(args)
+    robot = settings.load_robot()
+    converter = TorqueConverter(robot.joint_names, settings.torque_configs(robot.joint_names))
+    noise = SensorNoise(args.position_std, args.encoder_counts, args.velocity_std,
+                        args.torque_std, args.current_std)
+    trajectory = load_trajectory(args.trajectory, robot)
+    phi = true_parameters(robot, args.true_parameters)
+    sim = ArmSimulator(robot, phi, rate=args.rate).run(trajectory, args.duration, noise,
+                                                       args.seed, converter)
+    names = list(robot.joint_names)
+    slots = converter.current_channel_slots()
+    stamps = np.round((sim.t + args.stamp_offset) * 1e9).astype(np.int64)
+    with BagWriter(args.out, args.storage, overwrite=args.overwrite) as bag:
+        bag.add_topic('/joint_states', JOINT_STATE)
+        if robot.kind == 'urdf':
+            bag.write_string('/robot_description', int(stamps[0]), robot.description)
+        for k, ns in enumerate(stamps.tolist()):
+            t = ns * 1e-9
+            bag.write_joint_state('/joint_states', ns, t, names, sim.q_meas[k],
+                                  () if args.no_velocity else sim.qd_meas[k],
+                                  () if args.no_effort else sim.tau_meas[k])
+            if slots:
+                bag.write_joint_state(
+                    '/motor_currents', ns, t, [s[0] for s in slots],
+                    [sim.theta_e[k, i] for _, i, _ in slots],
+                    (), [sim.currents[k, i, c] for _, i, c in slots])
+            if args.clock:
+                bag.write_clock(ns)
+    base = BaseParameters.from_robot(robot)
+    truth = {
+        'robot': robot.name, 'joints': names, 'command': ' '.join(sys.argv),
+        'trajectory': args.trajectory, 'rate': args.rate, 'samples': len(sim),
+        'noise': vars(noise), 'seed': args.seed,
+        'standard_parameters': dict(zip(robot.param_names, map(float, phi))),
+        'base_parameters': {n: float(v) for n, v in zip(base.names,
+                                                        base.to_base(phi))},
+    }
+    path = atomic_write_yaml(f'{args.out}/true_parameters.yaml', truth)
+    print(f'wrote {len(sim)} samples ({sim.t[-1]:.2f} s) of {robot.name} to {args.out} '
+          f'({args.storage}); true parameters in {path}')
+    return 0

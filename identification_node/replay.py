@@ -1,0 +1,90 @@
+"""Offline identification: a recorded bag streamed through the live pipeline, without DDS.
+
+The bag's messages go through the same IdentificationPipeline (validation, alignment,
+smoother, RLS) as the node's callbacks feed, in log-time order and fixed-size batches, so the
+result is deterministic and memory does not grow with the bag's length.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .bagio import iter_joint_states, open_bag, read_string_topic
+from .errors import IdentificationError
+from .pipeline import IdentificationPipeline
+from .robot import RobotModel, load_robot
+from .settings import Settings
+
+JOINT_STATES = '/joint_states'
+MOTOR_CURRENTS = '/motor_currents'
+ROBOT_DESCRIPTION = '/robot_description'
+
+
+@dataclass
+class Checkpoint:
+    """The running estimate after ``num_samples`` samples (for convergence plots)."""
+    num_samples: int
+    stamp: float
+    values: np.ndarray
+    stddev: np.ndarray
+
+
+@dataclass
+class ReplayResult:
+    """The pipeline after the whole bag, and the estimate's history."""
+    bag: str
+    pipeline: IdentificationPipeline
+    messages: int
+    history: list[Checkpoint] = field(default_factory=list)
+
+
+def bag_robot(bag: str | os.PathLike, settings: Settings) -> RobotModel:
+    """The robot of the bag's /robot_description (URDF), with the settings' joints and extras."""
+    with open_bag(bag) as reader:
+        xml = read_string_topic(reader, ROBOT_DESCRIPTION)
+    if not xml:
+        raise IdentificationError(f'bag {bag} has no {ROBOT_DESCRIPTION}: name the robot '
+                                  '(--robot or --urdf, or robot in --config)')
+    return load_robot(xml, settings['joints'] or None, extras=settings['extras'],
+                      coulomb_velocity=settings['coulomb_velocity'])
+
+
+def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                 joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
+                 batch: int = 1000, checkpoints: int = 50) -> ReplayResult:
+    """Identify ``robot`` from the bag's joint states (and motor currents when the settings'
+    torque sources need them)."""
+    pipeline = settings.build(robot)
+    topics = [joint_states]
+    if pipeline.converter.needs_currents:
+        topics.append(motor_currents)
+    with open_bag(bag) as reader:
+        counts = reader.topic_counts
+        every = max(batch, counts.get(joint_states, 0) // max(checkpoints, 1))
+        result = ReplayResult(str(bag), pipeline, 0)
+        add = {joint_states: pipeline.add_joint_state, motor_currents: pipeline.add_currents}
+        next_checkpoint = every
+        for topic, _, record in iter_joint_states(reader, topics):
+            add[topic](record)
+            result.messages += 1
+            if result.messages % batch == 0:
+                pipeline.process()
+                if pipeline.used >= next_checkpoint:
+                    result.history.append(_checkpoint(pipeline))
+                    next_checkpoint = pipeline.used + every
+    pipeline.process(flush=True)
+    if pipeline.used == 0:
+        rejected = {k: v for k, v in pipeline.rejected.items() if v}
+        raise IdentificationError(
+            f'no usable samples in {bag} (messages on {", ".join(topics)}: '
+            f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}); check '
+            'the joint names and the torque sources (--config)')
+    result.history.append(_checkpoint(pipeline))
+    return result
+
+
+def _checkpoint(pipeline: IdentificationPipeline) -> Checkpoint:
+    est = pipeline.estimate()
+    return Checkpoint(est.num_samples, est.stamp, est.values, est.stddev)
