@@ -579,3 +579,76 @@ class RecursiveLeastSquares:
                                         rss.sum())
 
     snapshot = estimate
+
+
+class ResidualStatistics:
+    """Per-joint sums giving, for ANY parameter vector theta, the residuals tau - Y theta's sum
+    of squares sample by sample and over blocks of ``block`` consecutive samples, in constant
+    memory. The block sums give the long-run (zero-frequency) variance of correlated residuals,
+    such as smoothed noise: the variance that least squares actually averages.
+    """
+
+    def __init__(self, num_params: int, num_joints: int, block: int):
+        self.p, self.n = _check_count('num_params', num_params), _check_count(
+            'num_joints', num_joints)
+        self.block = _check_count('block', block)
+        p, n = self.p, self.n
+        self.gram, self.cross, self.sq = np.zeros((n, p, p)), np.zeros((n, p)), np.zeros(n)
+        self.count = 0
+        self._bgram, self._bcross, self._bsq = np.zeros((n, p, p)), np.zeros((n, p)), np.zeros(n)
+        self.blocks = 0
+        # The block being filled: sums of Y and tau over its first ``_fill`` samples.
+        self._sy, self._st, self._fill = np.zeros((n, p)), np.zeros(n), 0
+
+    def add(self, Y: np.ndarray, tau: np.ndarray) -> None:
+        """Samples Y (N, n, p), tau (N, n), in time order."""
+        Y, tau = _check_data(Y, tau, self.p, self.n)
+        self.gram += np.einsum('knp,knq->npq', Y, Y)
+        self.cross += np.einsum('knp,kn->np', Y, tau)
+        self.sq += np.einsum('kn,kn->n', tau, tau)
+        self.count += len(tau)
+        # Complete the open block, then whole blocks at once, then open the remainder.
+        k = min(self.block - self._fill, len(tau))
+        self._sy += Y[:k].sum(axis=0)
+        self._st += tau[:k].sum(axis=0)
+        self._fill += k
+        if self._fill < self.block:
+            return
+        whole = (len(tau) - k) // self.block
+        rest = k + whole * self.block
+        Yw = Y[k:rest].reshape(whole, self.block, self.n, self.p)
+        tw = tau[k:rest].reshape(whole, self.block, self.n)
+        SY = np.concatenate([self._sy[None], Yw.sum(axis=1)])
+        St = np.concatenate([self._st[None], tw.sum(axis=1)])
+        self._bgram += np.einsum('bnp,bnq->npq', SY, SY)
+        self._bcross += np.einsum('bnp,bn->np', SY, St)
+        self._bsq += np.einsum('bn,bn->n', St, St)
+        self.blocks += whole + 1
+        self._sy, self._st = Y[rest:].sum(axis=0), tau[rest:].sum(axis=0)
+        self._fill = len(tau) - rest
+
+    @staticmethod
+    def _ss(gram, cross, sq, theta):
+        return np.maximum(sq - 2 * cross @ theta + np.einsum('p,npq,q->n', theta, gram, theta),
+                          0.0)
+
+    def rss(self, theta: np.ndarray) -> np.ndarray:
+        """Per-joint residual sum of squares of the samples."""
+        return self._ss(self.gram, self.cross, self.sq, np.asarray(theta, dtype=float))
+
+    def variance(self, theta: np.ndarray) -> np.ndarray:
+        """Per-joint residual variance per sample (nan before any sample)."""
+        return self.rss(theta) / self.count if self.count else np.full(self.n, np.nan)
+
+    def long_run_variance(self, theta: np.ndarray) -> np.ndarray:
+        """Per-joint long-run variance: (block residual sums)^2 / block, averaged over the
+        complete blocks (nan before the first)."""
+        if not self.blocks:
+            return np.full(self.n, np.nan)
+        ss = self._ss(self._bgram, self._bcross, self._bsq, np.asarray(theta, dtype=float))
+        return ss / (self.blocks * self.block)
+
+    def relative_error(self, theta: np.ndarray) -> np.ndarray:
+        """Per-joint 100 ||tau - Y theta|| / ||tau|| (percent)."""
+        with np.errstate(invalid='ignore', divide='ignore'):
+            return 100.0 * np.sqrt(self.rss(theta) / self.sq)

@@ -25,7 +25,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .errors import IdentificationError
-from .estimators import RecursiveLeastSquares
+from .estimators import RecursiveLeastSquares, ResidualStatistics
 from .identifiability import BaseParameters
 from .records import JointStateRecord
 from .robot import RobotModel
@@ -132,10 +132,12 @@ class IdentificationPipeline:
         self._channels = {name: (i, k) for name, i, k in self.converter.current_channel_slots()}
         self._channel_index = tuple(np.array(list(self._channels.values()), dtype=int)
                                     .reshape(-1, 2).T)
-        # Torque noise is smoothed too: its residual variance understates the white noise the
-        # estimate averages by the smoother's noise gain (see smoothing_noise_gain).
-        self._cov_scale = 1.0 / smoothing_noise_gain(int(self.config.half_window),
-                                                     int(self.config.smoother_order))
+        # The torque is smoothed too, so residuals are correlated over the window: the
+        # covariance uses their long-run variance, from sums over blocks of 8 windows; until
+        # there are enough blocks, white raw noise is assumed (see smoothing_noise_gain).
+        self._block = 8 * (2 * int(self.config.half_window) + 1)
+        self._white_scale = 1.0 / smoothing_noise_gain(int(self.config.half_window),
+                                                       int(self.config.smoother_order))
         # Inverse-variance weights per joint (RLS weights multiply squared residuals).
         self._weights = (np.asarray(self.config.joint_noise_std, dtype=float) ** -2
                          if len(self.config.joint_noise_std) else None)
@@ -175,12 +177,7 @@ class IdentificationPipeline:
         self._pending_js = _Samples.empty(n)
         self._currents = _Samples.empty(n, with_currents=True)
         self._smoother: FixedLagSmoother | None = None
-        # Per-joint sums for the torque error of any estimate: sum Yb'Yb, Yb'tau, tau'tau.
-        self.gram = np.zeros((n, b, b))
-        self.cross = np.zeros((n, b))
-        self.tau_sq = np.zeros(n)
-        self._res_sq = np.zeros(n)
-        self._res_count = 0.0
+        self.residuals = ResidualStatistics(b, n, self._block)
         for q in (self._js_queue, self._cur_queue):
             q.clear()
 
@@ -432,14 +429,15 @@ class IdentificationPipeline:
         tau = x[:, -n:]
         Yb = self.base.base_regressor(self.robot.regressor(q, qd, qdd))
         if not self.frozen:
-            self.rls.update(Yb, tau, self._row_weights(t, qd, qdd))
+            w = self._row_weights(t, qd, qdd)
+            self.rls.update(Yb, tau, w)
             self.used += len(t)
+            if w is None:
+                self.residuals.add(Yb, tau)
+            else:
+                root = np.sqrt(np.broadcast_to(w, tau.shape))
+                self.residuals.add(Yb * root[..., None], tau * root)
         predicted = Yb @ self.rls.theta
-        self.gram += np.einsum('knp,knq->npq', Yb, Yb)
-        self.cross += np.einsum('knp,kn->np', Yb, tau)
-        self.tau_sq += np.einsum('kn,kn->n', tau, tau)
-        self._res_sq += ((tau - predicted) ** 2).sum(axis=0)
-        self._res_count += len(t)
         stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
@@ -461,28 +459,35 @@ class IdentificationPipeline:
 
     # -- results --------------------------------------------------------------------------------
     def residual_rms(self) -> np.ndarray:
-        """Per-joint RMS of measured minus predicted torque over the samples seen (N m)."""
-        if self._res_count == 0:
-            return np.full(self.robot.dof, np.nan)
-        return np.sqrt(self._res_sq / self._res_count)
+        """Per-joint RMS of the (smoothed, weighted) measured minus predicted torque over the
+        samples used, for the current estimate (N m)."""
+        return np.sqrt(self.residuals.variance(self.rls.theta))
 
     def relative_error(self, theta: np.ndarray | None = None) -> np.ndarray:
-        """Per-joint 100 ||tau - Yb theta|| / ||tau|| (percent) over every processed sample,
-        for ``theta`` (default: the current estimate)."""
-        theta = self.rls.theta if theta is None else np.asarray(theta, dtype=float)
-        err = (self.tau_sq - 2 * self.cross @ theta
-               + np.einsum('p,npq,q->n', theta, self.gram, theta))
-        with np.errstate(invalid='ignore', divide='ignore'):
-            return 100.0 * np.sqrt(np.maximum(err, 0.0) / self.tau_sq)
+        """Per-joint 100 ||tau - Yb theta|| / ||tau|| (percent) over the samples used, for
+        ``theta`` (default: the current estimate)."""
+        return self.residuals.relative_error(self.rls.theta if theta is None else theta)
+
+    def noise_variance(self) -> np.ndarray:
+        """Per-joint long-run variance of the torque residual (N m)^2: the noise the estimate
+        averages. White raw noise is assumed until 10 blocks of samples are in."""
+        theta = self.rls.theta
+        if self.residuals.blocks >= 10:
+            return self.residuals.long_run_variance(theta)
+        return self.residuals.variance(theta) * self._white_scale
 
     @property
     def covariance(self) -> np.ndarray:
-        """Covariance of the base estimate (see ``_cov_scale``)."""
-        return self.rls.covariance * self._cov_scale
+        """Covariance of the base estimate: the RLS covariance, whose noise level comes from
+        the smoothed residuals, rescaled to their long-run variance."""
+        var = self.residuals.variance(self.rls.theta)
+        scale = (float(self.noise_variance().sum() / var.sum()) if np.nansum(var) > 0
+                 else self._white_scale)
+        return self.rls.covariance * scale
 
     @property
     def stddev(self) -> np.ndarray:
-        return self.rls.stddev * math.sqrt(self._cov_scale)
+        return np.sqrt(np.diag(self.covariance))
 
     def excitation(self) -> tuple[float, float]:
         """(condition number, smallest eigenvalue) of the information the data brought, without
@@ -494,15 +499,15 @@ class IdentificationPipeline:
 
     def converged(self) -> bool:
         """Excited, enough samples, and the parameter uncertainty contributes less than
-        ``converged_ratio`` of the torque noise on every joint (the residual RMS of the
-        smoothed torque, scaled back to the raw noise level like the covariance)."""
+        ``converged_ratio`` of the torque noise on every joint."""
         if self.rls.num_samples < self.config.min_samples:
             return False
         if not self.excitation()[0] <= self.config.max_condition:
             return False
-        noise = self.residual_rms() * math.sqrt(self._cov_scale)
+        count = max(self.residuals.count, 1)
         # Mean predicted-torque variance from the covariance: trace(P G_j) / N per joint.
-        var = np.einsum('pq,nqp->n', self.covariance, self.gram) / max(self._res_count, 1)
+        var = np.einsum('pq,nqp->n', self.covariance, self.residuals.gram) / count
+        noise = np.sqrt(self.noise_variance())
         return bool(np.all(np.sqrt(np.maximum(var, 0)) <= self.config.converged_ratio * noise))
 
     def estimate(self) -> EstimateReport:

@@ -489,3 +489,28 @@ def test_errors_for_bad_input(mit):
     with pytest.raises(IdentificationError, match='weights'):
         RecursiveLeastSquares(15).update(mit['Yb'][:10], mit['Yb'][:10] @ mit['beta'],
                                          weights=-np.ones(3))
+
+
+def test_residual_statistics_for_any_theta_and_long_run_variance():
+    from identification_node.estimators import ResidualStatistics
+    rng = np.random.default_rng(11)
+    N, n, p, m = 60000, 2, 3, 9
+    Y = rng.standard_normal((N, n, p))
+    theta = np.array([1.0, -2.0, 0.5])
+    # Residuals: white noise through a moving average of m samples (correlated, like a smoother)
+    h = np.full(m, 1.0 / m)
+    white = rng.standard_normal((N + m - 1, n))
+    e = np.stack([np.convolve(white[:, j], h, mode='valid') for j in range(n)], axis=1)
+    tau = Y @ theta + e
+    stats = ResidualStatistics(p, n, block=8 * m)
+    for start in range(0, N, 777):   # uneven chunks: blocks straddle them
+        stats.add(Y[start:start + 777], tau[start:start + 777])
+    other = rng.standard_normal(p)
+    np.testing.assert_allclose(stats.rss(other), ((tau - Y @ other) ** 2).sum(axis=0),
+                               rtol=1e-9)
+    assert stats.blocks == N // (8 * m)
+    # Sample variance sigma^2 sum(h^2) = 1/m; long-run variance sigma^2 (sum h)^2 = 1.
+    np.testing.assert_allclose(stats.variance(theta), 1.0 / m, rtol=0.03)
+    np.testing.assert_allclose(stats.long_run_variance(theta), 1.0, rtol=0.2)
+    direct = 100 * np.linalg.norm(e, axis=0) / np.linalg.norm(tau, axis=0)
+    np.testing.assert_allclose(stats.relative_error(theta), direct, rtol=1e-6)

@@ -9,7 +9,6 @@ directory with the parameters the arm was simulated with.
 from __future__ import annotations
 
 import argparse
-import sys
 
 from . import add_robot_arguments, add_settings_arguments, settings_from_args
 
@@ -102,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
                 bag.write_clock(ns)
     base = BaseParameters.from_robot(robot)
     truth = {
-        'robot': robot.name, 'joints': names, 'command': ' '.join(sys.argv),
+        'robot': robot.name, 'joints': names,
+        'arguments': {k: v for k, v in sorted(vars(args).items()) if k != 'verb'},
         'trajectory': args.trajectory, 'rate': args.rate, 'samples': len(sim),
         'noise': vars(noise), 'seed': args.seed,
         'standard_parameters': dict(zip(robot.param_names, map(float, phi))),
