@@ -309,14 +309,17 @@ class IdentificationPipeline:
 
     def _start_new_stream(self, parts: list) -> None:
         """The stream restarted with earlier stamps: what the old stream left pending (not yet
-        through the smoother) is dropped and counted as 'stream_restart'."""
+        through the smoother) is dropped and counted as 'stream_restart'. Currents more than
+        ``restart_jump`` older than the old stream's newest stamp already belong to the new
+        stream (they may come in the same batch) and are kept."""
         self.restarts += 1
         self._reject('stream_restart', sum(len(p.stamps) for p in parts)
                      + len(self._pending_js.stamps))
         parts.clear()
         self._smoother = None
         self._pending_js = _Samples.empty(self.robot.dof)
-        self._currents = _Samples.empty(self.robot.dof, with_currents=True)
+        self._currents = self._currents.select(
+            self._currents.stamps < self._last_stamp - self.config.restart_jump)
         self._newest_js = -math.inf
 
     def _convert_currents(self, records: list) -> _Samples:

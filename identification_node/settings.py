@@ -42,6 +42,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'hold_time': (0.1, 's to wait for currents before a joint state is given up'),
     'restart_jump': (1.0, 's; a larger backward stamp jump is a restarted stream'),
     'joint_noise_std': ([], 'per joint torque noise std for weighting, N m (empty: equal)'),
+    'coulomb_exclusion_speed': (0.1, 'rad/s (m/s); with fc identified, a joint equation '
+                                'is left out while |qd| < this + |qdd| * smoother half window'),
     'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
     'max_condition': (1e8, 'largest information condition number counted as excited'),
     'min_samples': (1000, 'samples needed before convergence is declared'),
@@ -52,6 +54,11 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'output_directory': ('identification_output', 'directory the save service writes into'),
 }
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
+# PipelineConfig fields whose parameter has another name.
+CONFIG_FIELD_PARAMETERS = {
+    'forgetting': 'forgetting_factor', 'half_window': 'smoother.half_window',
+    'smoother_order': 'smoother.order', 'max_gap': 'smoother.max_gap',
+    'velocity': 'velocity_source'}
 
 
 def flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:
@@ -85,6 +92,12 @@ def read_parameter_file(path: str | Path) -> dict[str, Any]:
 class Settings:
     """Validated settings; ``build`` turns them into the robot and the pipeline."""
     values: dict[str, Any]
+    given: frozenset = frozenset()
+
+    @property
+    def given_robot(self) -> bool:
+        """Whether the robot was set explicitly (not the default)."""
+        return bool({'robot', 'robot_description'} & self.given)
 
     @classmethod
     def from_dict(cls, given: Mapping[str, Any]) -> Settings:
@@ -104,7 +117,7 @@ class Settings:
             raise IdentificationError('parameter publish.effort_rate must be >= 0')
         if not str(values['output_directory']).strip():
             raise IdentificationError('parameter output_directory must not be empty')
-        return cls(values)
+        return cls(values, frozenset(given))
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
@@ -149,13 +162,21 @@ class Settings:
             max_gap=v['smoother.max_gap'], velocity=v['velocity_source'],
             align_tolerance=v['align_tolerance'], hold_time=v['hold_time'],
             restart_jump=v['restart_jump'], joint_noise_std=v['joint_noise_std'],
+            coulomb_exclusion_speed=v['coulomb_exclusion_speed'],
             converged_ratio=v['converged_ratio'], max_condition=v['max_condition'],
             min_samples=v['min_samples'])
 
     def build(self, robot: RobotModel | None = None) -> IdentificationPipeline:
         """The pipeline these settings describe (loading the robot unless given)."""
         robot = robot or self.load_robot()
-        return IdentificationPipeline(robot, self.pipeline_config(robot.joint_names))
+        try:
+            return IdentificationPipeline(robot, self.pipeline_config(robot.joint_names))
+        except IdentificationError as exc:   # name the parameter, not the PipelineConfig field
+            text = str(exc)
+            for field, name in CONFIG_FIELD_PARAMETERS.items():
+                if text.startswith(f'parameter {field} '):
+                    text = f'parameter {name} ' + text[len(f'parameter {field} '):]
+            raise IdentificationError(text) from None
 
 
 def _coerce(name: str, value: Any, default: Any) -> Any:

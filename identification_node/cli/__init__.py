@@ -15,6 +15,13 @@ from ..errors import IdentificationError
 
 VERBS = {
     'structure': ('structure', 'identifiability: parameter groups and base parameters'),
+    'excite': ('excite', 'excitation trajectory design: optimised Fourier series'),
+    'play': ('play', 'publish a bag live with its recorded timing (ros2 bag play)'),
+    'record': ('record', 'record topics into a bag (ros2 bag record)'),
+    'simulate': ('simulate', 'simulate an arm into a rosbag2 bag, with its true parameters'),
+    'identify': ('identify', 'identify the base parameters from a bag (offline replay)'),
+    'sim': ('sim', 'run the simulated arm node (real-time joint states and currents)'),
+    'node': ('node', 'run the identification node'),
 }
 
 
@@ -41,6 +48,26 @@ def robot_from_args(args: argparse.Namespace):
                       extras=split_list(args.extras))
 
 
+def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
+    """--config: a node parameter file (config/*.yaml) whose settings the verb uses."""
+    parser.add_argument('--config', help='parameter YAML file, as for the node '
+                        '(config/identification.yaml): robot, joints, torque sources, ...')
+
+
+def settings_from_args(args: argparse.Namespace):
+    """Settings from --config, overridden by --robot/--urdf/--joints/--extras when given."""
+    from ..settings import Settings, read_parameter_file
+    values = read_parameter_file(args.config) if getattr(args, 'config', None) else {}
+    if getattr(args, 'robot', None) or getattr(args, 'urdf', None):
+        values['robot'] = args.robot or args.urdf
+        values['robot_description'] = ''
+    if getattr(args, 'joints', None):
+        values['joints'] = split_list(args.joints)
+    if getattr(args, 'extras', None):
+        values['extras'] = split_list(args.extras)
+    return Settings.from_dict(values)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='python -m identification_node',
@@ -53,9 +80,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, rest = parser.parse_known_args(argv)
+    module = importlib.import_module(f'{__name__}.{VERBS[args.verb][0]}')
+    if rest and not getattr(module, 'ROS_ARGS', False):
+        parser.error(f'unrecognized arguments: {" ".join(rest)}')
+    args.ros_args = rest   # verbs running a ROS node (ROS_ARGS = True) pass these to rclpy
     try:
-        return int(importlib.import_module(f'{__name__}.{VERBS[args.verb][0]}').run(args) or 0)
+        return int(module.run(args) or 0)
     except IdentificationError as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 2

@@ -1,0 +1,20 @@
+"""``node``: the identification node in this process.
+
+``python -m identification_node node --ros-args --params-file config/identification.yaml``;
+every argument after the verb goes to ROS. Exits 2 on invalid parameters.
+"""
+from __future__ import annotations
+
+import argparse
+
+ROS_ARGS = True   # the CLI passes unparsed arguments on as args.ros_args
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = ('Arguments after the verb go to ROS, e.g. --ros-args --params-file FILE '
+                     '-p forgetting_factor:=0.9999')
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..ros.node import main
+    return main(['identification_node', *getattr(args, 'ros_args', [])])

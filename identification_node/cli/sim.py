@@ -1,0 +1,22 @@
+"""``sim``: the simulated arm node (``simulated_arm``) in this process.
+
+``python -m identification_node sim --ros-args -p robot:=crs_a465 -p trajectory:=table1 ...``;
+every argument after the verb goes to ROS (parameters: see
+identification_node.ros.sim_node.SIM_PARAMETERS). Exits 0 after ``duration``, 2 on invalid
+parameters.
+"""
+from __future__ import annotations
+
+import argparse
+
+ROS_ARGS = True   # the CLI passes unparsed arguments on as args.ros_args
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = ('Arguments after the verb go to ROS, e.g. --ros-args -p rate:=1000.0 '
+                     '-p duration:=10.0 -p publish_currents:=true -p torque_source:=[three_phase]')
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..ros.sim_node import main
+    return main(['simulated_arm', *getattr(args, 'ros_args', [])])

@@ -1,0 +1,285 @@
+"""The identification node: ``ros2 run identification_node identification_node``.
+
+Subscribes to ``joint_states`` and, when a joint's torque comes from motor currents, to
+``motor_currents`` (sensor_msgs/JointState; channels ``<joint>/ia|ib|ic`` or ``<joint>/i``,
+amperes in effort, optional electrical angle in position). Callbacks only copy the message into
+the pipeline; a timer runs the pipeline in batches and publishes:
+
+- ``~/predicted_effort``, ``~/measured_effort`` (JointState, stamped with the sample's stamp),
+- ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations),
+- ``~/robot_description`` (String, transient local: URDF with identified inertials),
+- ``/diagnostics``;
+
+exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` parameters (read-only from outside)
+and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
+from std_srvs.srv import SetBool, Trigger
+
+from ..errors import IdentificationError
+from ..pipeline import PipelineOutput
+from ..results import plain, save_results
+from ..settings import PARAMETERS, Settings
+from ..urdf_export import consistency_problems, identified_urdf
+from .conversions import joint_state_msgs, joint_state_record
+
+# Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                       reliability=ReliabilityPolicy.BEST_EFFORT)
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                        reliability=ReliabilityPolicy.RELIABLE)
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ESTIMATE_PREFIX, STDDEV_PREFIX = 'estimate.', 'estimate_stddev.'
+
+
+def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str, Any]:
+    """Declare every parameter of ``table`` (name: (default, description)) read-only and
+    dynamically typed (Settings validates the values), and return those given; lists with an
+    empty default stay unset unless given."""
+    values = {}
+    for name, (default, text) in table.items():
+        descriptor = ParameterDescriptor(description=text, read_only=True, dynamic_typing=True)
+        initial = None if isinstance(default, list) and not default else default
+        value = node.declare_parameter(name, initial, descriptor).value
+        if value is not None:
+            values[name] = list(value) if isinstance(value, (list, tuple)) or hasattr(
+                value, 'typecode') else value
+    return values
+
+
+class IdentificationNode(Node):
+    """Wires the ROS interfaces to an IdentificationPipeline; no numerics of its own."""
+
+    def __init__(self, node_name: str = 'identification_node', **kwargs: Any):
+        super().__init__(node_name, **kwargs)
+        self.settings = Settings.from_dict(self._declare_settings())
+        self.pipeline = self.settings.build()
+        self.robot = self.pipeline.robot
+        base = self.pipeline.base
+        self._internal_update = False
+        self._declare_estimate_parameters(base.names)
+        self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
+
+        overrides = QoSOverridingOptions.with_default_policies()
+        self.create_subscription(JointState, 'joint_states', self._on_joint_state, INPUT_QOS,
+                                 qos_overriding_options=overrides)
+        if self.pipeline.converter.needs_currents:
+            self.create_subscription(JointState, 'motor_currents', self._on_currents,
+                                     INPUT_QOS, qos_overriding_options=overrides)
+        self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
+        self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
+        self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
+        self._pub_urdf = self.create_publisher(String, '~/robot_description', LATCHED_QOS)
+        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_service(Trigger, '~/reset', self._srv_reset)
+        self.create_service(SetBool, '~/freeze', self._srv_freeze)
+        self.create_service(Trigger, '~/save', self._srv_save)
+        self.create_service(Trigger, '~/get_estimate', self._srv_get_estimate)
+
+        s = self.settings
+        self._effort_rate = s['publish.effort_rate']
+        self._last_effort_slot = -1
+        self._consistency: list[str] = []
+        self._received_at_last_diag = 0
+        self._last_diag_time = self.get_clock().now()
+        self.create_timer(s['process_period'], self._process)
+        self.create_timer(1.0 / s['publish.estimate_rate'], self.refresh_estimate)
+        self.create_timer(1.0 / s['publish.diagnostics_rate'], self._publish_diagnostics)
+        self.get_logger().info(
+            f'identifying {base.num_base} base parameters of {self.robot.name} '
+            f'(joints {", ".join(self.robot.joint_names)}); smoother delay '
+            f'{self.pipeline.delay:.0f} samples')
+
+    # -- parameters -------------------------------------------------------------------------------
+    def _declare_settings(self) -> dict[str, Any]:
+        return declare_settings(self, PARAMETERS)
+
+    def _declare_estimate_parameters(self, names: list[str]) -> None:
+        self._estimate_names = {'base_parameter_names'}
+        self.declare_parameter('base_parameter_names', list(names), ParameterDescriptor(
+            description='base parameter names, in the order of ~/base_parameters'))
+        for name in names:
+            for prefix, text in ((ESTIMATE_PREFIX, 'estimate'), (STDDEV_PREFIX, 'stddev')):
+                self.declare_parameter(prefix + name, 0.0, ParameterDescriptor(
+                    description=f'{text} of base parameter {name} (SI units)'))
+                self._estimate_names.add(prefix + name)
+
+    def _refuse_external_estimate_writes(self, params: list[Parameter]) -> SetParametersResult:
+        if not self._internal_update:
+            for p in params:
+                if p.name in self._estimate_names:
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f'{p.name} is an output of the node; it cannot be set')
+        return SetParametersResult(successful=True)
+
+    # -- input ------------------------------------------------------------------------------------
+    def _on_joint_state(self, msg: JointState) -> None:
+        self.pipeline.add_joint_state(joint_state_record(msg))
+
+    def _on_currents(self, msg: JointState) -> None:
+        self.pipeline.add_currents(joint_state_record(msg))
+
+    # -- processing and output --------------------------------------------------------------------
+    def _process(self) -> None:
+        if self.pipeline.pending:
+            self._publish_efforts(self.pipeline.process())
+
+    def _publish_efforts(self, out: PipelineOutput) -> None:
+        if len(out.stamps_ns) == 0:
+            return
+        keep = slice(None)
+        if self._effort_rate > 0:
+            slots = (out.stamps_ns * self._effort_rate // 1e9).astype(np.int64)
+            prev = np.concatenate([[self._last_effort_slot], slots[:-1]])
+            keep = slots != prev
+            self._last_effort_slot = int(slots[-1])
+        names = self.robot.joint_names
+        stamps = out.stamps_ns[keep]
+        for pub, effort, pos in ((self._pub_predicted, out.predicted, out.q),
+                                 (self._pub_measured, out.measured, out.q)):
+            for msg in joint_state_msgs(stamps, names, position=pos[keep], effort=effort[keep]):
+                pub.publish(msg)
+
+    def refresh_estimate(self) -> None:
+        """Publish base_parameters and the identified URDF; refresh the estimate parameters."""
+        est = self.pipeline.estimate()
+        b = len(est.names)
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label='value_stddev', size=2, stride=2 * b),
+                          MultiArrayDimension(label='base_parameter', size=b, stride=b)]
+        msg.data = np.concatenate([est.values, est.stddev]).tolist()
+        self._pub_params.publish(msg)
+        params = [Parameter(ESTIMATE_PREFIX + n, value=float(v))
+                  for n, v in zip(est.names, est.values)]
+        params += [Parameter(STDDEV_PREFIX + n, value=float(s) if np.isfinite(s) else -1.0)
+                   for n, s in zip(est.names, est.stddev)]
+        self._internal_update = True
+        try:
+            self.set_parameters(params)
+        finally:
+            self._internal_update = False
+        if est.num_samples and self.robot.kind == 'urdf':
+            phi = self.pipeline.standard_parameters()
+            self._consistency = consistency_problems(self.robot, phi)
+            self._pub_urdf.publish(String(data=identified_urdf(self.robot, phi)))
+
+    def _publish_diagnostics(self) -> None:
+        p = self.pipeline
+        est = p.estimate()
+        now = self.get_clock().now()
+        dt = (now - self._last_diag_time).nanoseconds * 1e-9
+        rate = (p.received - self._received_at_last_diag) / dt if dt > 0 else 0.0
+        self._received_at_last_diag, self._last_diag_time = p.received, now
+        status = DiagnosticStatus(name=f'{self.get_name()}: identification',
+                                  hardware_id=self.robot.name)
+        if est.converged:
+            status.level, status.message = DiagnosticStatus.OK, 'converged'
+        else:
+            status.level, status.message = DiagnosticStatus.WARN, 'not converged'
+        if self._consistency:
+            status.level = DiagnosticStatus.WARN
+            status.message += '; identified parameters not physically consistent'
+        values = {
+            'input_rate_hz': f'{rate:.1f}', 'samples_received': p.received,
+            'samples_used': p.used, 'samples_rejected': sum(p.rejected.values()),
+            'condition_number': f'{est.condition_number:.6g}',
+            'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
+            'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': p.restarts,
+            'smoother_delay_samples': int(p.delay),
+            'physically_consistent': not self._consistency,
+        }
+        values.update({f'rejected.{k}': v for k, v in p.rejected.items()})
+        values.update({f'residual_rms.{j}': f'{r:.6g}'
+                       for j, r in zip(self.robot.joint_names, est.residual_rms)})
+        if self._consistency:
+            values['consistency_problems'] = '; '.join(self._consistency)
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = now.to_msg()
+        self._pub_diag.publish(msg)
+
+    # -- services -----------------------------------------------------------------------------
+    def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        self.pipeline.reset()
+        self.refresh_estimate()
+        res.success, res.message = True, 'estimate reset'
+        return res
+
+    def _srv_freeze(self, req: SetBool.Request, res: SetBool.Response) -> SetBool.Response:
+        self.pipeline.frozen = bool(req.data)
+        res.success = True
+        res.message = 'updates frozen' if req.data else 'updates resumed'
+        return res
+
+    def _srv_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        try:
+            paths = save_results(self.pipeline, self.settings.output_directory)
+        except OSError as exc:
+            res.success, res.message = False, f'cannot save: {exc}'
+            return res
+        res.success, res.message = True, ' '.join(str(p) for p in paths)
+        return res
+
+    def _srv_get_estimate(self, _req: Trigger.Request,
+                          res: Trigger.Response) -> Trigger.Response:
+        self.refresh_estimate()
+        est = self.pipeline.estimate()
+        res.success = True
+        res.message = json.dumps(plain({
+            'names': est.names, 'values': est.values.tolist(), 'stddev': est.stddev.tolist(),
+            'num_samples': est.num_samples, 'time': est.stamp, 'converged': est.converged,
+            'condition_number': est.condition_number}))
+        return res
+
+
+def make_executor():
+    """The EventsExecutor (about a third of the per-message cost), else the default one."""
+    try:
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor()
+    except ImportError:  # older rclpy
+        return rclpy.executors.SingleThreadedExecutor()
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = IdentificationNode()
+    except IdentificationError as exc:
+        print(f'identification_node: error: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = make_executor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
