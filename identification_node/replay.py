@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from .bagio import iter_joint_states, open_bag, read_string_topic
 from .errors import IdentificationError
-from .pipeline import IdentificationPipeline
+from .pipeline import IdentificationPipeline, PipelineOutput
 from .robot import RobotModel, load_robot
 from .settings import Settings
 
@@ -53,9 +54,10 @@ def bag_robot(bag: str | os.PathLike, settings: Settings) -> RobotModel:
 
 def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
-                 batch: int = 1000, checkpoints: int = 50) -> ReplayResult:
+                 batch: int = 1000, checkpoints: int = 50,
+                 on_output: Callable[[PipelineOutput], None] | None = None) -> ReplayResult:
     """Identify ``robot`` from the bag's joint states (and motor currents when the settings'
-    torque sources need them)."""
+    torque sources need them). ``on_output`` sees every batch the pipeline outputs."""
     pipeline = settings.build(robot)
     topics = [joint_states]
     if pipeline.converter.needs_currents:
@@ -70,11 +72,15 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             add[topic](record)
             result.messages += 1
             if result.messages % batch == 0:
-                pipeline.process()
+                out = pipeline.process()
+                if on_output is not None:
+                    on_output(out)
                 if pipeline.used >= next_checkpoint:
                     result.history.append(_checkpoint(pipeline))
                     next_checkpoint = pipeline.used + every
-    pipeline.process(flush=True)
+    out = pipeline.process(flush=True)
+    if on_output is not None:
+        on_output(out)
     if pipeline.used == 0:
         rejected = {k: v for k, v in pipeline.rejected.items() if v}
         raise IdentificationError(

@@ -1,9 +1,14 @@
-"""``identify BAG``: offline identification through the node's own pipeline, without DDS.
+"""``identify BAG``: offline identification, without DDS.
 
 The robot is --robot/--urdf, else the robot of --config, else the bag's /robot_description.
-Prints the base parameter estimate with standard deviations, the per-joint relative torque
-error 100 ||tau_measured - tau_predicted|| / ||tau_measured||, the excitation condition number
-and how the estimate converged; ``--json`` prints the same as one object.
+``--method rls`` (default) streams the bag through the node's own pipeline; ``--method batch``
+processes the whole bag at once (offline.py): periodic averaging with --period or a periodic
+--trajectory, else zero-phase filtering (--cutoff) and decimation (--decimate), then weighted
+least squares. Prints the base parameter estimate with standard deviations, the per-joint
+relative torque error 100 ||tau_measured - tau_predicted|| / ||tau_measured||, the excitation
+condition number and how the estimate converged; ``--validate TEST_BAG`` adds the relative
+error on a held-out bag, ``--report DIR`` writes report.md with figures, ``--json`` prints the
+same as one object.
 """
 from __future__ import annotations
 
@@ -13,6 +18,8 @@ import json
 import numpy as np
 
 from . import add_robot_arguments, add_settings_arguments, settings_from_args
+
+BATCH_OPTIONS = ('period', 'trajectory', 'harmonics', 'cutoff', 'decimate')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,43 +31,76 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--currents-topic', default='/motor_currents')
     parser.add_argument('--paper-tables', action='store_true',
                         help="MIT arm: compare with the first paper's Table 3")
+    parser.add_argument('--method', choices=('rls', 'batch'),
+                        help='rls: the node\'s streaming pipeline (default); batch: the whole '
+                        'bag at once (default when a batch option below is given)')
+    batch = parser.add_argument_group('batch processing')
+    batch.add_argument('--period', type=float, metavar='S',
+                       help='periodic motion of this period (s): average over whole periods')
+    batch.add_argument('--trajectory', metavar='FILE',
+                       help='the periodic (Fourier .yaml) trajectory the bag followed: its '
+                       'period, and its harmonics at least in the position fit')
+    batch.add_argument('--harmonics', type=int, metavar='H',
+                       help='harmonics of the Fourier fit to the averaged positions '
+                       '(default: chosen from the data, up to cutoff x period)')
+    batch.add_argument('--cutoff', type=float, metavar='HZ',
+                       help='zero-phase low-pass cutoff (default 20 Hz)')
+    batch.add_argument('--decimate', type=int, metavar='K',
+                       help='keep every K-th filtered sample (default: rate / (2 cutoff))')
+    parser.add_argument('--validate', metavar='TEST_BAG',
+                        help='a held-out bag of the same robot: relative torque error of the '
+                        'estimate on it')
+    parser.add_argument('--report', metavar='DIR',
+                        help='write report.md and PNG figures into DIR')
 
 
-def result_document(result, base_values: np.ndarray | None = None) -> dict:
-    """The ``--json`` object of an identification (replay.ReplayResult)."""
+def result_document(result, validation=None) -> dict:
+    """The ``--json`` object of an identification (offline.Identification, or the
+    replay.ReplayResult of the streaming pipeline), with the validation when given."""
+    from ..offline import Identification, from_replay
     from ..results import plain
-    from ..urdf_export import consistency_problems
 
-    p = result.pipeline
-    robot, base = p.robot, p.base
-    est = p.estimate()
-    model = base.to_base(robot.phi_model)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        rel = 100 * est.stddev / np.abs(est.values)
-    problems = consistency_problems(robot, p.standard_parameters())
-    return plain({
-        'bag': result.bag, 'robot': robot.name, 'joints': robot.joint_names,
-        'num_samples': est.num_samples, 'messages': result.messages,
+    ident = result if isinstance(result, Identification) else from_replay(result)
+    robot, base = ident.robot, ident.base
+    problems = ident.consistency_problems()
+    doc = {
+        'bag': ident.bag, 'robot': robot.name, 'joints': robot.joint_names,
+        'method': ident.method, 'processing': ident.details,
+        'num_samples': ident.num_samples, 'messages': ident.messages,
         'base_parameters': [
             {'name': n, 'expression': e, 'terms': t, 'estimate': float(v), 'stddev': float(s),
              'rel_stddev': float(r), 'model': float(m)}
             for n, e, t, v, s, r, m in zip(base.names, base.expressions, base.terms,
-                                           est.values, est.stddev, rel, model)],
-        'relative_error': dict(zip(robot.joint_names, p.relative_error().tolist())),
-        'residual_rms': dict(zip(robot.joint_names, est.residual_rms.tolist())),
-        'condition_number': est.condition_number,
-        'converged': est.converged,
-        'smoother_delay_samples': int(p.delay),
-        'rejected': {k: v for k, v in p.rejected.items() if v},
+                                           ident.theta, ident.stddev, ident.rel_stddev,
+                                           ident.theta_model)],
+        'relative_error': dict(zip(robot.joint_names, ident.relative_error().tolist())),
+        'model_relative_error': dict(zip(robot.joint_names, ident.relative_error(
+            ident.theta_model).tolist())),
+        'residual_rms': dict(zip(robot.joint_names, ident.residual_rms.tolist())),
+        'noise_std': dict(zip(robot.joint_names, np.sqrt(ident.noise_variance).tolist())),
+        'condition_number': ident.condition_number,
+        'converged': ident.converged,
+        'smoother_delay_samples': (int(ident.pipeline.delay) if ident.pipeline is not None
+                                   else None),
+        'rejected': ident.rejected,
         'physically_consistent': not problems, 'consistency_problems': problems,
-        'convergence': [{'num_samples': c.num_samples, 'estimate': c.values.tolist(),
-                         'stddev': c.stddev.tolist()} for c in result.history],
-    })
+        'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
+                         'stddev': np.asarray(c.stddev).tolist()} for c in ident.history],
+    }
+    if validation is not None:
+        doc['validation'] = {
+            'bag': validation.bag, 'num_samples': validation.num_samples,
+            'rows': validation.rows,
+            'relative_error': dict(zip(robot.joint_names, validation.relative_error.tolist())),
+            'model_relative_error': dict(zip(robot.joint_names,
+                                             validation.model_relative_error.tolist()))}
+    return plain(doc)
 
 
-def format_report(doc: dict, pipeline) -> str:
+def format_report(doc: dict, pipeline=None) -> str:
     lines = [f"{doc['robot']} from {doc['bag']}: {doc['num_samples']} samples used "
-             f"({doc['messages']} messages)"]
+             f"({doc['messages']} messages)",
+             f"method: {doc['method']} ({doc['processing'].get('processing', '')})"]
     if doc['rejected']:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in doc['rejected'].items()))
     rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['stddev']:.3g}" if b['stddev'] is not None
@@ -68,13 +108,18 @@ def format_report(doc: dict, pipeline) -> str:
              f"{b['model']:.6g}", b['expression']) for b in doc['base_parameters']]
     lines += ['', 'base parameters (SI units):'] + _table(
         ('name', 'estimate', 'stddev', 'rel %', 'model', 'expression'), rows)
-    lines += ['', 'relative torque error, percent: ' + ', '.join(
-        f'{j} {e:.2f}' for j, e in doc['relative_error'].items()),
-        f"excitation condition number: {doc['condition_number']:.4g}"
-        f"   converged: {'yes' if doc['converged'] else 'no'}"]
+    lines += ['', 'relative torque error, percent: ' + _per_joint(doc['relative_error']),
+              'with the model\'s own parameters: ' + _per_joint(doc['model_relative_error']),
+              f"excitation condition number: {doc['condition_number']:.4g}"
+              f"   converged: {'yes' if doc['converged'] else 'no'}"]
     if not doc['physically_consistent']:
         lines.append('closest full parameter set is not physically consistent: '
                      + '; '.join(doc['consistency_problems']))
+    if 'validation' in doc:
+        v = doc['validation']
+        lines += ['', f"validation on {v['bag']} ({v['num_samples']} samples), relative torque "
+                  'error, percent: ' + _per_joint(v['relative_error']),
+                  'with the model\'s own parameters: ' + _per_joint(v['model_relative_error'])]
     lines += ['', 'convergence (estimate change to final, in final standard deviations):']
     final = np.array([b['estimate'] for b in doc['base_parameters']])
     sd = np.array([b['stddev'] if b['stddev'] else np.inf for b in doc['base_parameters']])
@@ -87,24 +132,23 @@ def format_report(doc: dict, pipeline) -> str:
     return '\n'.join(lines)
 
 
-def paper_table3(pipeline) -> str:
-    """The first paper's Table 3 combinations: identified, model (Table 1) and paper values."""
-    from ..errors import IdentificationError
-    from ..identifiability import format_expression
-    from ..papers import MIT_TABLE3
+def _per_joint(errors: dict) -> str:
+    return ', '.join(f'{j} {e:.2f}' for j, e in errors.items())
 
-    base, robot = pipeline.base, pipeline.robot
-    theta, cov = pipeline.rls.theta, pipeline.covariance
-    model = base.to_base(robot.phi_model)
-    rows = []
-    for terms, paper_est, paper_cad in MIT_TABLE3:
-        try:
-            w = base.combination(terms)
-        except IdentificationError:
-            continue
-        rows.append((format_expression(terms), f'{w @ theta:.4f}',
-                     f'{np.sqrt(w @ cov @ w):.4f}', f'{w @ model:.4f}', f'{paper_cad:.4f}',
-                     f'{paper_est:.4f}'))
+
+def paper_table3(fit) -> str:
+    """The first paper's Table 3 combinations: identified, model (Table 1) and paper values.
+    ``fit``: an offline.Identification or an IdentificationPipeline."""
+    from ..report import paper_table3_rows
+
+    if hasattr(fit, 'rls'):
+        theta, cov = fit.rls.theta, fit.covariance
+    else:
+        theta, cov = fit.theta, fit.covariance
+    rows = [(r['combination'], f"{r['identified']:.4f}", f"{r['stddev']:.4f}",
+             f"{r['model']:.4f}", f"{r['paper_cad']:.4f}", f"{r['paper_estimate']:.4f}")
+            for r in paper_table3_rows(fit.base, theta, cov,
+                                       fit.base.to_base(fit.robot.phi_model))]
     return '\n'.join(['', "An, Atkeson, Hollerbach (1986) Table 3 combinations:"] + _table(
         ('combination', 'identified', 'stddev', 'Table 1', 'paper CAD', 'paper est.'), rows))
 
@@ -120,19 +164,72 @@ def _table(header: tuple, rows: list[tuple]) -> list[str]:
             for r in [header] + rows]
 
 
+def _method(args: argparse.Namespace) -> str:
+    from ..errors import IdentificationError
+
+    given = [f'--{o}' for o in BATCH_OPTIONS if getattr(args, o) is not None]
+    if args.method == 'rls' and given:
+        raise IdentificationError(f"{', '.join(given)} only apply to --method batch")
+    return args.method or ('batch' if given else 'rls')
+
+
+def batch_options(args: argparse.Namespace, robot):
+    """offline.BatchOptions from --period/--trajectory/--harmonics/--cutoff/--decimate."""
+    from ..errors import IdentificationError
+    from ..offline import DEFAULT_CUTOFF, BatchOptions
+    from ..trajectories import load_trajectory
+
+    period, least = args.period, 1
+    if args.trajectory:
+        traj = load_trajectory(args.trajectory, robot)
+        if traj.period is None:
+            raise IdentificationError(f'trajectory {args.trajectory} is not periodic: batch '
+                                      'processing uses it for its period')
+        if period is not None and abs(period - traj.period) > 1e-9 * traj.period:
+            raise IdentificationError(f'--period {period} s differs from the period '
+                                      f'{traj.period} s of {args.trajectory}')
+        period, least = traj.period, getattr(traj, 'harmonics', 1)
+    if period is None and args.harmonics is not None:
+        raise IdentificationError('--harmonics needs --period or a periodic --trajectory')
+    options = BatchOptions(period=period, harmonics=args.harmonics,
+                           min_harmonics=least,
+                           cutoff=DEFAULT_CUTOFF if args.cutoff is None else args.cutoff,
+                           decimation=args.decimate)
+    options.validate()
+    return options
+
+
 def run(args: argparse.Namespace) -> int:
-    from ..replay import bag_robot, identify_bag
+    from ..offline import offline_identify, replay_identify, validate
+    from ..replay import bag_robot
 
     settings = settings_from_args(args)
+    method = _method(args)
+    if args.report:
+        from ..report import check_writable
+        check_writable(args.report)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
-    result = identify_bag(args.bag, settings, robot, args.joint_states_topic,
-                          args.currents_topic)
-    doc = result_document(result)
+    topics = (args.joint_states_topic, args.currents_topic)
+    options = None
+    if method == 'rls':
+        ident = replay_identify(args.bag, settings, robot, *topics)
+    else:
+        options = batch_options(args, robot)
+        ident = offline_identify(args.bag, settings, robot, options, *topics)
+    validation = (validate(ident, args.validate, settings, options, *topics)
+                  if args.validate else None)
+    doc = result_document(ident, validation)
+    if args.report:
+        from ..report import write_report
+        report = write_report(args.report, ident, validation)
+        doc['report'] = {k: str(p) for k, p in report.files.items()}
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
-        print(format_report(doc, result.pipeline))
+        print(format_report(doc))
         if args.paper_tables:
-            print(paper_table3(result.pipeline))
+            print(paper_table3(ident))
+        if args.report:
+            print(f"\nreport: {doc['report']['report']}")
     return 0
