@@ -239,8 +239,7 @@ class IdentificationPipeline:
         """Validate joint-state records and order them by stamp; rejects are counted."""
         n = self.robot.dof
         self.received += len(records)
-        stamps: list[int] = []
-        q, qd, eff = [], [], []
+        kept = []
         need_effort = bool(self.converter.measured_joints)
         for r in records:
             reason = self._structure_problem(r)
@@ -253,16 +252,11 @@ class IdentificationPipeline:
             if reason is not None:
                 self._reject(reason)
                 continue
-            idx = self._index_cache[r.names]
-            stamps.append(int(r.stamp_ns))
-            q.append(np.asarray(r.position, dtype=float)[idx])
-            qd.append(np.asarray(r.velocity, dtype=float)[idx] if len(r.velocity)
-                      else np.full(n, np.nan))
-            eff.append(np.asarray(r.effort, dtype=float)[idx] if len(r.effort)
-                       else np.full(n, np.nan))
-        if not stamps:
+            kept.append(r)
+        if not kept:
             return _Samples.empty(n)
-        s = _Samples(self._seconds(stamps), np.array(q), np.array(qd), np.array(eff))
+        s = _Samples(self._seconds([int(r.stamp_ns) for r in kept]),
+                     *(self._joint_rows(kept, f) for f in ('position', 'velocity', 'effort')))
         finite = np.isfinite(s.q).all(axis=1)
         if self._velocity_mode == 'measured':
             finite &= np.isfinite(s.qd).all(axis=1)
@@ -272,6 +266,17 @@ class IdentificationPipeline:
             finite &= np.isfinite(s.eff[:, cols]).all(axis=1)
         self._reject('non_finite', np.count_nonzero(~finite))
         return self._in_order(s.select(finite))
+
+    def _joint_rows(self, records: list, field: str) -> np.ndarray:
+        """``field`` of valid records as (M, n) in the robot's joint order, NaN rows where it
+        is empty; stacked at once when the records share their names and lengths."""
+        names = records[0].names
+        rows = [getattr(r, field) for r in records]
+        if all(r.names is names or r.names == names for r in records) and all(map(len, rows)):
+            return np.array(rows, dtype=float)[:, self._joint_index(tuple(names))]
+        nan = np.full(self.robot.dof, np.nan)
+        return np.array([np.asarray(x, dtype=float)[self._joint_index(tuple(r.names))] if len(x)
+                         else nan for r, x in zip(records, rows)])
 
     def _structure_problem(self, r) -> str | None:
         if not len(r.names) or not len(r.position):

@@ -1,0 +1,203 @@
+"""Replay benchmark: our offline identification against a naive pipeline, same bag, same process.
+
+The bag: a simulated CRS A465 (6 joints) under the seeded 5-harmonic Fourier excitation at
+1 kHz, /joint_states with position (262144-count encoders), velocity and effort (0.2 N m noise,
+viscous and Coulomb friction of bags/crs_a465_friction.yaml), and /robot_description; made
+once per sample count and cached in bench/.cache/ (gitignored).
+
+(a) ours: ``identify_bag`` with config/crs_a465.yaml (measured torque, fv and fc identified),
+    the estimate read at the end.
+(b) naive, as a user would write it: rosbags AnyReader deserializing every message, joints
+    reordered by name, qdd = np.gradient(qd, t) over the whole arrays, pinocchio
+    computeJointTorqueRegressor per sample into a stacked (6 N, 60) matrix, numpy lstsq.
+
+Throughput is samples / wall time, best of --repeat interleaved runs with tracing off (CPU
+time of the same run beside it). Peak memory, two ways: the tracemalloc peak of a run in this
+process (Python and numpy allocations), and the peak resident set size of a fresh process
+running only that pipeline, above its RSS after imports (VmHWM of /proc/self/status; it also
+counts C++ and allocator memory). Ours is measured on a bag of half the length too: its peak
+should not grow with the bag. BLAS runs single-threaded (OPENBLAS_NUM_THREADS=1, as in the
+tests; set it to override): on 2 shared cores, BLAS threads spin against each other and make
+both pipelines several times slower and erratic.
+
+    .venv/bin/python bench/bench_replay.py [--samples 100000] [--repeat 3]
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import re
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+CACHE = ROOT / 'bench' / '.cache'
+CONFIG = ROOT / 'config' / 'crs_a465.yaml'
+FRICTION = ROOT / 'bags' / 'crs_a465_friction.yaml'
+RATE = 1000.0
+BAG_VERSION = 1  # bump when the bag recipe changes (cache key)
+
+
+def make_bag(samples: int) -> Path:
+    """The cached benchmark bag of ``samples`` joint states (made on first use)."""
+    from identification_node.bagio import JOINT_STATE, BagWriter
+    from identification_node.cli.simulate import true_parameters
+    from identification_node.settings import Settings, read_parameter_file
+    from identification_node.simulation import SensorNoise, simulate_kinematic
+    from identification_node.trajectories import load_trajectory
+
+    path = CACHE / f'crs_a465_v{BAG_VERSION}_{samples}'
+    if (path / 'metadata.yaml').is_file():
+        return path
+    robot = Settings.from_dict(read_parameter_file(CONFIG)).load_robot()
+    phi = true_parameters(robot, str(FRICTION))
+    t = np.arange(samples) / RATE
+    sim = simulate_kinematic(robot, phi, load_trajectory('fourier', robot), t,
+                             SensorNoise(torque_std=0.2, encoder_counts=262144), seed=3)
+    stamps = np.round(t * 1e9).astype(np.int64).tolist()
+    names = list(robot.joint_names)
+    with BagWriter(path, 'mcap', overwrite=True) as bag:
+        bag.add_topic('/joint_states', JOINT_STATE)
+        bag.write_string('/robot_description', 0, robot.description)
+        for k, ns in enumerate(stamps):
+            bag.write_joint_state('/joint_states', ns, ns * 1e-9, names, sim.q_meas[k],
+                                  sim.qd_meas[k], sim.tau_meas[k])
+    return path
+
+
+def run_ours(bag: Path) -> tuple[int, np.ndarray]:
+    """Offline identification through the live pipeline; (samples used, base estimate)."""
+    from identification_node.replay import identify_bag
+    from identification_node.settings import Settings, read_parameter_file
+
+    settings = Settings.from_dict(read_parameter_file(CONFIG))
+    robot = settings.load_robot()
+    result = identify_bag(bag, settings, robot)
+    estimate = result.pipeline.estimate()
+    return result.messages, estimate.values
+
+
+def run_naive(bag: Path) -> tuple[int, np.ndarray]:
+    """What a user would write with rosbags, numpy and pinocchio; (samples, phi (60,))."""
+    import pinocchio as pin
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    joints = ['joint1', 'joint2', 'joint3', 'joint4', 'joint5', 'joint6']
+    stamps, q, qd, tau = [], [], [], []
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        urdf = None
+        for conn, _, raw in reader.messages(
+                [c for c in reader.connections if c.topic == '/robot_description']):
+            urdf = reader.deserialize(raw, conn.msgtype).data
+        for conn, _, raw in reader.messages(
+                [c for c in reader.connections if c.topic == '/joint_states']):
+            msg = reader.deserialize(raw, conn.msgtype)
+            order = [list(msg.name).index(j) for j in joints]
+            stamps.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+            q.append(msg.position[order])
+            qd.append(msg.velocity[order])
+            tau.append(msg.effort[order])
+    t, q, qd, tau = np.array(stamps), np.array(q), np.array(qd), np.array(tau)
+    qdd = np.gradient(qd, t, axis=0)
+    model = pin.buildModelFromXML(urdf)
+    data = model.createData()
+    N = len(t)
+    Y = np.empty((6 * N, 10 * model.nv))
+    for k in range(N):
+        Y[6 * k:6 * k + 6] = pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k])
+    phi = np.linalg.lstsq(Y, tau.reshape(-1), rcond=None)[0]
+    return N, phi
+
+
+def _status_kib(field: str) -> int:
+    text = Path('/proc/self/status').read_text()
+    return int(re.search(rf'^{field}:\s+(\d+)', text, re.M).group(1))
+
+
+PIPELINES = {'ours': run_ours, 'naive': run_naive}
+
+
+def throughput(bags: dict, repeat: int) -> dict:
+    """{name: (samples, best wall s, CPU s of that run)}, runs interleaved."""
+    best = {}
+    for _ in range(repeat):
+        for name, (fn, bag) in bags.items():
+            gc.collect()
+            t0, c0 = time.perf_counter(), time.process_time()
+            n, _ = fn(bag)
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            if name not in best or wall < best[name][1]:
+                best[name] = (n, wall, cpu)
+    return best
+
+
+def traced_peak(fn, bag: Path) -> float:
+    """tracemalloc peak (MiB) of one run."""
+    gc.collect()
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    fn(bag)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def rss_peak(name: str, bag: Path) -> float:
+    """Peak RSS (MiB) of a fresh process running pipeline ``name`` once, above its RSS after
+    imports and a warm-up run on a tiny bag."""
+    out = subprocess.run([sys.executable, __file__, '--rss', name, str(bag)], check=True,
+                         capture_output=True, text=True).stdout
+    return float(out.split()[-1])
+
+
+def _rss_child(name: str, bag: Path) -> None:
+    fn = PIPELINES[name]
+    fn(make_bag(2000))
+    gc.collect()
+    Path('/proc/self/clear_refs').write_text('5')  # VmHWM := current RSS
+    base = _status_kib('VmRSS')
+    fn(bag)
+    print((_status_kib('VmHWM') - base) / 1024)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--samples', type=int, default=100_000)
+    parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--rss', nargs=2, metavar=('PIPELINE', 'BAG'), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.rss:
+        return _rss_child(args.rss[0], Path(args.rss[1]))
+    bag, half = make_bag(args.samples), make_bag(args.samples // 2)
+    run_ours(make_bag(2000))  # imports and caches outside the measurements
+    speed = throughput({name: (fn, bag) for name, fn in PIPELINES.items()}, args.repeat)
+    rows = {name: (*speed[name], traced_peak(fn, bag), rss_peak(name, bag))
+            for name, fn in PIPELINES.items()}
+    half_n = run_ours(half)[0]
+    half_mem = traced_peak(run_ours, half), rss_peak('ours', half)
+    print(f'bag: {bag.relative_to(ROOT)} ({args.samples} joint states, CRS A465, 6 joints), '
+          f'best of {args.repeat}, OPENBLAS_NUM_THREADS={os.environ["OPENBLAS_NUM_THREADS"]}')
+    print(f'{"":7s}{"samples":>8s}{"wall s":>8s}{"CPU s":>7s}{"samples/s":>11s}'
+          f'{"tracemalloc peak":>18s}{"peak RSS":>12s}')
+    for name, (n, wall, cpu, traced, rss) in rows.items():
+        print(f'{name:7s}{n:8d}{wall:8.2f}{cpu:7.2f}{n / wall:11.0f}{traced:14.1f} MiB'
+              f'{rss:8.1f} MiB')
+    ours, naive = rows['ours'], rows['naive']
+    print(f'ours/naive: throughput {(ours[0] / ours[1]) / (naive[0] / naive[1]):.2f}x '
+          f'(CPU time {(naive[2] / naive[0]) / (ours[2] / ours[0]):.2f}x); peak memory '
+          f'{ours[3] / naive[3]:.3f}x (tracemalloc), {ours[4] / naive[4]:.3f}x (RSS)')
+    print(f'ours on {half_n} samples: tracemalloc peak {half_mem[0]:.1f} MiB, peak RSS '
+          f'{half_mem[1]:.1f} MiB (on {ours[0]}: {ours[3]:.1f} MiB, {ours[4]:.1f} MiB)')
+
+
+if __name__ == '__main__':
+    main()
