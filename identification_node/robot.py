@@ -301,6 +301,7 @@ class RobotModel:
     #: regressor_batch; falls back to 'pinocchio' for joints it does not handle) or 'pinocchio'
     #: (one computeJointTorqueRegressor call per sample). Both agree to rounding.
     regressor_method = 'batch'
+    batch_threshold = 64   # samples from which regressor() uses regressor_method
 
     @functools.cached_property
     def _batch(self) -> BatchRegressor | None:
@@ -313,11 +314,14 @@ class RobotModel:
                   out: np.ndarray | None = None, method: str | None = None) -> np.ndarray:
         """Regressor Y (N, n, p) with tau = Y @ phi, for N samples of (q, qd, qdd).
         ``method`` overrides ``regressor_method`` for this call."""
-        method = self.regressor_method if method is None else method
-        if method not in ('batch', 'pinocchio'):
+        if method not in (None, 'batch', 'pinocchio'):
             raise IdentificationError(f"regressor method {method!r}: use 'batch' or 'pinocchio'")
         q, qd, qdd = self.check_samples(q, qd, qdd)
         N = q.shape[0]
+        if method is None:
+            # The batched path costs a few hundred microseconds per call: small batches (the
+            # live node's) are faster sample by sample.
+            method = self.regressor_method if N >= self.batch_threshold else 'pinocchio'
         shape = (N, self.dof, self.num_params)
         if out is None:
             out = np.empty(shape)

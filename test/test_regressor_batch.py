@@ -74,12 +74,22 @@ def test_rows_independent_of_batch_size_and_position():
     """A sample's rows are bit for bit the same alone, in small batches and across chunks."""
     robot = load_robot(SIX, extras=EXTRAS)
     q, qd, qdd = samples(robot, 700, seed=3)
-    Y = robot.regressor(q, qd, qdd)
+    Y = robot.regressor(q, qd, qdd, method='batch')
     for k in (0, 5, 255, 256, 511, 699):
-        np.testing.assert_array_equal(robot.regressor(q[k], qd[k], qdd[k])[0], Y[k])
+        np.testing.assert_array_equal(robot.regressor(q[k], qd[k], qdd[k], method='batch')[0],
+                                      Y[k])
         lo = max(k - 2, 0)
-        np.testing.assert_array_equal(
-            robot.regressor(q[lo:k + 3], qd[lo:k + 3], qdd[lo:k + 3])[k - lo], Y[k])
+        np.testing.assert_array_equal(robot.regressor(
+            q[lo:k + 3], qd[lo:k + 3], qdd[lo:k + 3], method='batch')[k - lo], Y[k])
+
+
+def test_small_batches_use_pinocchio_large_ones_the_batch_path():
+    robot = load_robot('crs_a465')
+    q, qd, qdd = samples(robot, robot.batch_threshold, seed=4)
+    np.testing.assert_array_equal(robot.regressor(q[:3], qd[:3], qdd[:3]),
+                                  robot.regressor(q[:3], qd[:3], qdd[:3], method='pinocchio'))
+    np.testing.assert_array_equal(robot.regressor(q, qd, qdd),
+                                  robot.regressor(q, qd, qdd, method='batch'))
 
 
 def test_preallocated_out_and_zero_samples():
@@ -177,6 +187,6 @@ def test_unsupported_joints_and_bad_ids():
 def test_batch_regressor_pickles():
     robot = load_robot('crs_a465')
     q, qd, qdd = samples(robot, 5, seed=6)
-    Y = robot.regressor(q, qd, qdd)
+    Y = robot.regressor(q, qd, qdd, method='batch')
     batch = pickle.loads(pickle.dumps(robot._batch))
     np.testing.assert_array_equal(batch(q, qd, qdd), Y)
