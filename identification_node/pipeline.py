@@ -51,6 +51,7 @@ class PipelineConfig:
     align_tolerance: float = 0.002
     hold_time: float = 0.1
     restart_jump: float = 1.0
+    update_batch: int = 50
     joint_noise_std: Sequence[float] = ()
     coulomb_exclusion_speed: float = 0.1
     converged_ratio: float = 0.1
@@ -70,6 +71,7 @@ class PipelineConfig:
             ('align_tolerance', self.align_tolerance > 0, '> 0'),
             ('hold_time', self.hold_time > 0, '> 0'),
             ('restart_jump', self.restart_jump > 0, '> 0'),
+            ('update_batch', int(self.update_batch) >= 1, '>= 1'),
             ('joint_noise_std', len(self.joint_noise_std) in (0, dof)
              and all(s > 0 for s in self.joint_noise_std), f'empty or {dof} values > 0'),
             ('coulomb_exclusion_speed', self.coulomb_exclusion_speed >= 0, '>= 0'),
@@ -162,7 +164,10 @@ class IdentificationPipeline:
     def reset(self) -> None:
         """Forget the estimate and all buffered data; counters restart too."""
         n, b = self.robot.dof, self.base.num_base
-        self.rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting)
+        self._rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting)
+        self._residuals = ResidualStatistics(b, n, self._block)
+        self._updates: list[tuple] = []
+        self._pending_samples = 0
         self.rejected = dict.fromkeys(REJECT_REASONS, 0)
         self.restarts = 0
         self.excluded_rows = 0
@@ -177,7 +182,6 @@ class IdentificationPipeline:
         self._pending_js = _Samples.empty(n)
         self._currents = _Samples.empty(n, with_currents=True)
         self._smoother: FixedLagSmoother | None = None
-        self.residuals = ResidualStatistics(b, n, self._block)
         for q in (self._js_queue, self._cur_queue):
             q.clear()
 
@@ -437,18 +441,46 @@ class IdentificationPipeline:
         tau = x[:, -n:]
         Yb = self.base.base_regressor(self.robot.regressor(q, qd, qdd))
         if not self.frozen:
-            w = self._row_weights(t, qd, qdd)
-            self.rls.update(Yb, tau, w)
+            self._updates.append((Yb, tau, self._row_weights(t, qd, qdd)))
+            self._pending_samples += len(t)
             self.used += len(t)
-            if w is None:
-                self.residuals.add(Yb, tau)
-            else:
-                root = np.sqrt(np.broadcast_to(w, tau.shape))
-                self.residuals.add(Yb * root[..., None], tau * root)
-        predicted = Yb @ self.rls.theta
+            if self._pending_samples >= self.config.update_batch:
+                self._apply_updates()
+        predicted = Yb @ self._rls.theta
         stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
+
+    def _apply_updates(self) -> None:
+        """Feed the rows gathered since the last update to the RLS and residual statistics in
+        one batch (exactly what sample-by-sample updates give, at a fraction of the cost)."""
+        if not self._updates:
+            return
+        Yb = np.concatenate([u[0] for u in self._updates])
+        tau = np.concatenate([u[1] for u in self._updates])
+        weights = [u[2] for u in self._updates]
+        w = None if all(x is None for x in weights) else np.concatenate([
+            np.broadcast_to(np.ones(self.robot.dof) if x is None else x, u[1].shape)
+            for x, u in zip(weights, self._updates)])
+        self._updates, self._pending_samples = [], 0
+        self._rls.update(Yb, tau, w)
+        if w is None:
+            self._residuals.add(Yb, tau)
+        else:
+            root = np.sqrt(w)
+            self._residuals.add(Yb * root[..., None], tau * root)
+
+    @property
+    def rls(self) -> RecursiveLeastSquares:
+        """The recursive estimator, up to date with every processed sample."""
+        self._apply_updates()
+        return self._rls
+
+    @property
+    def residuals(self) -> ResidualStatistics:
+        """Residual statistics, up to date with every processed sample."""
+        self._apply_updates()
+        return self._residuals
 
     def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
         """Per (sample, joint) weights: the joint weights, and zero for a joint's equation while

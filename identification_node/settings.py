@@ -41,6 +41,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'align_tolerance': (0.002, 's; currents are matched to joint states within this'),
     'hold_time': (0.1, 's to wait for currents before a joint state is given up'),
     'restart_jump': (1.0, 's; a larger backward stamp jump is a restarted stream'),
+    'update_batch': (50, 'samples gathered per RLS update (predictions use the estimate so far)'),
     'joint_noise_std': ([], 'per joint torque noise std for weighting, N m (empty: equal)'),
     'coulomb_exclusion_speed': (0.1, 'rad/s (m/s); with fc identified, a joint equation '
                                 'is left out while |qd| < this + |qdd| * smoother half window'),
@@ -150,8 +151,12 @@ class Settings:
                     'pole_pairs': per_joint['pole_pairs'][i],
                     'angle_offset': per_joint['angle_offset'][i],
                     'phase_order': per_joint['phase_order'][i]})
-            except IdentificationError as exc:
-                raise IdentificationError(f'torque parameters of joint {joint}: {exc}') from None
+            except IdentificationError as exc:   # '... joint '(unnamed)': <field> must be ...'
+                detail = str(exc).split(': ', 1)[-1]
+                field = detail.split(' ', 1)[0]
+                name = 'torque_source' if field == 'source' else field
+                raise IdentificationError(f'parameter {name} of joint {joint}: {detail}') \
+                    from None
         return out
 
     def pipeline_config(self, joints: list[str]) -> PipelineConfig:
@@ -161,7 +166,8 @@ class Settings:
             half_window=v['smoother.half_window'], smoother_order=v['smoother.order'],
             max_gap=v['smoother.max_gap'], velocity=v['velocity_source'],
             align_tolerance=v['align_tolerance'], hold_time=v['hold_time'],
-            restart_jump=v['restart_jump'], joint_noise_std=v['joint_noise_std'],
+            restart_jump=v['restart_jump'], update_batch=v['update_batch'],
+            joint_noise_std=v['joint_noise_std'],
             coulomb_exclusion_speed=v['coulomb_exclusion_speed'],
             converged_ratio=v['converged_ratio'], max_condition=v['max_condition'],
             min_samples=v['min_samples'])

@@ -4,9 +4,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import signal
 import sys
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 from ..errors import IdentificationError
 
@@ -32,32 +31,8 @@ def warn(text: str) -> None:
     print(f'warning: {text}', file=sys.stderr)
 
 
-class StopSignals:
-    """SIGINT/SIGTERM handler calling ``callback`` instead of raising KeyboardInterrupt; a
-    signal that came before the callback was set calls it as soon as it is set."""
-
-    def __init__(self) -> None:
-        self.received = False
-        self._callback: Callable[[], None] | None = None
-
-    @property
-    def callback(self) -> Callable[[], None] | None:
-        return self._callback
-
-    @callback.setter
-    def callback(self, func: Callable[[], None] | None) -> None:
-        self._callback = func
-        if func is not None and self.received:
-            func()
-
-    def __call__(self, _sig: int, _frame: Any) -> None:
-        self.received = True
-        if self._callback is not None:
-            self._callback()
-
-
 @contextlib.contextmanager
-def ros_session(args: argparse.Namespace, node_name: str) -> Iterator[tuple[Any, StopSignals]]:
+def ros_session(args: argparse.Namespace, node_name: str) -> Iterator[tuple[Any, Any]]:
     """(node, signals) for a verb: rclpy initialised with ``--ros-args`` and without its own
     signal handlers, so that SIGINT/SIGTERM only call ``signals.callback`` and the verb
     finishes cleanly (flushes, closes its bag); everything is torn down on exit."""
@@ -65,21 +40,20 @@ def ros_session(args: argparse.Namespace, node_name: str) -> Iterator[tuple[Any,
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
+    from ..ros.spin import stop_signals
+
     ros_args = ros_arguments(args)
-    signals = StopSignals()
-    handlers = {sig: signal.signal(sig, signals) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
-    try:
-        rclpy.init(args=['identification_node', *ros_args],
-                   signal_handler_options=SignalHandlerOptions.NO)
-        node = Node(node_name, start_parameter_services=False)
-        yield node, signals
-    finally:
-        for sig, old in handlers.items():
-            signal.signal(sig, old)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    with stop_signals() as signals:
+        try:
+            rclpy.init(args=['identification_node', *ros_args],
+                       signal_handler_options=SignalHandlerOptions.NO)
+            node = Node(node_name, start_parameter_services=False)
+            yield node, signals
+        finally:
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

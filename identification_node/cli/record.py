@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.node import make_executor
+    from ..ros.spin import make_executor
     from ..ros.recorder import BagRecorder
 
     for name, value in (('--duration', args.duration),

@@ -1,6 +1,7 @@
 """Conversions between ROS messages and the core's plain records."""
 from __future__ import annotations
 
+import array
 from typing import Sequence
 
 import numpy as np
@@ -27,21 +28,20 @@ def joint_state_record(msg: JointState) -> JointStateRecord:
                             np.array(msg.effort, dtype=float))
 
 
-def joint_state_msgs(stamps_ns: np.ndarray, names: Sequence[str], position=None, velocity=None,
-                     effort=None, frame_id: str = '') -> list[JointState]:
-    """One JointState per row of the given (N, n) arrays, stamped with ``stamps_ns``."""
-    names = list(names)
-    cols = [None if a is None else np.asarray(a).tolist() for a in (position, velocity, effort)]
-    out = []
+def publish_joint_states(publisher, stamps_ns: np.ndarray, names: Sequence[str], position=None,
+                         velocity=None, effort=None) -> None:
+    """Publish one JointState per row of the given (N, n) arrays, stamped with ``stamps_ns``.
+    One message object is refilled for every row (rclpy serializes at publish), and arrays go
+    in as array('d'), which the message setters take without checking element by element."""
+    msg = JointState(name=list(names))
+    stamp = msg.header.stamp
+    fields = [(name, np.ascontiguousarray(a, dtype=float))
+              for name, a in (('position', position), ('velocity', velocity), ('effort', effort))
+              if a is not None]
     for k, ns in enumerate(np.asarray(stamps_ns).tolist()):
-        msg = JointState(name=names)
-        msg.header.stamp = time_msg(ns)
-        msg.header.frame_id = frame_id
-        if cols[0] is not None:
-            msg.position = cols[0][k]
-        if cols[1] is not None:
-            msg.velocity = cols[1][k]
-        if cols[2] is not None:
-            msg.effort = cols[2][k]
-        out.append(msg)
-    return out
+        stamp.sec, stamp.nanosec = divmod(ns, 1_000_000_000)
+        for name, a in fields:
+            row = array.array('d')
+            row.frombytes(a[k].tobytes())
+            setattr(msg, name, row)
+        publisher.publish(msg)

@@ -20,10 +20,8 @@ import sys
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -32,12 +30,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
-from ..errors import IdentificationError
 from ..pipeline import PipelineOutput
 from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
 from ..urdf_export import consistency_problems, identified_urdf
-from .conversions import joint_state_msgs, joint_state_record
+from .spin import run_node
+from .conversions import joint_state_record, publish_joint_states
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -154,10 +152,9 @@ class IdentificationNode(Node):
             self._last_effort_slot = int(slots[-1])
         names = self.robot.joint_names
         stamps = out.stamps_ns[keep]
-        for pub, effort, pos in ((self._pub_predicted, out.predicted, out.q),
-                                 (self._pub_measured, out.measured, out.q)):
-            for msg in joint_state_msgs(stamps, names, position=pos[keep], effort=effort[keep]):
-                pub.publish(msg)
+        for pub, effort in ((self._pub_predicted, out.predicted),
+                            (self._pub_measured, out.measured)):
+            publish_joint_states(pub, stamps, names, position=out.q[keep], effort=effort[keep])
 
     def refresh_estimate(self) -> None:
         """Publish base_parameters and the identified URDF; refresh the estimate parameters."""
@@ -251,34 +248,8 @@ class IdentificationNode(Node):
         return res
 
 
-def make_executor():
-    """The EventsExecutor (about a third of the per-message cost), else the default one."""
-    try:
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor()
-    except ImportError:  # older rclpy
-        return rclpy.executors.SingleThreadedExecutor()
-
-
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = IdentificationNode()
-    except IdentificationError as exc:
-        print(f'identification_node: error: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = make_executor()
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(IdentificationNode, 'identification_node', args)
 
 
 if __name__ == '__main__':

@@ -18,7 +18,9 @@ are parsed as the identification node parses them, so one parameter file serves 
 Timing: the dynamics run at ``rate`` (>= 1000 Hz); every ``publish_decimation``-th sample is
 published. A dedicated thread schedules sample k at start + k / rate on time.monotonic and
 publishes what is due, catching up in batches of at most ``MAX_BATCH`` samples. Header stamps
-are the simulated sample times plus ``stamp_offset``, never wall time.
+are the simulated sample times plus ``stamp_offset``, never wall time. With
+``wait_for_subscribers`` the first sample waits for that many subscriptions; as the noise is
+drawn sample by sample from ``seed``, such a run is reproducible (:class:`SampleSource`).
 
 The reported torque (and the currents) at sample k is the actuator torque at t_k, consistent
 with the motion at t_k (the simulator's torque is continuous over the sample period).
@@ -29,14 +31,12 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import rclpy
 import yaml
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -46,12 +46,13 @@ from std_msgs.msg import String
 from ..errors import IdentificationError
 from ..robot import RobotModel
 from ..settings import PARAMETERS, PER_JOINT, Settings, _coerce, flatten
-from ..simulation import ArmSimulator, SensorNoise, SimResult, measure
+from ..simulation import ArmSimulator, SensorNoise, SimResult
 from ..torque import TorqueConverter
 from ..trajectories import Trajectory, load_trajectory
 from ..urdf_export import consistency_problems
-from .conversions import joint_state_msgs, time_msg
+from .conversions import publish_joint_states, time_msg
 from .node import declare_settings
+from .spin import run_node
 
 MAX_BATCH = 20      # samples per catch-up batch
 LINGER = 0.5        # s the process stays up after the last sample, for reliable subscribers
@@ -77,6 +78,8 @@ SIM_PARAMETERS.update({
     'seed': (0, 'seed of the sensor noise'),
     'publish_clock': (False, 'publish /clock with the sample time'),
     'stamp_offset': (0.0, 's; header stamps are stamp_offset + sample time'),
+    'wait_for_subscribers': (0, 'start once joint_states and motor_currents together have '
+                             'this many subscriptions (0: at once)'),
 })
 
 SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -149,8 +152,9 @@ class SimSetup:
             raise _bad('duration', v['duration'], '>= 0 s (0: run until stopped)')
         if v['stamp_offset'] < 0:
             raise _bad('stamp_offset', v['stamp_offset'], '>= 0 s')
-        if v['seed'] < 0:
-            raise _bad('seed', v['seed'], '>= 0')
+        for name in ('seed', 'wait_for_subscribers'):
+            if v[name] < 0:
+                raise _bad(name, v[name], '>= 0')
         for key in ('position_std', 'velocity_std', 'torque_std', 'current_std',
                     'encoder_counts'):
             if v[f'noise.{key}'] < 0:
@@ -187,23 +191,24 @@ class SimSetup:
 
 
 class SampleSource:
-    """The arm's samples as its sensors report them, in batches."""
+    """The arm's samples as its sensors report them, in batches. The simulator measures sample
+    by sample, so the noise does not depend on how samples are batched: a run is reproducible
+    from its parameters."""
 
     def __init__(self, setup: SimSetup):
         self.setup = setup
         self.sim = ArmSimulator(setup.robot, setup.phi_true, rate=setup.values['rate'])
-        self.sim.reset(setup.trajectory, converter=setup.converter)   # noise-free steps
-        self._rng = np.random.default_rng(setup.values['seed'])
+        self.sim.reset(setup.trajectory, noise=setup.noise, seed=setup.values['seed'],
+                       converter=setup.converter)
         self.index = 0   # of the next sample
 
     def take(self, count: int) -> SimResult:
         """The next ``count`` samples: true values and measurements."""
         rows = [self.sim.step() for _ in range(count)]
-        t, q, qd, qdd, tau = (np.concatenate([getattr(r, f) for r in rows])
-                              for f in ('t', 'q', 'qd', 'qdd', 'tau'))
         self.index += count
-        s = self.setup
-        return measure(s.robot, t, q, qd, qdd, tau, s.noise, self._rng, s.converter)
+        return SimResult(**{f.name: np.concatenate([getattr(r, f.name) for r in rows])
+                            for f in fields(SimResult) if f.name != 'joint_names'},
+                         joint_names=rows[0].joint_names)
 
 
 @dataclass
@@ -281,6 +286,8 @@ class SimulatedArmNode(Node):
         rate = self.setup.values['rate']
         total = self.setup.num_samples
         st, src = self.stats, self.source
+        if not self._wait_for_subscribers():
+            return
         start = time.monotonic()
         warned = False
         while not self._stop.is_set() and (total is None or src.index < total):
@@ -304,6 +311,18 @@ class SimulatedArmNode(Node):
             st.busy += done - now
             st.elapsed = done - start
 
+    def _wait_for_subscribers(self) -> bool:
+        """Wait for ``wait_for_subscribers`` subscriptions; False when stopped first."""
+        want = self.setup.values['wait_for_subscribers']
+        pubs = [p for p in (self._pub_js, self._pub_cur) if p is not None]
+        if want and sum(p.get_subscription_count() for p in pubs) < want:
+            self.get_logger().info(f'waiting for {want} subscriptions')
+            while sum(p.get_subscription_count() for p in pubs) < want:
+                if self._stop.wait(0.01):
+                    return False
+            self._stop.wait(0.1)   # the subscribers' side of the match may lag a little
+        return not self._stop.is_set()
+
     def _publish(self, first: int, b: SimResult) -> None:
         v = self.setup.values
         index = first + np.arange(len(b))
@@ -312,48 +331,36 @@ class SimulatedArmNode(Node):
             return
         stamps = self.setup.stamps_ns(index[keep])
         names = self.setup.robot.joint_names
-        for msg in joint_state_msgs(stamps, names, position=b.q_meas[keep],
-                                    velocity=b.qd_meas[keep] if v['publish_velocity'] else None,
-                                    effort=b.tau_meas[keep] if v['publish_effort'] else None):
-            self._pub_js.publish(msg)
+        publish_joint_states(self._pub_js, stamps, names, position=b.q_meas[keep],
+                             velocity=b.qd_meas[keep] if v['publish_velocity'] else None,
+                             effort=b.tau_meas[keep] if v['publish_effort'] else None)
         if self._pub_cur is not None:
             joint = [i for _, i, _ in self._slots]
             channel = [k for _, _, k in self._slots]
             cur = b.currents[keep][:, joint, channel]
             angle = b.theta_e[keep][:, joint] if v['publish_electrical_angle'] else None
-            for msg in joint_state_msgs(stamps, [s[0] for s in self._slots], position=angle,
-                                        effort=cur):
-                self._pub_cur.publish(msg)
+            publish_joint_states(self._pub_cur, stamps, [s[0] for s in self._slots],
+                                 position=angle, effort=cur)
         if self._pub_clock is not None:
             self._pub_clock.publish(Clock(clock=time_msg(int(stamps[-1]))))
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the simulated arm until ``duration`` is over (exit 0) or interrupted; invalid
-    parameters exit 2."""
-    rclpy.init(args=args)
-    try:
-        node = SimulatedArmNode()
-    except IdentificationError as exc:
-        print(f'simulated_arm: error: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        while rclpy.ok() and not node.finished.is_set():
-            executor.spin_once(timeout_sec=0.05)
-        end = time.monotonic() + LINGER
-        while rclpy.ok() and time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.stop()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 1 if node.error is not None else 0
+    """Run the simulated arm until ``duration`` is over (exit 0, or 1 if the simulation
+    failed) or interrupted; invalid parameters exit 2."""
+    nodes = []
+
+    def make() -> SimulatedArmNode:
+        nodes.append(SimulatedArmNode())
+        return nodes[-1]
+
+    code = run_node(make, 'simulated_arm', args, done=lambda n: n.finished.is_set(),
+                    linger=LINGER)
+    if nodes:
+        nodes[0].stop()
+        if nodes[0].error is not None:
+            return 1
+    return code
 
 
 if __name__ == '__main__':

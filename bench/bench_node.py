@@ -1,0 +1,177 @@
+"""Node throughput: samples lost, CPU per message and latency, over real DDS between processes.
+
+The identification node runs in its own process on a 7-DOF Panda-like arm
+(test/fixtures/panda_like.urdf) with measured torque; a publisher process sends JointState at a
+fixed rate, stamped with the wall clock at publication; this process subscribes to
+~/predicted_effort and measures the latency from the sample's stamp to its arrival. CPU per
+message is the node process's user + system time over the run divided by the messages it
+received. Prints one line per rate and the highest rate with no sample lost.
+
+    .venv/bin/python bench/bench_node.py [--rates 1000 5000 ...] [--seconds 6]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PANDA = REPO / 'test' / 'fixtures' / 'panda_like.urdf'
+os.environ.setdefault('ROS_DOMAIN_ID', str(30 + os.getpid() % 60))
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+
+def publisher(rate: float, seconds: float, warmup: float) -> None:
+    """Publish joint states at ``rate`` for ``warmup + seconds``; print the count published
+    after the warm-up."""
+    import numpy as np
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    from identification_node.robot import load_robot
+    from identification_node.simulation import SensorNoise, simulate_kinematic
+    from identification_node.trajectories import FourierTrajectory
+
+    robot = load_robot(str(PANDA))
+    n = int(rate * (seconds + warmup))
+    period = min(n, int(rate * 10))    # one 10 s period, repeated
+    sim = simulate_kinematic(robot, None, FourierTrajectory.random(robot, seed=1),
+                             np.arange(period) / rate, SensorNoise(torque_std=0.2))
+    rows = [(sim.q_meas[k].tolist(), sim.qd_meas[k].tolist(), sim.tau_meas[k].tolist())
+            for k in range(period)]
+    rclpy.init()
+    node = rclpy.create_node('bench_publisher')
+    pub = node.create_publisher(JointState, 'joint_states', QoSProfile(
+        depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
+    deadline = time.monotonic() + 20
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    msg = JointState(name=list(robot.joint_names))
+    start = time.monotonic()
+    counted = 0
+    for k in range(n):
+        due = start + k / rate
+        delay = due - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        q, qd, tau = rows[k % period]
+        ns = time.time_ns()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 1_000_000_000)
+        msg.position, msg.velocity, msg.effort = q, qd, tau
+        pub.publish(msg)
+        counted += k >= rate * warmup
+    print(counted, flush=True)
+    time.sleep(0.5)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+NODE_ARGS: list[str] = []   # extra '-p name:=value' for the node (--node-param)
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def run_rate(rate: float, seconds: float, warmup: float) -> dict:
+    import numpy as np
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    node_proc = subprocess.Popen(
+        [sys.executable, '-m', 'identification_node', 'node', '--ros-args',
+         '-p', f'robot:={PANDA}', '-p', 'torque_source:=[measured]',
+         '-p', 'publish.diagnostics_rate:=4.0', *NODE_ARGS],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    latencies: list[int] = []
+    diag: dict[str, str] = {}
+    rclpy.init()
+    node = rclpy.create_node('bench_listener')
+
+    def on_effort(msg: JointState) -> None:
+        s = msg.header.stamp
+        latencies.append(time.time_ns() - (s.sec * 1_000_000_000 + s.nanosec))
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.endswith(': identification'):
+                diag.update({kv.key: kv.value for kv in status.values})
+    node.create_subscription(JointState, '/identification_node/predicted_effort', on_effort,
+                             1000)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    end = time.monotonic() + 30
+    while not diag and time.monotonic() < end:   # the node is up and publishing
+        executor.spin_once(timeout_sec=0.1)
+    pub = subprocess.Popen([sys.executable, __file__, '--publish', str(rate), str(seconds),
+                            str(warmup)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    cpu0 = None
+    received0 = 0
+    t_start = time.monotonic()
+    while pub.poll() is None:
+        executor.spin_once(timeout_sec=0.01)
+        if cpu0 is None and time.monotonic() - t_start > warmup + 1.0:
+            cpu0, received0, lat0 = cpu_seconds(node_proc.pid), int(
+                diag.get('samples_received', 0)), len(latencies)
+    published = int(pub.stdout.read().strip() or 0)
+    cpu1 = cpu_seconds(node_proc.pid)
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+    received = int(diag.get('samples_received', 0))
+    rejected = int(diag.get('samples_rejected', 0))
+    node_proc.terminate()
+    node_proc.communicate(timeout=20)
+    node.destroy_node()
+    rclpy.shutdown()
+    lat = np.array(latencies[lat0:]) * 1e-6
+    steady = received - received0
+    return {
+        'rate': rate, 'published': published, 'received': received,
+        'lost': max(0, int(rate * (seconds + warmup)) - received - rejected),
+        'cpu_us_per_msg': 1e6 * (cpu1 - cpu0) / max(steady, 1),
+        'cpu_percent': 100 * (cpu1 - cpu0) / (steady / rate) if steady else float('nan'),
+        'latency_ms_median': float(np.median(lat)) if len(lat) else float('nan'),
+        'latency_ms_p99': float(np.percentile(lat, 99)) if len(lat) else float('nan'),
+        'delay_ms': 1e3 * int(diag.get('smoother_delay_samples', 10)) / rate,
+    }
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == '--publish':
+        publisher(*map(float, sys.argv[2:5]))
+        return
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--rates', type=float, nargs='+', default=[1000, 2000, 5000, 8000])
+    parser.add_argument('--seconds', type=float, default=6.0)
+    parser.add_argument('--warmup', type=float, default=2.0)
+    parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='node parameter override, e.g. process_period:=0.005')
+    args = parser.parse_args()
+    for p in args.node_param:
+        NODE_ARGS.extend(['-p', p])
+    print(f'7-DOF arm, {args.seconds:.0f} s per rate after {args.warmup:.0f} s warm-up; '
+          f'{os.cpu_count()} cores')
+    best = 0.0
+    for rate in args.rates:
+        r = run_rate(rate, args.seconds, args.warmup)
+        best = rate if r['lost'] == 0 and rate > best else best
+        print(f"{rate:6.0f} Hz: lost {r['lost']:5d} of {int(rate * (args.seconds + args.warmup))}"
+              f"  node CPU {r['cpu_us_per_msg']:6.1f} us/msg ({r['cpu_percent']:5.1f} % of a "
+              f"core)  latency median {r['latency_ms_median']:6.2f} ms  p99 "
+              f"{r['latency_ms_p99']:6.2f} ms  (smoother delay {r['delay_ms']:.1f} ms)",
+              flush=True)
+    print(f'highest rate with no sample lost: {best:.0f} Hz')
+
+
+if __name__ == '__main__':
+    main()

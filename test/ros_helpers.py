@@ -1,0 +1,185 @@
+"""Helpers for tests over real DDS: a private ROS context, nodes spun in a thread, the simulated
+arm as a subprocess, message collectors, service and parameter calls.
+
+Every test module takes its own ROS_DOMAIN_ID (from the pid and the module name) so parallel
+runs and other modules do not hear each other; subprocesses get it through the environment.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+import zlib
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import rclpy
+import yaml
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import parameter_value_to_python
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+ROOT = Path(__file__).resolve().parents[1]
+PYTHON = str(ROOT / '.venv' / 'bin' / 'python') if (ROOT / '.venv').is_dir() else sys.executable
+RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000,
+                      reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def domain_id(module: str) -> int:
+    """A ROS domain for one test module of this process: 1..100 (FastDDS' safe range)."""
+    return 1 + (os.getpid() * 7 + zlib.crc32(module.encode())) % 100
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, period: float = 0.02) -> Any:
+    """Poll until ``predicate()`` is truthy (returned) or ``timeout`` s pass (None)."""
+    end = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value or time.monotonic() > end:
+            return value
+        time.sleep(period)
+
+
+class RosHarness:
+    """A private rclpy context in ``domain``; every node added gets its own
+    SingleThreadedExecutor spinning in a thread (as the node's main spins it)."""
+
+    def __init__(self, domain: int):
+        self.domain = domain
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self._spinners: dict = {}
+        self._clients: dict = {}
+        self.procs: list[subprocess.Popen] = []
+        self.client = self.add(Node('test_client', context=self.context))
+
+    def add(self, node: Node) -> Node:
+        executor = SingleThreadedExecutor(context=self.context)
+        executor.add_node(node)
+        thread = threading.Thread(target=self._spin, args=(executor,), daemon=True)
+        thread.start()
+        self._spinners[node] = (executor, thread)
+        return node
+
+    @staticmethod
+    def _spin(executor) -> None:
+        try:
+            executor.spin()
+        except Exception:  # context shut down while spinning
+            pass
+
+    def remove(self, node: Node) -> None:
+        executor, thread = self._spinners.pop(node)
+        executor.shutdown()
+        thread.join(5)
+        node.destroy_node()
+
+    def env(self) -> dict:
+        return dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED='1')
+
+    def start(self, verb: str, params: Mapping[str, Any], tmp: Path, name: str,
+              extra: tuple = ()) -> subprocess.Popen:
+        """``python -m identification_node VERB --ros-args --params-file F`` with ``params``
+        written to F for node ``name``; stdout and stderr are piped."""
+        path = Path(tmp) / f'{name}_params.yaml'
+        path.write_text(yaml.safe_dump({'/**': {'ros__parameters': dict(params)}}))
+        proc = subprocess.Popen(
+            [PYTHON, '-m', 'identification_node', verb, '--ros-args', '--params-file',
+             str(path), *extra], cwd=ROOT, env=self.env(), stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True)
+        self.procs.append(proc)
+        return proc
+
+    def shutdown(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(5)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        for node in list(self._spinners):
+            self.remove(node)
+        rclpy.try_shutdown(context=self.context)
+
+    # -- calls ------------------------------------------------------------------------------------
+    def call(self, srv_type, name: str, request, timeout: float = 10.0):
+        """Call service ``name`` from the client node; the response, or AssertionError. Clients
+        are kept: a new client's first request can go before the server matched its reply
+        reader, and the reply is lost."""
+        client = self._clients.get(name)
+        if client is None:
+            client = self._clients[name] = self.client.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+        future = client.call_async(request)
+        assert wait_for(future.done, timeout), f'service {name} did not answer'
+        return future.result()
+
+    def get_parameters(self, target: str, names: list[str]) -> dict:
+        from rcl_interfaces.srv import GetParameters
+        res = self.call(GetParameters, f'{target}/get_parameters', GetParameters.Request(
+            names=names))
+        return {n: parameter_value_to_python(v) for n, v in zip(names, res.values)}
+
+    def set_parameters(self, target: str, params: list) -> list:
+        """SetParameters with rclpy Parameters; the SetParametersResult list."""
+        from rcl_interfaces.srv import SetParameters
+        res = self.call(SetParameters, f'{target}/set_parameters', SetParameters.Request(
+            parameters=[p.to_parameter_msg() for p in params]))
+        return list(res.results)
+
+
+class Collector:
+    """Messages of one topic, thread-safe, with their arrival times (time.monotonic)."""
+
+    def __init__(self, harness: RosHarness, msg_type, topic: str, qos: QoSProfile = RELIABLE,
+                 node: Node | None = None):
+        self.messages: list = []
+        self.arrivals: list[float] = []
+        self._lock = threading.Lock()
+        self.node = node or harness.client
+        self.sub = self.node.create_subscription(msg_type, topic, self._cb, qos)
+
+    def _cb(self, msg) -> None:
+        with self._lock:
+            self.messages.append(msg)
+            self.arrivals.append(time.monotonic())
+
+    def __len__(self) -> int:
+        return len(self.messages)
+
+    def snapshot(self) -> list:
+        with self._lock:
+            return list(self.messages)
+
+    def close(self) -> None:
+        self.node.destroy_subscription(self.sub)
+
+
+def diagnostic_values(status) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def joint_state_msgs(stamps_ns, names, position=None, velocity=None, effort=None) -> list:
+    """One new JointState per row of the given (N, n) arrays, stamped with ``stamps_ns``."""
+    from sensor_msgs.msg import JointState
+    out = []
+    for k, ns in enumerate(list(stamps_ns)):
+        msg = JointState(name=list(names))
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 10 ** 9)
+        for field, a in (('position', position), ('velocity', velocity), ('effort', effort)):
+            if a is not None:
+                setattr(msg, field, [float(v) for v in a[k]])
+        out.append(msg)
+    return out

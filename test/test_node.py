@@ -1,0 +1,539 @@
+"""The identification node over real DDS (FastDDS): the simulated arm streams from another
+process (``python -m identification_node sim``) at 1 kHz with known true parameters, the
+identification nodes run in this process, spun by an executor in a thread.
+
+Truth: the base parameters of the simulator's true parameter vector (a payload added to the
+description's values), and the simulator's own samples, reproduced here from its seed."""
+import json
+import math
+import os
+import re
+import signal
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type registration)
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_event_handler import ParameterEventHandler
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import SetBool, Trigger
+
+from identification_node.controller_client import IdentifiedModel
+from identification_node.errors import IdentificationError
+from identification_node.identifiability import BaseParameters
+from identification_node.pipeline import REJECT_REASONS
+from identification_node.records import JointStateRecord
+from identification_node.robot import load_robot
+from identification_node.ros.node import IdentificationNode
+from identification_node.ros.sim_node import SampleSource, SimSetup
+from identification_node.settings import Settings
+from identification_node.simulation import SensorNoise, simulate_kinematic
+from identification_node.torque import TorqueConverter
+from identification_node.trajectories import FourierTrajectory
+from ros_helpers import (LATCHED, RELIABLE, Collector, RosHarness, diagnostic_values, domain_id,
+                         joint_state_msgs, stamp_ns, wait_for)
+
+DURATION = 15.0
+OFFSET = 1000.0          # s: stamps = OFFSET + sample time
+POSITION_NOISE = {'noise.position_std': 1e-5, 'noise.encoder_counts': 2 ** 20,
+                  'noise.velocity_std': 1e-4}
+MIT = dict(robot='mit_dd_arm', trajectory='fourier', torque_std=0.5, current_std=0.02,
+           torque={'kt': [12.0, 6.0, 6.0], 'gear_ratio': [1.0], 'pole_pairs': [8],
+                   'angle_offset': [0.3], 'phase_order': ['abc']},
+           payload=('link3', 2.0, [0.0, 0.0, 0.3]), electrical_angle=False)
+CRS = dict(robot='crs_a465', trajectory='table1', torque_std=0.2, current_std=0.01,
+           torque={'kt': [0.1], 'gear_ratio': [100.0, 100.0, 100.0, 50.0, 50.0, 50.0],
+                   'pole_pairs': [4], 'angle_offset': [0.0, 0.5, 1.0, 1.5, 2.0, 2.5],
+                   'phase_order': ['abc', 'acb', 'abc', 'acb', 'abc', 'acb']},
+           payload=('link6', 0.5, [0.0, 0.05, 0.1]), electrical_angle=True)
+FAST = {'process_period': 0.01, 'publish.effort_rate': 200.0}
+
+
+@pytest.fixture(scope='module')
+def ros():
+    harness = RosHarness(domain_id(__name__))
+    yield harness
+    harness.shutdown()
+
+
+def remaps(prefix):
+    """Each stream has its own topics /<prefix>/joint_states and /<prefix>/motor_currents."""
+    return [f'{t}:=/{prefix}/{t}' for t in ('joint_states', 'motor_currents')]
+
+
+def start_node(ros, name, params, prefix):
+    """An IdentificationNode in this process (parameters as rclpy overrides)."""
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    args = ['--ros-args'] + [a for r in remaps(prefix) for a in ('-r', r)]
+    return ros.add(IdentificationNode(name, context=ros.context, parameter_overrides=overrides,
+                                      cli_args=args))
+
+
+def reliable(prefix):
+    """QoS overrides making the node's subscriptions reliable: under CPU contention (2 cores
+    shared with other test processes) best effort loses messages, and these tests count them."""
+    return {f'qos_overrides./{prefix}/{t}.subscription.reliability': 'reliable'
+            for t in ('joint_states', 'motor_currents')}
+
+
+def start_node_process(ros, name, params, tmp, remaps=()):
+    """``python -m identification_node node`` named ``name``; returns once its services are up."""
+    extra = ['-r', f'__node:={name}']
+    for remap in remaps:
+        extra += ['-r', remap]
+    proc = ros.start('node', params, tmp, name, extra=tuple(extra))
+    client = ros.client.create_client(Trigger, f'/{name}/get_estimate')
+    up = client.wait_for_service(timeout_sec=30)
+    ros.client.destroy_client(client)
+    assert up, proc.stderr.read() if proc.poll() is not None else f'{name} did not start'
+    return proc
+
+
+def stop_process(proc):
+    """SIGINT, as Ctrl-C: the node shuts down cleanly with exit code 0."""
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(10) == 0, proc.stderr.read()
+
+
+def current_noise(spec):
+    """Per-joint std of the torque from noisy three-phase currents: the current noise times
+    gear_ratio * kt * sqrt(3/2)."""
+    n = load_robot(spec['robot']).dof
+    kt, gear = (np.broadcast_to(spec['torque'][k], (n,)) for k in ('kt', 'gear_ratio'))
+    return np.asarray(kt) * gear * spec['current_std'] * math.sqrt(1.5)
+
+
+def payload_phi(robot, link, mass, point):
+    """The robot's phi with a point mass at ``point`` (link frame) added to ``link``."""
+    phi = robot.phi_model.copy()
+    i = 10 * robot.link_names.index(link)
+    p = np.asarray(point, dtype=float)
+    inertia = mass * (p @ p * np.eye(3) - np.outer(p, p))
+    phi[i:i + 4] += mass * np.concatenate([[1.0], p])
+    phi[i + 4:i + 10] += inertia[[0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+    return phi
+
+
+def get_estimate(ros, target):
+    res = ros.call(Trigger, f'{target}/get_estimate', Trigger.Request())
+    assert res.success
+    return json.loads(res.message)
+
+
+def last_status(diag, name):
+    """The newest /diagnostics status of node ``name`` (None before the first)."""
+    found = [s for m in diag.snapshot() for s in m.status if s.name.startswith(f'{name}:')]
+    return diagnostic_values(found[-1]) if found else None
+
+
+class Stream:
+    """One simulated-arm run and two identification node processes listening to it:
+    ``<prefix>_measured`` (joint torque from JointState.effort) and ``<prefix>_currents``
+    (three-phase currents)."""
+
+    def __init__(self, ros, diag, spec, tmp, prefix):
+        self.spec, self.ros, self.diag = spec, ros, diag
+        self.robot = load_robot(spec['robot'])
+        link, mass, point = spec['payload']
+        self.phi = payload_phi(self.robot, link, mass, point)
+        true_file = tmp / 'true_parameters.yaml'
+        true_file.write_text(yaml.safe_dump({n: float(v) for n, v in
+                                             zip(self.robot.param_names, self.phi)
+                                             if n.startswith(link + '.')}))
+        torque = dict(spec['torque'], torque_source=['three_phase'])
+        self.sim_params = dict(
+            torque, robot=spec['robot'], trajectory=spec['trajectory'], rate=1000.0,
+            duration=DURATION, stamp_offset=OFFSET, seed=7, publish_currents=True,
+            publish_electrical_angle=spec['electrical_angle'],
+            true_parameters_file=str(true_file), **POSITION_NOISE,
+            **{'noise.torque_std': spec['torque_std'], 'noise.current_std': spec['current_std']})
+        common = dict(FAST, robot=spec['robot'], output_directory=str(tmp / 'out'),
+                      **reliable(prefix))
+        self.names = (f'{prefix}_measured', f'{prefix}_currents')
+        # The torque noise from the currents differs per joint (kt, gear ratio): the estimate
+        # needs the ratios, or its covariance (one pooled noise variance) is wrong.
+        self.node_params = dict(zip(self.names, (common, dict(
+            common, joint_noise_std=current_noise(spec).tolist(), **torque))))
+        self.prefix = prefix
+        self.procs = {n: start_node_process(ros, n, self.node_params[n], tmp, remaps(prefix))
+                      for n in self.names}
+        self.predicted = {n: Collector(ros, JointState, f'/{n}/predicted_effort')
+                          for n in self.names}
+
+    def start(self, tmp, subscriptions):
+        """Start the simulated arm once it has ``subscriptions`` on its sample topics: every
+        node then sees every sample, and its estimate is reproducible."""
+        self.sim_params['wait_for_subscribers'] = subscriptions
+        self.proc = self.ros.start('sim', self.sim_params, tmp, 'simulated_arm',
+                                   extra=('-r', f'__ns:=/{self.prefix}'))
+
+    def wait_done(self):
+        assert self.proc.wait(DURATION + 60) == 0, self.proc.stderr.read()
+        self.sim_log = self.proc.stderr.read()
+        # Let the nodes work through what is queued, and report it.
+        time.sleep(1.0)
+
+    def stop(self):
+        for proc in self.procs.values():
+            stop_process(proc)
+        for c in self.predicted.values():
+            c.close()
+
+    def index(self, stamps_ns):
+        return np.round((np.asarray(stamps_ns) - int(OFFSET * 1e9)) * 1e-6).astype(int)
+
+
+def simulated_samples(sim_params):
+    """The simulated arm's samples (true and measured), recomputed from its parameters."""
+    setup = SimSetup.from_parameters(sim_params)
+    return SampleSource(setup).take(setup.num_samples)
+
+
+def offline_estimate(sim_params, node_params, sim):
+    """The estimate of a pipeline with the node's settings, fed every published sample
+    offline (records as the node makes them from the messages)."""
+    p = Settings.from_dict({k: v for k, v in node_params.items()
+                            if not k.startswith('qos_overrides.')}).build()
+    names = tuple(p.robot.joint_names)
+    stamps = int(sim_params['stamp_offset'] * 1e9) + np.arange(len(sim.t)) * 1_000_000
+    slots = p.converter.current_channel_slots()
+    channels = tuple(name for name, _, _ in slots)
+    joint, channel = [s[1] for s in slots], [s[2] for s in slots]
+    currents = sim.currents[:, joint, channel]
+    angle = (sim.theta_e[:, joint] if sim_params['publish_electrical_angle']
+             else np.empty((len(sim.t), 0)))
+    for start in range(0, len(sim.t), 10):
+        for k in range(start, min(start + 10, len(sim.t))):
+            p.add_joint_state(JointStateRecord(int(stamps[k]), names, sim.q_meas[k],
+                                               sim.qd_meas[k], sim.tau_meas[k]))
+            if slots:
+                p.add_currents(JointStateRecord(int(stamps[k]), channels, angle[k],
+                                                np.empty(0), currents[k]))
+        p.process()
+    return p.estimate()
+
+
+@pytest.fixture(scope='module')
+def diag(ros):
+    collector = Collector(ros, DiagnosticArray, '/diagnostics')
+    yield collector
+    collector.close()
+
+
+@pytest.fixture(scope='module')
+def mit(ros, diag, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp('mit')
+    stream = Stream(ros, diag, MIT, tmp, 'mit')
+    # One more node, in this process, for the services and parameters.
+    stream.services = start_node(ros, 'services', {
+        'robot': 'mit_dd_arm', 'process_period': 0.01, 'publish.estimate_rate': 5.0,
+        'publish.diagnostics_rate': 5.0, 'publish.effort_rate': 10.0,
+        'output_directory': str(tmp / 'saved')}, 'mit')
+    stream.start(tmp, subscriptions=4)    # joint_states: 3 nodes, motor_currents: 1
+    yield stream
+    stream.stop()
+    ros.remove(stream.services)
+
+
+# -- while the stream runs ------------------------------------------------------------------------
+def test_estimate_parameters_while_streaming(ros, mit):
+    target = '/services'
+    node = mit.services
+    names = node.pipeline.base.names
+    got = ros.get_parameters(target, ['base_parameter_names'])
+    assert got['base_parameter_names'] == names
+    assert wait_for(lambda: node.pipeline.estimate().num_samples > 1000, 20)
+    # A ParameterEventHandler sees the estimate being refreshed.
+    seen = []
+    handler = ParameterEventHandler(ros.client)
+    handle = handler.add_parameter_callback(f'estimate.{names[0]}', target, seen.append)
+    assert wait_for(lambda: len(seen) >= 2, 5)
+    assert all(math.isfinite(parameter_value_to_python(m.value)) for m in seen)
+    handler.remove_parameter_callback(handle)
+    handler.destroy()
+    est = ros.get_parameters(target, [f'estimate.{n}' for n in names]
+                             + [f'estimate_stddev.{n}' for n in names])
+    values = np.array([est[f'estimate.{n}'] for n in names])
+    stddev = np.array([est[f'estimate_stddev.{n}'] for n in names])
+    assert np.all(np.isfinite(values)) and np.any(values != 0)
+    assert np.all(stddev > 0)
+    # Outputs and settings cannot be set from outside.
+    for name, value in ((f'estimate.{names[0]}', 1.0), (f'estimate_stddev.{names[1]}', 1.0),
+                        ('base_parameter_names', ['x']), ('forgetting_factor', 0.99)):
+        results = ros.set_parameters(target, [Parameter(name, value=value)])
+        assert not results[0].successful, name
+        assert results[0].reason
+    assert ros.get_parameters(target, ['forgetting_factor'])['forgetting_factor'] == 1.0
+
+
+def test_services_while_streaming(ros, mit):
+    node = mit.services
+    names = node.pipeline.base.names
+    assert wait_for(lambda: node.pipeline.estimate().num_samples > 1000, 20)
+    # freeze: the estimate stops moving while the stream goes on; get_estimate (JSON) and the
+    # parameters agree exactly.
+    assert ros.call(SetBool, '/services/freeze', SetBool.Request(data=True)).success
+    first = get_estimate(ros, '/services')
+    received = node.pipeline.received
+    assert wait_for(lambda: node.pipeline.received > received + 300, 5)
+    second = get_estimate(ros, '/services')
+    assert second['num_samples'] == first['num_samples'] and second['values'] == first['values']
+    assert second['names'] == names and len(second['stddev']) == len(names)
+    params = ros.get_parameters('/services', [f'estimate.{n}' for n in names])
+    assert [params[f'estimate.{n}'] for n in names] == second['values']
+    assert ros.call(SetBool, '/services/freeze', SetBool.Request(data=False)).success
+    assert wait_for(lambda: get_estimate(ros, '/services')['num_samples']
+                    > first['num_samples'], 5)
+
+    # save: estimate.yaml and identified.urdf, atomically, in output_directory only.
+    out = Path(node.settings.output_directory)
+    res = ros.call(Trigger, '/services/save', Trigger.Request())
+    assert res.success, res.message
+    paths = sorted(Path(p) for p in res.message.split())
+    assert paths == [out / 'estimate.yaml', out / 'identified.urdf']
+    assert sorted(os.listdir(out)) == ['estimate.yaml', 'identified.urdf']
+    doc = yaml.safe_load(paths[0].read_text())
+    assert [b['name'] for b in doc['base_parameters']] == names
+    assert doc['num_samples'] > 0
+    urdf = ET.fromstring(paths[1].read_text())
+    assert len(urdf.findall('link/inertial')) >= 3
+
+    # reset: the estimate starts again.
+    before = get_estimate(ros, '/services')['num_samples']
+    assert ros.call(Trigger, '/services/reset', Trigger.Request()).success
+    assert get_estimate(ros, '/services')['num_samples'] < before
+
+
+def test_published_outputs_while_streaming(ros, mit, diag):
+    node = mit.services
+    b = node.pipeline.base.num_base
+    params = Collector(ros, Float64MultiArray, '/services/base_parameters')
+    # (counters restarted with the reset above)
+    assert wait_for(lambda: len(params) and int((last_status(diag, 'services') or {}).get(
+        'samples_received', 0)), 10)
+    msg = params.snapshot()[-1]
+    params.close()
+    assert [(d.label, d.size) for d in msg.layout.dim] == [('value_stddev', 2),
+                                                           ('base_parameter', b)]
+    assert len(msg.data) == 2 * b and np.all(np.isfinite(msg.data))
+    values = last_status(diag, 'services')
+    assert {f'rejected.{r}' for r in REJECT_REASONS} <= set(values)
+    assert int(values['samples_received']) > 0
+    # The latched identified URDF reaches a subscriber that comes late.
+    urdf = Collector(ros, String, '/services/robot_description', LATCHED)
+    assert wait_for(lambda: len(urdf), 5)
+    assert ET.fromstring(urdf.snapshot()[0].data).get('name') == 'mit_dd_arm'
+    urdf.close()
+
+
+# -- convergence ----------------------------------------------------------------------------------
+def check_convergence(stream):
+    """Both nodes got every sample and none was rejected; the estimate is the one the pipeline
+    computes offline from the same samples, within 3 standard deviations of the truth, and
+    predicts the torque within 1.2 times the noise on the torque each node sees."""
+    stream.wait_done()
+    sim = simulated_samples(stream.sim_params)
+    robot = stream.robot
+    base = BaseParameters.from_robot(robot)
+    truth = base.to_base(stream.phi)
+    conv = TorqueConverter(robot.joint_names, SimSetup.from_parameters(
+        stream.sim_params).converter.configs)
+    angle = sim.theta_e if stream.spec['electrical_angle'] else None
+    raw = {stream.names[0]: sim.tau_meas,
+           stream.names[1]: conv.torque(sim.q_meas, currents=sim.currents, theta_e=angle)}
+    noise = {stream.names[0]: np.full(robot.dof, stream.spec['torque_std']),
+             stream.names[1]: current_noise(stream.spec)}
+    report = {}
+    for name in stream.names:
+        est = get_estimate(stream.ros, f'/{name}')
+        assert est['names'] == base.names
+        values, stddev = np.array(est['values']), np.array(est['stddev'])
+        z = (values - truth) / stddev
+        report[name] = dict(max_z=round(float(np.abs(z).max()), 2),
+                            num_samples=est['num_samples'], converged=est['converged'])
+        status = last_status(stream.diag, name)
+        rejected = {r: int(status[f'rejected.{r}']) for r in REJECT_REASONS}
+        assert int(status['samples_received']) == len(sim.t), (name, status)
+        assert sum(rejected.values()) == 0, rejected
+        offline = offline_estimate(stream.sim_params, stream.node_params[name], sim)
+        assert est['num_samples'] == offline.num_samples
+        diff = np.abs(values - offline.values) / offline.stddev
+        assert np.all(diff <= 1e-6), (name, diff.max())
+        assert np.all(np.abs(z) <= 3.0), (name, z.round(2))
+        # The final estimate predicts the raw measured torque to the noise level.
+        Yb = base.base_regressor(robot.regressor(sim.q, sim.qd, sim.qdd))
+        rms = np.sqrt(np.mean((Yb @ values - raw[name]) ** 2, axis=0))
+        assert np.all(rms <= 1.2 * noise[name]), (name, rms, noise[name])
+        # So does the running prediction the node published, over the second half.
+        msgs = stream.predicted[name].snapshot()
+        k = stream.index([stamp_ns(m) for m in msgs])
+        late = k > len(sim.t) // 2
+        assert late.sum() > 500
+        predicted = np.array([m.effort for m in msgs])[late]
+        run_rms = np.sqrt(np.mean((predicted - raw[name][k[late]]) ** 2, axis=0))
+        assert np.all(run_rms <= 1.2 * noise[name]), (name, run_rms, noise[name])
+        assert est['converged']
+    return report
+
+
+def test_mit_arm_converges_to_the_truth(mit):
+    report = check_convergence(mit)
+    print('\nMIT', report, re.findall(r'took .*', mit.sim_log))
+
+
+def test_controller_client_feedforward(ros, mit):
+    target = '/mit_measured'
+    est = get_estimate(ros, target)     # also refreshes the estimate parameters
+    model = IdentifiedModel.from_node(ros.client, target)
+    np.testing.assert_array_equal(model.theta, est['values'])
+    np.testing.assert_array_equal(model.stddev, est['stddev'])
+    robot = load_robot('mit_dd_arm')
+    assert model.joint_names == robot.joint_names
+    # Independently: pinocchio's RNEA with standard parameters that reproduce the estimate.
+    base = BaseParameters.from_robot(robot)
+    phi = base.closest_standard(np.array(est['values']), robot.phi_model)
+    rng = np.random.default_rng(5)
+    q, qd, qdd = (rng.uniform(-2, 2, (50, 3)) for _ in range(3))
+    expected = robot.rnea(q, qd, qdd, phi)
+    tol = 1e-9 * np.abs(expected).max()
+    np.testing.assert_allclose(model.feedforward(q, qd, qdd), expected, rtol=1e-9, atol=tol)
+    np.testing.assert_allclose(model.feedforward(q[0], qd[0], qdd[0]), expected[0], rtol=1e-9,
+                               atol=tol)
+    # A model of other joints is refused (its base parameters differ).
+    with pytest.raises(IdentificationError, match='do not match'):
+        IdentifiedModel.from_node(ros.client, target, load_robot('mit_dd_arm',
+                                                                 ['joint2', 'joint3']))
+
+
+# -- bad input ------------------------------------------------------------------------------------
+def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
+    """Published from this process to a node process, with three-phase currents."""
+    torque = {'torque_source': ['three_phase'], 'kt': [12.0, 6.0, 6.0], 'pole_pairs': [8]}
+    # Joint states 1 ms apart: a 0.5 ms tolerance keeps a neighbour's currents from matching.
+    proc = start_node_process(ros, 'bad', dict(torque, hold_time=0.5, align_tolerance=5e-4, **{
+        'publish.diagnostics_rate': 5.0, 'process_period': 0.01}, **reliable('bad')), tmp_path,
+        remaps('bad'))
+    robot = load_robot('mit_dd_arm')
+    conv = TorqueConverter(robot.joint_names,
+                           Settings.from_dict(torque).torque_configs(robot.joint_names))
+    traj = FourierTrajectory.random(robot, harmonics=4, period=5.0, seed=2)
+    N = 6000
+    t = np.arange(N) / 1000.0
+    sim = simulate_kinematic(robot, None, traj, t, SensorNoise(current_std=0.01), seed=2,
+                             converter=conv)
+    stamps = 50 * 10 ** 9 + np.round(t * 1e9).astype(np.int64)
+    names = ['gripper'] + robot.joint_names      # an extra joint the model does not know
+    zero = np.zeros((N, 1))
+    js = joint_state_msgs(stamps, names, position=np.hstack([zero, sim.q_meas]),
+                          velocity=np.hstack([zero, sim.qd_meas]))
+    channels = conv.current_channel_names()
+    cur = joint_state_msgs(stamps, channels, effort=np.stack(
+        [sim.currents[:, i, k] for _, i, k in conv.current_channel_slots()], axis=1))
+
+    def restamped(m, ns):
+        out = JointState(name=m.name, position=m.position, velocity=m.velocity,
+                         effort=m.effort)
+        out.header.stamp.sec, out.header.stamp.nanosec = divmod(int(ns), 10 ** 9)
+        return out
+
+    def js_like(k, dt=0, **fields):
+        return restamped(JointState(name=fields.get('name', names),
+                                    position=fields.get('position', js[k].position),
+                                    velocity=fields.get('velocity', js[k].velocity)),
+                         stamps[k] + dt)
+
+    bad_js = [js_like(3000, dt=1, position=[0.0, math.nan, 0.1, 0.2]),
+              js_like(3000, dt=2, position=[0.0, 0.1, math.inf, 0.2]),
+              js_like(3000, dt=3, name=['joint1', 'joint2', 'elbow'], position=[0.1] * 3,
+                      velocity=[0.0] * 3),
+              js_like(3000, dt=4, name=['joint1', 'joint2'], position=[0.1] * 2,
+                      velocity=[0.0] * 2),
+              js_like(3000, dt=5, position=[0.1, 0.2]),
+              js_like(3000, dt=6, name=[], position=[], velocity=[]),
+              js_like(3000), js_like(2990)]           # repeated and out-of-order stamps
+    bad_cur = [restamped(JointState(name=channels, effort=[math.nan] * len(channels)),
+                         stamps[3500] + 100),
+               restamped(JointState(name=['motor9/ia'], effort=[1.0]), stamps[3500] + 200)]
+    # 20 joint states lose their currents, 30 currents their joint states; then the stream
+    # stops and restarts 10 s earlier (as a restarted driver's clock would).
+    keep_js = set(range(N)) - set(range(1200, 1230))
+    keep_cur = set(range(N)) - set(range(2200, 2220))
+    pub_js = ros.client.create_publisher(JointState, '/bad/joint_states', RELIABLE)
+    pub_cur = ros.client.create_publisher(JointState, '/bad/motor_currents', RELIABLE)
+    assert wait_for(lambda: pub_js.get_subscription_count() and pub_cur.get_subscription_count(),
+                    10)
+
+    def send(ks, shift=0):
+        """Samples ks, currents first, in chunks of 20 every 20 ms (real time: faster, the
+        node falls behind and its best-effort subscriptions drop messages)."""
+        for start in range(0, len(ks), 20):
+            chunk = ks[start:start + 20]
+            for k in chunk:
+                if k in keep_cur:
+                    pub_cur.publish(restamped(cur[k], stamps[k] + shift))
+                if k == 3500 and not shift:
+                    for m in bad_cur:
+                        pub_cur.publish(m)
+            for k in chunk:
+                if k in keep_js:
+                    pub_js.publish(restamped(js[k], stamps[k] + shift))
+                if k == 3000 and not shift:
+                    for m in bad_js:
+                        pub_js.publish(m)
+            time.sleep(0.02)
+
+    send(list(range(4000)))
+    time.sleep(0.3)
+    send(list(range(4000, N)), shift=-10 * 10 ** 9)
+    total = len(keep_js) + len(bad_js)
+    assert wait_for(lambda: int((last_status(diag, 'bad') or {}).get(
+        'samples_received', 0)) >= total, 10), last_status(diag, 'bad')
+    ros.client.destroy_publisher(pub_js)
+    ros.client.destroy_publisher(pub_cur)
+    values = last_status(diag, 'bad')
+    key = 'qos_overrides./bad/joint_states.subscription.reliability'
+    assert ros.get_parameters('/bad', [key])[key] == 'reliable'
+    rejected = {r: int(values[f'rejected.{r}']) for r in REJECT_REASONS}
+    expected = {'non_finite': 3, 'missing_joints': 2, 'length_mismatch': 1, 'empty': 1,
+                'repeated_stamp': 1, 'out_of_order': 1, 'no_current': 20,
+                'unmatched_current': 30, 'unknown_channels': 1}
+    assert {k: v for k, v in rejected.items() if k != 'stream_restart' and v} == expected
+    assert int(values['stream_restarts']) == 1
+    assert int(values['samples_received']) == total
+    # Still running, with a finite estimate from the good samples of both streams.
+    est = get_estimate(ros, '/bad')
+    assert all(v is not None and math.isfinite(v) for v in est['values'] + est['stddev'])
+    assert est['num_samples'] > N - 200
+    stop_process(proc)
+
+
+def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):
+    stream = Stream(ros, diag, CRS, tmp_path, 'crs')
+    stream.start(tmp_path, subscriptions=3)
+    try:
+        report = check_convergence(stream)
+        print('\nCRS', report, re.findall(r'took .*', stream.sim_log))
+    finally:
+        stream.stop()
+
+
+# -- start-up -------------------------------------------------------------------------------------
+@pytest.mark.parametrize('params, name', [
+    ({'forgetting_factor': 2.0}, 'forgetting_factor'),
+    ({'smoother.half_window': 0}, 'smoother.half_window'),
+    ({'torque_source': ['warp']}, 'torque_source'),
+    ({'kt': [1.0, 2.0]}, 'kt'),
+    ({'process_period': -1.0}, 'process_period'),
+    ({'output_directory': ' '}, 'output_directory'),
+])
+def test_invalid_parameters_exit_2_naming_them(ros, tmp_path, params, name):
+    proc = ros.start('node', params, tmp_path, 'identification_node')
+    assert proc.wait(30) == 2
+    err = proc.stderr.read()
+    assert f'parameter {name}' in err, err
