@@ -43,7 +43,7 @@ from .estimators import ResidualStatistics
 from .identifiability import BaseParameters, sample_motion
 from .pipeline import IdentificationPipeline, PipelineOutput
 from .replay import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION, Checkpoint, ReplayResult,
-                     identify_bag)
+                     check_usable, identify_bag)
 from .robot import RobotModel, load_robot
 from .settings import Settings
 from .signals import central_derivatives, period_average, zero_phase_lowpass
@@ -129,12 +129,7 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             if messages % batch == 0:
                 collector.process()
     collector.process(flush=True)
-    if collector.used == 0:
-        rejected = {k: v for k, v in collector.rejected.items() if v}
-        raise IdentificationError(
-            f'no usable samples in {bag} (messages on {", ".join(topics)}: '
-            f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}); check '
-            'the joint names and the torque sources (--config)')
+    check_usable(collector, bag, topics, counts)
     streams = []
     for sid in sorted({p[0] for p in collector.parts}):
         parts = [p[1:] for p in collector.parts if p[0] == sid]

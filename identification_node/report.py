@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import IdentificationError
-from .fileio import atomic_write_text
+from .fileio import atomic_file, atomic_write_text
 from .identifiability import BaseParameters, format_expression
 from .offline import Identification, TorqueSeries, Validation
 from .papers import MIT_TABLE1, MIT_TABLE3
@@ -93,17 +93,8 @@ def _save(fig, path: Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'wb') as f:
-            fig.savefig(f, format='png', dpi=100)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_file(path, 'wb') as f:
+        fig.savefig(f, format='png', dpi=100)
     return path
 
 

@@ -6,26 +6,12 @@ import scipy.linalg as sl
 
 from identification_node.estimators import LeastSquares, RecursiveLeastSquares
 from identification_node.robot import load_robot
+from test_estimators import sines_trajectory
 
 BATCH = 1000
 SIGMA = 0.5  # N m torque noise
 # (kind, number of batches): 10^6 samples, 4 * 10^5 of them at rest
 SCHEDULE = (('move', 250), ('rest', 200), ('move', 250), ('rest', 200), ('move', 100))
-
-
-def sines_trajectory(n, num, period, rng, harmonics=3, amplitude=1.0):
-    """q, qd, qdd (num, n): per joint a sum of sines/cosines with a common period (s)."""
-    t = np.arange(num) * (period / num)
-    w = 2 * np.pi / period
-    q, qd, qdd = (np.zeros((num, n)) for _ in range(3))
-    for j in range(n):
-        for k in range(1, harmonics + 1):
-            a, b = rng.normal(size=2) * amplitude / k
-            s, c = np.sin(k * w * t), np.cos(k * w * t)
-            q[:, j] += a * s + b * c
-            qd[:, j] += k * w * (a * c - b * s)
-            qdd[:, j] -= (k * w) ** 2 * (a * s + b * c)
-    return q, qd, qdd
 
 
 @pytest.fixture(scope='module')
