@@ -59,6 +59,7 @@ def result_document(result, validation=None) -> dict:
     replay.ReplayResult of the streaming pipeline), with the validation when given."""
     from ..offline import Identification, from_replay
     from ..results import plain
+    from ..urdf_export import consistency_problems
 
     ident = result if isinstance(result, Identification) else from_replay(result)
     robot, base = ident.robot, ident.base
@@ -84,6 +85,7 @@ def result_document(result, validation=None) -> dict:
                                    else None),
         'rejected': ident.rejected,
         'physically_consistent': not problems, 'consistency_problems': problems,
+        'model_consistency_problems': consistency_problems(robot, robot.phi_model),
         'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
                          'stddev': np.asarray(c.stddev).tolist()} for c in ident.history],
     }
@@ -115,6 +117,9 @@ def format_report(doc: dict, pipeline=None) -> str:
     if not doc['physically_consistent']:
         lines.append('closest full parameter set is not physically consistent: '
                      + '; '.join(doc['consistency_problems']))
+        if doc['model_consistency_problems']:
+            lines.append('(the model\'s own parameters, which it stays closest to, are not '
+                         'either: ' + '; '.join(doc['model_consistency_problems']) + ')')
     if 'validation' in doc:
         v = doc['validation']
         lines += ['', f"validation on {v['bag']} ({v['num_samples']} samples), relative torque "
