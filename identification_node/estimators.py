@@ -3,8 +3,9 @@
 Data are regressor rows grouped per sample: ``Y`` (N, n, p) and measured joint torques ``tau``
 (N, n) with tau ~ Y @ theta (SI units of the regressor columns; p parameters, n joints).
 
-Sufficient statistics. Every estimator keeps, per joint j, the upper-triangular factor of the
-augmented data matrix [Y_j | tau_j] (QR, updated by stacking [R_aug; new rows] and re-factoring):
+Sufficient statistics. The batch estimators keep, per joint j, the upper-triangular factor of
+the augmented data matrix [Y_j | tau_j] (QR, updated by stacking [R_aug; new rows] and
+re-factoring):
 
     R_aug_j = [[R_j, z_j], [0, rho_j]],  R_j'R_j = Y_j'Y_j,  R_j'z_j = Y_j'tau_j,
     ||tau_j - Y_j theta||^2 = ||R_j theta - z_j||^2 + rho_j^2   for every theta.
@@ -16,7 +17,7 @@ never formed, so the condition number is not squared.
 Noise variances use the exact per-joint leverage h_j = w_j trace((A'WA)^-1 A_j'A_j)
 (sum_j h_j = p): E||r_j||^2 = sigma_j^2 (N - h_j), so sigma_j^2 = rss_j / (N - h_j).
 
-Recursive least squares (:class:`RecursiveLeastSquares`) uses the same factors in
+Recursive least squares (:class:`RecursiveLeastSquares`) keeps the estimate in
 square-root-information form, with *stabilised (regularised) forgetting*::
 
     J_k(theta) = lam J_{k-1}(theta) + (1 - lam) ||R_min (theta - theta_{k-1})||^2 + new rows.
@@ -27,13 +28,25 @@ lam^-k ("wind-up") until it overflows. The added term keeps the information >= (
 R_min'R_min in every direction and pulls unexcited directions towards the previous estimate
 (they do not drift), while excited directions see a bias of order |R_min|^2 / data information.
 Unlike directional forgetting it needs no per-sample rank-one updates, so a whole batch is
-processed exactly by one QR: over a batch of N samples the regularisation weight is 1 - lam^N,
+processed exactly at once: over a batch of N samples the regularisation weight is 1 - lam^N,
 anchored at the estimate at the start of the batch, and sample k gets weight lam^(N-1-k).
 With lam = 1 the term vanishes and the estimate equals batch least squares.
+
+The RLS factor F = [[R, z], [0, rho]] (prior, regulariser and data together) is updated per
+batch in information form: F_new'F_new = lam^N F'F + regulariser + sum_j A_j'A_j, the batch's
+information formed by one BLAS product per joint and factored by one small Cholesky (instead of
+a QR of all the batch's rows). F_new is upper-triangular and its R is positive definite by
+construction. Forming A'A squares the condition number, so the update is accepted only when the
+column-scaled condition number of the new information is at most _INFORMATION_MAX_CONDITION
+(relative error ~ eps * condition <= 1e-10); otherwise, or when the Cholesky fails (not yet
+excited, or the information is singular), the batch is re-done by the QR update of the stacked
+old factor, regulariser and rows. The per-joint residuals and leverages (diagnostics) come from
+per-joint information sums, forgotten alike.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -41,6 +54,9 @@ from .errors import IdentificationError
 
 _CHUNK = 4096  # samples per QR: bounds the workspace to ~_CHUNK * n * (p + 1) floats
 _DEFAULT_RCOND = 1e-10  # singular-value ratio (column-scaled) below which a direction is unexcited
+# Bound on the column-scaled condition number of the information above which the RLS update
+# by Cholesky of the information (relative error ~ eps * condition) is redone by QR.
+_INFORMATION_MAX_CONDITION = 1e6
 
 
 @dataclass
@@ -131,10 +147,42 @@ def _check_data(Y, tau, num_params: int, num_joints: int | None) -> tuple[np.nda
 def _augmented_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
                     ) -> np.ndarray:
     """Per-joint row blocks [Y_j | tau_j] (n, N, p+1), rows optionally scaled by scale (N, n)."""
-    rows = np.concatenate([Y, tau[:, :, None]], axis=2).transpose(1, 0, 2)
+    return _sample_rows(Y, tau, scale).transpose(1, 0, 2)
+
+
+def _sample_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """Rows [Y_j | tau_j] of each sample and joint (N, n, p+1), optionally scaled by scale
+    (N, n)."""
+    rows = np.concatenate([Y, tau[:, :, None]], axis=2)
     if scale is not None:
-        rows *= scale.T[:, :, None]
+        rows *= scale[:, :, None]
     return rows
+
+
+def _information(rows: np.ndarray) -> np.ndarray:
+    """Per-joint information sum_k rows[k, j]' rows[k, j] (n, k, k) of rows (N, n, k) (BLAS
+    gemm on strided views: einsum would not use BLAS)."""
+    return rows.transpose(1, 2, 0) @ rows.transpose(1, 0, 2)
+
+
+def _cholesky_augmented(M: np.ndarray) -> np.ndarray | None:
+    """Upper-triangular F (k, k) = [[R, z], [0, rho]] with F'F = M for an augmented
+    information M (k, k) whose leading (k-1, k-1) block is positive definite, else None.
+    rho^2 = M_kk - z'z is clipped at 0 (an exact fit)."""
+    p = M.shape[0] - 1
+    if not np.isfinite(M).all():
+        return None
+    try:
+        L = np.linalg.cholesky(M[:p, :p])
+    except np.linalg.LinAlgError:
+        return None
+    F = np.zeros_like(M)
+    F[:p, :p] = L.T
+    # L z = m: triangular, so LU does no pivoting (numpy only, see _solve)
+    F[:p, p] = z = np.linalg.solve(L, M[:p, p])
+    F[p, p] = np.sqrt(max(M[p, p] - z @ z, 0.0))
+    return F if np.isfinite(F).all() and np.all(np.diagonal(L) > 0) else None
 
 
 def _joint_rss(R_aug: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -393,10 +441,11 @@ def _information_factor(name: str, value, p: int) -> np.ndarray:
 class RecursiveLeastSquares:
     """Recursive least squares in square-root information form with stabilised forgetting.
 
-    State: per-joint factors of the forgotten, weighted data (see module docstring) and one
-    factor for the prior and the forgetting regulariser; their stack gives the upper-triangular
-    R (R'R = information), z = R theta. The covariance sigma^2 (R'R)^-1 is symmetric positive
-    (semi-)definite by construction.
+    State: the upper-triangular factor [[R, z], [0, rho]] of the prior, the forgetting
+    regulariser and the forgotten, weighted data together (R'R = information, z = R theta;
+    updated by Cholesky or QR, see the module docstring), and per joint the augmented
+    information of its data, for its residuals. The covariance sigma^2 (R'R)^-1 is symmetric
+    positive (semi-)definite by construction.
 
     forgetting lam in (0, 1]: sample k of a batch of N is weighted lam^(N-1-k) relative to the
     last. min_information: R_min'R_min (scalar times I, (p,) diagonal or (p, p)), the floor the
@@ -435,20 +484,26 @@ class RecursiveLeastSquares:
     def reset(self) -> None:
         """Forget all data: back to the prior."""
         p1 = self.num_params + 1
-        self._reg_aug = self._prior_aug.copy()
+        self._F = self._prior_aug.copy()
         n = self._num_joints or 0
-        self._joint_aug = np.zeros((n, p1, p1))
+        self._joint_info = np.zeros((n, p1, p1))
         self._count = np.zeros(n)
         self.num_samples = 0
         self._refresh()
 
-    def _refresh(self) -> None:
+    def _refresh(self) -> bool:
+        """theta, rank and inverse from the factor. Returns whether the information is full
+        rank with a column-scaled condition number (bound) of at most
+        _INFORMATION_MAX_CONDITION: accurate enough if it was Cholesky-factored."""
         p = self.num_params
-        stacked = np.concatenate([self._reg_aug, self._joint_aug.reshape(-1, p + 1)])
-        total = _qr_r(stacked)
-        self._R = total[:p, :p]
+        self._R = self._F[:p, :p]
         self._theta, self._rank, self._G, self._determined = _solve(
-            self._R, total[:p, p], self.rcond, self._theta0)
+            self._R, self._F[:p, p], self.rcond, self._theta0)
+        if self._rank < p:
+            return False
+        d = _column_scale(self._R)
+        kappa = np.linalg.norm(self._R / d) * np.linalg.norm(d[:, None] * self._G)
+        return bool(kappa * kappa <= _INFORMATION_MAX_CONDITION)
 
     def update(self, Y: np.ndarray, tau: np.ndarray, weights: np.ndarray | None = None
                ) -> np.ndarray:
@@ -456,6 +511,7 @@ class RecursiveLeastSquares:
         (broadcastable to (N, n), >= 0) multiplying the squared residuals. Returns theta."""
         Y, tau = _check_data(Y, tau, self.num_params, self._num_joints)
         N, n = tau.shape
+        root = None
         if weights is not None:
             w = _as_float('weights', weights)
             try:
@@ -465,33 +521,61 @@ class RecursiveLeastSquares:
                     f'weights have shape {w.shape}; expected broadcastable to {(N, n)}') from None
             if not np.isfinite(w).all() or np.any(w < 0):
                 raise IdentificationError('weights must be finite and >= 0')
+            root = np.sqrt(w)
         if N == 0:
             return self.theta
+        self._update_rows(
+            lambda a, b: _sample_rows(Y[a:b], tau[a:b], None if root is None else root[a:b]),
+            N, n, None if root is None else root > 0)
+        return self.theta
+
+    def _update_rows(self, rows: Callable[[int, int], np.ndarray], N: int, n: int,
+                     used: np.ndarray | None = None, information: np.ndarray | None = None
+                     ) -> None:
+        """``update`` on trusted data (the pipeline's internal path, no checks). rows(a, b):
+        the rows [Y_j | tau_j] of samples a:b (b - a, n, p+1) (see _sample_rows), already
+        scaled by the square roots of the weights (not by the forgetting); used (N, n) bool:
+        the rows of weight > 0 (None: all); information: _information of all N samples' rows,
+        when known (it is used only without forgetting)."""
         if self._num_joints is None:
             self._num_joints = n
             self.reset()
         lam = self.forgetting
-        # log-space powers: lam^(N-1-k) underflows to 0 harmlessly for long batches
-        decay = np.exp(np.arange(N - 1, -1, -1) * np.log(lam))
-        row_w = decay[:, None] if weights is None else decay[:, None] * w
-        used = np.ones((N, n)) if weights is None else (w > 0)
-        for start in range(0, N, _CHUNK):
-            stop = min(start + _CHUNK, N)
-            # decay is relative to the batch end: the old factor is scaled once, by lam^N
-            f_prev = 1.0 if start else lam ** N
-            rows = _augmented_rows(Y[start:stop], tau[start:stop], np.sqrt(row_w[start:stop]))
-            self._joint_aug = _qr_r(np.concatenate([np.sqrt(f_prev) * self._joint_aug, rows],
-                                                   axis=1))
-        self._count = lam ** N * self._count + (decay[:, None] * used).sum(axis=0)
         f = lam ** N
+        # log-space powers: lam^(N-1-k) underflows to 0 harmlessly for long batches
+        decay = np.exp(np.arange(N - 1, -1, -1) * np.log(lam)) if lam < 1.0 else None
+
+        def chunk(a: int, b: int) -> np.ndarray:
+            r = rows(a, b)
+            return r if decay is None else r * np.sqrt(decay[a:b])[:, None, None]
+
+        spans = [(a, min(a + _CHUNK, N)) for a in range(0, N, _CHUNK)]
+        if information is None or decay is not None:
+            information = sum(_information(chunk(a, b)) for a, b in spans)
+        # The forgetting regulariser, anchored at the estimate before the batch.
+        old = np.sqrt(f) * self._F
         if f < 1.0:
-            p = self.num_params
-            anchor = np.column_stack([self._R_min, self._R_min @ self._theta])
-            self._reg_aug = _qr_r(np.vstack([np.sqrt(f) * self._reg_aug,
-                                             np.sqrt(1.0 - f) * anchor]))[:p + 1]
+            anchor = np.sqrt(1.0 - f) * np.column_stack([self._R_min, self._R_min @ self._theta])
+            old = np.vstack([old, anchor])
+        # Information form (one Cholesky); QR of the old factor and all rows when it fails or
+        # is not accurate enough. The decay is relative to the batch end: old is scaled once.
+        candidate = _cholesky_augmented(old.T @ old + information.sum(axis=0))
+        accurate = False
+        if candidate is not None:
+            self._F = candidate
+            accurate = self._refresh()
+        if not accurate:
+            for a, b in spans:  # each joint's rows first: fewer rounding errors
+                old = _qr_r(np.concatenate([old, *_qr_r(chunk(a, b).transpose(1, 0, 2))]))
+            self._F = old
+            self._refresh()
+        self._joint_info = f * self._joint_info + information
+        if decay is None:
+            added = np.full(n, float(N)) if used is None else used.sum(axis=0)
+        else:
+            added = np.full(n, decay.sum()) if used is None else decay @ used
+        self._count = f * self._count + added
         self.num_samples += N
-        self._refresh()
-        return self.theta
 
     # -- results --------------------------------------------------------------------------
     @property
@@ -517,8 +601,7 @@ class RecursiveLeastSquares:
     def data_information(self) -> np.ndarray:
         """Forgotten, weighted information of the data alone, sum_j Y_j'Y_j (p, p)."""
         p = self.num_params
-        R = self._joint_aug[:, :p, :p]
-        return np.einsum('jki,jkl->il', R, R)
+        return self._joint_info[:, :p, :p].sum(axis=0)
 
     def _information_eigenvalues(self) -> np.ndarray:
         return np.linalg.svd(self._R, compute_uv=False) ** 2
@@ -535,7 +618,8 @@ class RecursiveLeastSquares:
         return float(ev[0] / ev[-1]) if ev[-1] > 0 else np.inf
 
     def _joint_rss(self) -> np.ndarray:
-        return _joint_rss(self._joint_aug, self._theta)
+        v = np.append(self._theta, -1.0)
+        return np.maximum(np.einsum('p,jpq,q->j', v, self._joint_info, v), 0.0)
 
     @property
     def residual_rms(self) -> np.ndarray:
@@ -571,7 +655,8 @@ class RecursiveLeastSquares:
     def estimate(self) -> Estimate:
         """The current estimate as an :class:`Estimate` (noise_variance per joint)."""
         rss = self._joint_rss()
-        lev = _leverage(self._joint_aug, self._G, np.ones(rss.shape[0]))
+        p = self.num_params
+        lev = np.einsum('jpq,pq->j', self._joint_info[:, :p, :p], self._G @ self._G.T)
         dof = self._count - lev
         with np.errstate(invalid='ignore', divide='ignore'):
             noise = np.where(dof >= 1, rss / dof, np.inf)
@@ -593,39 +678,43 @@ class ResidualStatistics:
             'num_joints', num_joints)
         self.block = _check_count('block', block)
         p, n = self.p, self.n
-        self.gram, self.cross, self.sq = np.zeros((n, p, p)), np.zeros((n, p)), np.zeros(n)
+        # Per joint [Y | tau]'[Y | tau] over the samples and over the block sums: gram, cross
+        # and sq (and their block versions) are views into these.
+        self._info, self._binfo = np.zeros((n, p + 1, p + 1)), np.zeros((n, p + 1, p + 1))
         self.count = 0
-        self._bgram, self._bcross, self._bsq = np.zeros((n, p, p)), np.zeros((n, p)), np.zeros(n)
         self.blocks = 0
-        # The block being filled: sums of Y and tau over its first ``_fill`` samples.
-        self._sy, self._st, self._fill = np.zeros((n, p)), np.zeros(n), 0
+        # The block being filled: sums of [Y | tau] over its first ``_fill`` samples.
+        self._open, self._fill = np.zeros((n, p + 1)), 0
+
+    gram = property(lambda self: self._info[:, :self.p, :self.p], doc="sum Y_j'Y_j (n, p, p)")
+    cross = property(lambda self: self._info[:, :self.p, self.p], doc="sum Y_j'tau_j (n, p)")
+    sq = property(lambda self: self._info[:, self.p, self.p], doc='sum tau_j^2 (n,)')
 
     def add(self, Y: np.ndarray, tau: np.ndarray) -> None:
         """Samples Y (N, n, p), tau (N, n), in time order."""
         Y, tau = _check_data(Y, tau, self.p, self.n)
-        self.gram += np.einsum('knp,knq->npq', Y, Y)
-        self.cross += np.einsum('knp,kn->np', Y, tau)
-        self.sq += np.einsum('kn,kn->n', tau, tau)
-        self.count += len(tau)
+        for start in range(0, len(tau), _CHUNK):
+            self._add_rows(_sample_rows(Y[start:start + _CHUNK], tau[start:start + _CHUNK]))
+
+    def _add_rows(self, rows: np.ndarray, information: np.ndarray | None = None) -> None:
+        """``add`` on trusted data: rows (N, n, p+1) = [Y_j | tau_j] of each sample and joint
+        in time order (_sample_rows), ``information`` their _information when known."""
+        N = len(rows)
+        self._info += _information(rows) if information is None else information
+        self.count += N
         # Complete the open block, then whole blocks at once, then open the remainder.
-        k = min(self.block - self._fill, len(tau))
-        self._sy += Y[:k].sum(axis=0)
-        self._st += tau[:k].sum(axis=0)
+        k = min(self.block - self._fill, N)
+        self._open += rows[:k].sum(axis=0)
         self._fill += k
         if self._fill < self.block:
             return
-        whole = (len(tau) - k) // self.block
+        whole = (N - k) // self.block
         rest = k + whole * self.block
-        Yw = Y[k:rest].reshape(whole, self.block, self.n, self.p)
-        tw = tau[k:rest].reshape(whole, self.block, self.n)
-        SY = np.concatenate([self._sy[None], Yw.sum(axis=1)])
-        St = np.concatenate([self._st[None], tw.sum(axis=1)])
-        self._bgram += np.einsum('bnp,bnq->npq', SY, SY)
-        self._bcross += np.einsum('bnp,bn->np', SY, St)
-        self._bsq += np.einsum('bn,bn->n', St, St)
+        sums = rows[k:rest].reshape(whole, self.block, self.n, self.p + 1).sum(axis=1)
+        self._binfo += _information(np.concatenate([self._open[None], sums]))
         self.blocks += whole + 1
-        self._sy, self._st = Y[rest:].sum(axis=0), tau[rest:].sum(axis=0)
-        self._fill = len(tau) - rest
+        self._open = rows[rest:].sum(axis=0)
+        self._fill = N - rest
 
     @staticmethod
     def _ss(gram, cross, sq, theta):
@@ -645,7 +734,9 @@ class ResidualStatistics:
         complete blocks (nan before the first)."""
         if not self.blocks:
             return np.full(self.n, np.nan)
-        ss = self._ss(self._bgram, self._bcross, self._bsq, np.asarray(theta, dtype=float))
+        p = self.p
+        ss = self._ss(self._binfo[:, :p, :p], self._binfo[:, :p, p], self._binfo[:, p, p],
+                      np.asarray(theta, dtype=float))
         return ss / (self.blocks * self.block)
 
     def relative_error(self, theta: np.ndarray) -> np.ndarray:

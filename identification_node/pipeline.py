@@ -1,7 +1,8 @@
 """The identification pipeline: stamped joint states and currents in, base-parameter estimate out.
 
 One plain class, fed by the ROS node's callbacks (which only copy the message) and by bag
-replay alike. ``add_joint_state`` / ``add_currents`` queue records; ``process`` does the
+replay alike. ``add_joint_state`` / ``add_currents`` queue records (``add_joint_states`` a
+block of joint states of one layout, as bag replay reads them); ``process`` does the
 numerical work for everything queued, in batches:
 
 1. validation per message (counted rejections by reason, never an exception or a NaN),
@@ -25,7 +26,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .errors import IdentificationError
-from .estimators import RecursiveLeastSquares, ResidualStatistics
+from .estimators import RecursiveLeastSquares, ResidualStatistics, _information
 from .identifiability import BaseParameters
 from .records import JointStateRecord
 from .robot import RobotModel
@@ -146,12 +147,27 @@ class IdentificationPipeline:
         self._js_queue: collections.deque = collections.deque()
         self._cur_queue: collections.deque = collections.deque()
         self._index_cache: dict[tuple, np.ndarray | str] = {}
+        self._work: dict[str, np.ndarray] = {}
+        # columns of [Y | tau] that make the rows [Yb | tau]
+        self._row_columns = np.append(self.base.base_index, robot.num_params)
         self.frozen = False
         self.reset()
 
     # -- input: called from callbacks, so nothing but a copy -------------------------------------
     def add_joint_state(self, record: JointStateRecord) -> None:
         self._js_queue.append(record)
+
+    def add_joint_states(self, block: JointStateRecord) -> None:
+        """Joint states sharing names and layout, at once: stamp_ns (M,) int64, position,
+        velocity and effort (M, k) ((M, 0) when absent). The same as adding the M records
+        one by one (bag replay reads such blocks)."""
+        M = np.shape(block.stamp_ns)
+        arrays = (block.position, block.velocity, block.effort)
+        if len(M) != 1 or any(np.ndim(a) != 2 or len(a) != M[0] for a in arrays):
+            raise IdentificationError(
+                f'joint state block: stamps {M} and arrays '
+                f'{[np.shape(a) for a in arrays]}; expected (M,) and (M, k)')
+        self._js_queue.append(block)
 
     def add_currents(self, record: JointStateRecord) -> None:
         self._cur_queue.append(record)
@@ -199,8 +215,14 @@ class IdentificationPipeline:
         cur = self._take(self._cur_queue)
         if cur:
             self._currents = self._currents.concat(self._convert_currents(cur))
-        if js:
-            new = self._convert_joint_states(js)  # may restart the stream: read pending after
+        k = 0
+        while k < len(js):  # blocks at once, runs of single records together, in order
+            if np.ndim(js[k].stamp_ns):
+                new, k = self._convert_block(js[k]), k + 1
+            else:
+                j = next((i for i in range(k, len(js)) if np.ndim(js[i].stamp_ns)), len(js))
+                new, k = self._convert_joint_states(js[k:j]), j
+            # the conversion may restart the stream (dropping what is pending): read after
             self._pending_js = self._pending_js.concat(new)
         ready = self._decide_ready(flush)
         if ready is None or len(ready.stamps) == 0:
@@ -261,6 +283,42 @@ class IdentificationPipeline:
             return _Samples.empty(n)
         s = _Samples(self._seconds([int(r.stamp_ns) for r in kept]),
                      *(self._joint_rows(kept, f) for f in ('position', 'velocity', 'effort')))
+        return self._finite_in_order(s)
+
+    def _convert_block(self, b: JointStateRecord) -> _Samples:
+        """_convert_joint_states for a block (add_joint_states): its rows share the
+        structure, so one check decides for all of them."""
+        n, M = self.robot.dof, len(b.stamp_ns)
+        self.received += M
+        if M == 0:
+            return _Samples.empty(n)
+        k = len(b.names)
+        pos, vel, eff = b.position.shape[1], b.velocity.shape[1], b.effort.shape[1]
+        reason = idx = None
+        if not k or not pos:
+            reason = 'empty'
+        elif pos != k or vel not in (0, k) or eff not in (0, k):
+            reason = 'length_mismatch'
+        else:
+            idx = self._joint_index(tuple(b.names))
+            reason = idx if isinstance(idx, str) else None
+        if reason is None and self._velocity_mode is None:
+            self._velocity_mode = 'measured' if vel else 'differentiate'
+        if reason is None and self._velocity_mode == 'measured' and not vel:
+            reason = 'missing_velocity'
+        if reason is None and self.converter.measured_joints and not eff:
+            reason = 'missing_effort'
+        if reason is not None:
+            self._reject(reason, M)
+            return _Samples.empty(n)
+        nan = np.full((M, n), np.nan)
+        s = _Samples(self._seconds(b.stamp_ns), np.asarray(b.position, dtype=float)[:, idx],
+                     np.asarray(b.velocity, dtype=float)[:, idx] if vel else nan,
+                     np.asarray(b.effort, dtype=float)[:, idx] if eff else nan)
+        return self._finite_in_order(s)
+
+    def _finite_in_order(self, s: _Samples) -> _Samples:
+        """Rows with the needed values finite (the others counted 'non_finite'), in order."""
         finite = np.isfinite(s.q).all(axis=1)
         if self._velocity_mode == 'measured':
             finite &= np.isfinite(s.qd).all(axis=1)
@@ -439,36 +497,70 @@ class IdentificationPipeline:
         qd, qdd = (x[:, n:2 * n], xd[:, n:2 * n]) if measured_velocity else (xd[:, :n],
                                                                              xdd[:, :n])
         tau = x[:, -n:]
-        Yb = self.base.base_regressor(self.robot.regressor(q, qd, qdd))
+        # [Y | tau] (N, n, p + 1): the regressor and the torque, for the base rows at once
+        p = self.robot.num_params
+        Yt = self._buffer('regressor', (len(t), n, p + 1))
+        self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p])
+        Yt[:, :, p] = tau
         if not self.frozen:
-            self._updates.append((Yb, tau, self._row_weights(t, qd, qdd)))
-            self._pending_samples += len(t)
+            self._gather(Yt, self._row_weights(t, qd, qdd))
             self.used += len(t)
-            if self._pending_samples >= self.config.update_batch:
-                self._apply_updates()
-        predicted = Yb @ self._rls.theta
+        theta = np.zeros(p + 1)
+        theta[self.base.base_index] = self._rls.theta
+        predicted = Yt @ theta  # = base regressor @ base parameters (the estimate so far)
         stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
 
+    def _gather(self, Yt: np.ndarray, w: np.ndarray | None) -> None:
+        """Queue the weighted rows [Yb | tau] (the base regressor columns and the torque of
+        [Y | tau] (N, n, p + 1)) of a batch for the RLS and residual statistics; update them
+        once ``update_batch`` samples are gathered."""
+        N, n = Yt.shape[:2]
+        b = self.base.num_base
+        now = not self._updates and N >= self.config.update_batch
+        # rows applied at once live in a reused work array (Yt's is reused by the next batch)
+        rows = self._buffer('rows', (N, n, b + 1)) if now else np.empty((N, n, b + 1))
+        np.take(Yt, self._row_columns, axis=2, out=rows, mode='clip')
+        used = None
+        if w is not None:
+            root = np.sqrt(np.broadcast_to(w, (N, n)))
+            rows *= root[:, :, None]
+            used = root > 0
+        self._updates.append((rows, used))
+        self._pending_samples += N
+        if self._pending_samples >= self.config.update_batch:
+            self._apply_updates()
+
     def _apply_updates(self) -> None:
         """Feed the rows gathered since the last update to the RLS and residual statistics in
-        one batch (exactly what sample-by-sample updates give, at a fraction of the cost)."""
+        one batch (exactly what sample-by-sample updates give, at a fraction of the cost): the
+        rows are checked once and their per-joint information is formed once for both
+        (without forgetting)."""
         if not self._updates:
             return
-        Yb = np.concatenate([u[0] for u in self._updates])
-        tau = np.concatenate([u[1] for u in self._updates])
-        weights = [u[2] for u in self._updates]
-        w = None if all(x is None for x in weights) else np.concatenate([
-            np.broadcast_to(np.ones(self.robot.dof) if x is None else x, u[1].shape)
-            for x, u in zip(weights, self._updates)])
-        self._updates, self._pending_samples = [], 0
-        self._rls.update(Yb, tau, w)
-        if w is None:
-            self._residuals.add(Yb, tau)
-        else:
-            root = np.sqrt(w)
-            self._residuals.add(Yb * root[..., None], tau * root)
+        parts, self._updates, self._pending_samples = self._updates, [], 0
+        rows = parts[0][0] if len(parts) == 1 else np.concatenate([u[0] for u in parts])
+        used = None if all(u[1] is None for u in parts) else np.concatenate([
+            np.ones(u[0].shape[:2], dtype=bool) if u[1] is None else u[1] for u in parts])
+        information = _information(rows)
+        if not np.isfinite(information).all():  # the checked path names the culprit
+            b = self.base.num_base
+            self._rls.update(rows[:, :, :b], rows[:, :, b], used)  # (rows weighted already)
+            self._residuals.add(rows[:, :, :b], rows[:, :, b])
+            return
+        N, n = rows.shape[:2]
+        self._rls._update_rows(lambda i, j: rows[i:j], N, n, used, information)
+        self._residuals._add_rows(rows, information)
+
+    def _buffer(self, name: str, shape: tuple) -> np.ndarray:
+        """A work array of ``shape``, reused across batches (grown when needed): allocating
+        megabytes afresh every batch costs more in page faults than the arithmetic on them."""
+        size = math.prod(shape)
+        buf = self._work.get(name)
+        if buf is None or buf.size < size:
+            self._work[name] = buf = np.empty(size)
+        return buf[:size].reshape(shape)
 
     @property
     def rls(self) -> RecursiveLeastSquares:
@@ -540,25 +632,29 @@ class IdentificationPipeline:
     def converged(self) -> bool:
         """Excited, enough samples, and the parameter uncertainty contributes less than
         ``converged_ratio`` of the torque noise on every joint."""
+        return self._converged(self.excitation()[0], self.covariance)
+
+    def _converged(self, condition: float, covariance: np.ndarray) -> bool:
         if self.rls.num_samples < self.config.min_samples:
             return False
-        if not self.excitation()[0] <= self.config.max_condition:
+        if not condition <= self.config.max_condition:
             return False
         count = max(self.residuals.count, 1)
         # Mean predicted-torque variance from the covariance: trace(P G_j) / N per joint.
-        var = np.einsum('pq,nqp->n', self.covariance, self.residuals.gram) / count
+        var = np.einsum('pq,nqp->n', covariance, self.residuals.gram) / count
         noise = np.sqrt(self.noise_variance())
         return bool(np.all(np.sqrt(np.maximum(var, 0)) <= self.config.converged_ratio * noise))
 
     def estimate(self) -> EstimateReport:
         """A snapshot of the running estimate."""
         cond, min_eig = self.excitation()
+        cov = self.covariance
         return EstimateReport(
             names=list(self.base.names), values=self.rls.theta.copy(),
-            stddev=self.stddev, num_samples=int(self.rls.num_samples),
+            stddev=np.sqrt(np.diag(cov)), num_samples=int(self.rls.num_samples),
             stamp=self._last_output_stamp, condition_number=cond, min_eigenvalue=min_eig,
             residual_rms=self.residual_rms(),
-            converged=self.converged(), frozen=self.frozen)
+            converged=self._converged(cond, cov), frozen=self.frozen)
 
     def standard_parameters(self) -> np.ndarray:
         """The full standard parameter vector closest to the model's own that reproduces the

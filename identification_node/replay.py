@@ -6,15 +6,17 @@ result is deterministic and memory does not grow with the bag's length.
 """
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
-from .bagio import iter_joint_states, open_bag, read_string_topic
+from .bagio import iter_joint_state_blocks, iter_joint_states, open_bag, read_string_topic
 from .errors import IdentificationError
 from .pipeline import IdentificationPipeline, PipelineOutput
+from .records import JointStateRecord
 from .robot import RobotModel, load_robot
 from .settings import Settings
 
@@ -66,11 +68,10 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         counts = reader.topic_counts
         every = max(batch, counts.get(joint_states, 0) // max(checkpoints, 1))
         result = ReplayResult(str(bag), pipeline, 0)
-        add = {joint_states: pipeline.add_joint_state, motor_currents: pipeline.add_currents}
         next_checkpoint = every
-        for topic, _, record in iter_joint_states(reader, topics):
-            add[topic](record)
-            result.messages += 1
+        for add, count in _records(reader, pipeline, topics, batch):
+            add()
+            result.messages += count
             if result.messages % batch == 0:
                 out = pipeline.process()
                 if on_output is not None:
@@ -95,6 +96,33 @@ def check_usable(pipeline: IdentificationPipeline, bag, topics: list[str],
             f'no usable samples in {bag} (messages on {", ".join(topics)}: '
             f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}); check '
             'the joint names and the torque sources (--config)')
+
+
+def _records(reader, pipeline: IdentificationPipeline, topics: list[str], batch: int
+             ) -> Iterator[tuple[Callable[[], None], int]]:
+    """(add, number of messages): what feeds the pipeline the bag's messages in log-time
+    order. Joint states alone are read in blocks (iter_joint_state_blocks), cut where a
+    batch of ``batch`` messages ends: the pipeline sees the same batches as message by
+    message."""
+    if len(topics) > 1:
+        add = {topics[0]: pipeline.add_joint_state, topics[1]: pipeline.add_currents}
+        for topic, _, record in iter_joint_states(reader, topics):
+            yield functools.partial(add[topic], record), 1
+        return
+    done = 0
+    for _, block in iter_joint_state_blocks(reader, topics[0]):
+        if not np.ndim(block.stamp_ns):
+            done += 1
+            yield functools.partial(pipeline.add_joint_state, block), 1
+            continue
+        start = 0
+        while start < len(block.stamp_ns):
+            stop = min(len(block.stamp_ns), start + batch - done % batch)
+            part = JointStateRecord(block.stamp_ns[start:stop], block.names,
+                                    *(a[start:stop] for a in block[2:]))
+            done += stop - start
+            yield functools.partial(pipeline.add_joint_states, part), stop - start
+            start = stop
 
 
 def _checkpoint(pipeline: IdentificationPipeline) -> Checkpoint:

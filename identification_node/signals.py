@@ -4,7 +4,9 @@
 style) least-squares fit over 2L+1 samples, evaluated at the window centre. It uses the actual
 time stamps, so jitter and irregular sampling need no resampling. The centre of a window is known
 only once its last sample arrived: outputs lag the newest input by L samples (L / rate seconds);
-the estimator must pair them with the other signals at the returned centre stamps.
+the estimator must pair them with the other signals at the returned centre stamps. Windows
+whose stamps are uniform (to 1e-9 of the step and the stamps' float rounding) take the fit's
+fixed weights (Savitzky-Golay), all of them in one matrix product.
 
 Frequency response (uniform sampling): the fit is a linear FIR filter, symmetric about the
 centre, so it has zero phase relative to the centre stamp (pure delay of L samples), unit gain
@@ -25,6 +27,11 @@ import scipy.signal as sps
 from .errors import IdentificationError
 
 _BLOCK = 4096   # windows per batched solve: bounds memory for long offline calls
+# A window counts as uniformly sampled when its stamp steps differ by at most this fraction of
+# the step (its centred, scaled stamps then differ from k / L by < 2e-9, far below the
+# nanosecond quantisation of stamps: 1e-9 s / 1 ms = 1e-6) plus the rounding of the stamps as
+# floats (which the general fit sees as well).
+_UNIFORM_TOL = 1e-9
 
 
 def _as_samples(x: np.ndarray, name: str, finite: bool = True) -> np.ndarray:
@@ -86,6 +93,10 @@ class FixedLagSmoother:
         self.max_gap = float(max_gap)
         p = np.arange(self.order + 1)
         self._hankel = p[:, None] + p[None, :]
+        # Value, first and second derivative weights (in scaled time) of a uniform window.
+        k = np.arange(-self.half_window, self.half_window + 1) / self.half_window
+        gram, powers = self._normal(k[None, :])
+        self._uniform_weights = np.linalg.solve(gram, powers)[0, :3]             # (3, K)
         self.reset()
 
     @property
@@ -146,8 +157,47 @@ class FixedLagSmoother:
         starts = starts[seg[starts] == seg[starts + K - 1]]  # windows not spanning a gap
         if starts.size == 0:
             return self._empty()
-        out = [self._fit(T, X, starts[i:i + _BLOCK]) for i in range(0, starts.size, _BLOCK)]
+        out = []
+        for run, uniform in self._runs(T, starts):
+            for i in range(0, run.size, _BLOCK):
+                out.append(self._fit_uniform(T, X, int(run[i]), min(_BLOCK, run.size - i))
+                           if uniform else self._fit(T, X, run[i:i + _BLOCK]))
         return tuple(np.concatenate(parts) for parts in zip(*out))
+
+    def _runs(self, T: np.ndarray, starts: np.ndarray) -> list[tuple[np.ndarray, bool]]:
+        """``starts`` split into runs of consecutive windows that all are, or all are not,
+        uniformly sampled (within _UNIFORM_TOL)."""
+        K = 2 * self.half_window + 1
+        d = np.diff(T)
+        rounding = 8 * np.finfo(float).eps * max(abs(T[0]), abs(T[-1]))
+        if d.max() - d.min() <= _UNIFORM_TOL * d.min() + rounding:   # usual: all uniform
+            uniform = np.ones(starts.size, dtype=bool)
+        else:
+            steps = np.lib.stride_tricks.sliding_window_view(d, K - 1)
+            uniform = np.empty(starts.size, dtype=bool)
+            for i in range(0, starts.size, _BLOCK):
+                win = steps[starts[i:i + _BLOCK]]
+                lo = win.min(axis=1)
+                uniform[i:i + _BLOCK] = win.max(axis=1) - lo <= _UNIFORM_TOL * lo + rounding
+        cuts = np.flatnonzero((np.diff(starts) != 1) | (uniform[1:] != uniform[:-1])) + 1
+        return [(run, bool(uniform[run_start]))
+                for run, run_start in zip(np.split(starts, cuts), np.r_[0, cuts])]
+
+    def _fit_uniform(self, T: np.ndarray, X: np.ndarray, first: int, count: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``_fit`` of the ``count`` uniformly sampled windows starting at sample ``first``:
+        fixed Savitzky-Golay weights, all windows in one BLAS product with the (window offset,
+        sample x channel) Hankel matrix of X."""
+        L, K, c = self.half_window, 2 * self.half_window + 1, X.shape[1]
+        X = np.ascontiguousarray(X[first:first + count + K - 1])
+        view = np.lib.stride_tricks.as_strided(X, shape=(K, count * c),
+                                               strides=(X.strides[0], X.strides[1]),
+                                               writeable=False)
+        # a copy: BLAS takes no overlapping rows, and numpy's own loop is slower than copying
+        coef = (self._uniform_weights @ view.copy()).reshape(3, count, c)
+        h = 0.5 * (T[first + K - 1:first + K - 1 + count] - T[first:first + count])
+        return (T[first + L:first + L + count], coef[0], coef[1] / h[:, None],
+                2.0 * coef[2] / (h * h)[:, None])
 
     def _normal(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gram matrices (B, p, p) and Vandermonde rows (B, p, K) of the least-squares fit of
@@ -181,9 +231,7 @@ class FixedLagSmoother:
             raise IdentificationError(f'rate must be > 0 Hz, got {rate!r}')
         L = self.half_window
         k = np.arange(-L, L + 1)
-        gram, powers = self._normal((k / L)[None, :])
-        g = np.linalg.solve(gram, powers)[0, :3]                                # (3, K)
-        g = g * (np.array([1.0, rate / L, 2.0 * (rate / L) ** 2]))[:, None]
+        g = self._uniform_weights * (np.array([1.0, rate / L, 2.0 * (rate / L) ** 2]))[:, None]
         e = np.exp(2j * np.pi * np.asarray(freq, dtype=float)[..., None] * k / rate)
         return e @ g[0], e @ g[1], e @ g[2]
 

@@ -507,6 +507,16 @@ def test_streaming_read_memory_is_flat(tmp_path, storage):
             tracemalloc.stop()
     assert count == n and last == T0 + (n - 1) * 1_000_000
     assert peak < bag_bytes / 4, (peak, bag_bytes)
+    with bagio.open_bag(path) as bag:  # blocks: one chunk (1 MiB) at a time
+        tracemalloc.start()
+        try:
+            count = 0
+            for log_ns, _ in bagio.iter_joint_state_blocks(bag, '/joint_states'):
+                count += len(log_ns)
+            _, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+    assert count == n and peak < bag_bytes / 4, (peak, bag_bytes)
 
 
 @pytest.mark.parametrize('storage', bagio.STORAGES)
@@ -524,3 +534,130 @@ def test_custom_type_read_from_embedded_definition(tmp_path, storage):
         assert 'my_msgs/msg/Foo' not in bagio.jazzy_typestore().types
         got = [(t, ns, m.x, m.label, list(m.ids)) for t, _, ns, m in bagio.iter_messages(bag)]
     assert got == [('/foo', T0, -2.0, 'a', []), ('/foo', T0 + 1, 1.5, 'b', [3, 4])]
+
+
+# ---------------------------------------------------------------------------------------
+# Block reading (iter_joint_state_blocks) against message-by-message reading
+# ---------------------------------------------------------------------------------------
+
+def _blocks_as_messages(bag, topic):
+    """iter_joint_state_blocks flattened to (log ns, record), and how many items it yielded."""
+    out, items = [], 0
+    for log, rec in bagio.iter_joint_state_blocks(bag, topic):
+        items += 1
+        if np.ndim(rec.stamp_ns) == 0:
+            assert len(log) == 1
+            out.append((int(log[0]), rec))
+            continue
+        assert rec.position.ndim == rec.velocity.ndim == rec.effort.ndim == 2
+        assert len(log) == len(rec.stamp_ns) == len(rec.position) > 1
+        for i in range(len(log)):
+            out.append((int(log[i]), bagio.JointStateRecord(
+                int(rec.stamp_ns[i]), rec.names, rec.position[i], rec.velocity[i],
+                rec.effort[i])))
+    return out, items
+
+
+def _assert_blocks_match(path, topic):
+    """Same messages, order, log times, stamps, names and values (NaN included) as
+    iter_joint_states; returns how many items the block reader yielded."""
+    with bagio.open_bag(path) as bag:
+        want = [(t, m) for _, t, m in bagio.iter_joint_states(bag, [topic])]
+    with bagio.open_bag(path) as bag:
+        got, items = _blocks_as_messages(bag, topic)
+    assert len(got) == len(want)
+    for (t, m), (et, em) in zip(got, want):
+        assert t == et and m.stamp_ns == em.stamp_ns and m.names == em.names
+        for a, b in zip(m[2:], em[2:]):
+            assert a.dtype == np.float64 and a.shape == b.shape
+            np.testing.assert_array_equal(a, b)
+    return items
+
+
+def test_blocks_equal_messages_with_changing_layouts(written):
+    path, storage, rows = written
+    # name order, velocity presence and frame change: runs of one layout are short here
+    for topic in ('/joint_states', '/arm/joint_states'):
+        items = _assert_blocks_match(path, topic)
+        if storage == 'mcap' and topic == '/arm/joint_states':
+            assert items == 1  # 25 messages of one layout: one block
+
+
+def _long_bag(path, n, compression=None, order=None, frame=lambda i: 'base'):
+    """n joint states (3 joints, 1 kHz) over several 1 MiB mcap chunks, interleaved with a
+    String topic; ``order`` permutes the writing order, ``compression`` (rosbags
+    CompressionMode) compresses."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat
+    rng = np.random.default_rng(5)
+    vals = rng.standard_normal((n, 3, 3))
+    vals[17, 1, 2] = np.nan
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    if compression is not None:
+        writer.set_compression(compression, CompressionFormat.ZSTD)
+    with writer:
+        js = writer.add_connection('/joint_states', bagio.JOINT_STATE, typestore=TS)
+        text = writer.add_connection('/text', bagio.STRING, typestore=TS)
+        for i in (range(n) if order is None else order):
+            t = T0 + i * 1_000_000
+            writer.write(js, t, bagio.encode_joint_state(
+                i * 1e-3, ARM, *vals[i], frame_id=frame(i)))
+            if i % 100 == 0:
+                writer.write(text, t, TS.serialize_cdr(bagio.make_string('x' * (i % 7)),
+                                                       bagio.STRING))
+    return path
+
+
+def test_blocks_from_several_chunks_plain_and_compressed(tmp_path):
+    from rosbags.rosbag2.enums import CompressionMode
+    for name, compression in (('plain', None), ('zstd', CompressionMode.STORAGE)):
+        path = _long_bag(tmp_path / name, 15000, compression)
+        with bagio.open_bag(path) as bag:
+            kinds = [c.compression for c in bag._reader.storage.storages[0].chunks]
+        assert len(kinds) >= 3 and set(kinds) == ({''} if compression is None else {'zstd'})
+        items = _assert_blocks_match(path, '/joint_states')
+        assert items <= 2 * len(kinds)  # ~5400 messages a chunk: blocks of <= 4096 rows
+
+
+def test_blocks_split_at_layout_changes_and_odd_messages(tmp_path):
+    # the frame id changes (same message length) at 3 places, and one message is corrupt
+    frames = {5000: 'bass', 5001: 'bass', 9000: 'b' * 9}
+    path = _long_bag(tmp_path / 'bag', 12000, frame=lambda i: frames.get(i, 'base'))
+    assert _assert_blocks_match(path, '/joint_states') < 12
+
+
+def test_blocks_fall_back_where_rosbags_merges_chunks(tmp_path):
+    from rosbags.rosbag2.enums import CompressionMode
+    # written backwards over several chunks: the chunks overlap in index order
+    path = _long_bag(tmp_path / 'backwards', 13000, order=range(12999, -1, -1))
+    assert _assert_blocks_match(path, '/joint_states') == 13000  # message by message
+    # per-message compression: read message by message
+    path = _long_bag(tmp_path / 'message', 300, CompressionMode.MESSAGE)
+    assert _assert_blocks_match(path, '/joint_states') == 300
+
+
+def test_blocks_of_sqlite3_and_lone_mcap(tmp_path):
+    _write_bag(tmp_path / 'db', 'sqlite3')
+    assert _assert_blocks_match(tmp_path / 'db', '/joint_states') == 50
+    path = _one_topic_bag(tmp_path / 'lone')
+    (path / 'metadata.yaml').unlink()
+    assert _assert_blocks_match(path / 'lone.mcap', '/joint_states') == 1
+
+
+def test_blocks_corrupt_message_names_topic_and_time(tmp_path):
+    path = tmp_path / 'bag'
+    good = bagio.encode_joint_state(0.0, ARM, [1, 2, 3])
+    with bagio.BagWriter(path) as w:
+        w.add_topic('/joint_states', bagio.JOINT_STATE)
+        for i in range(10):
+            w.write_raw('/joint_states', T0 + i, good)
+        w.write_raw('/joint_states', T0 + 10, good[:-5])
+    with bagio.open_bag(path) as bag:
+        it = bagio.iter_joint_state_blocks(bag, '/joint_states')
+        log, block = next(it)
+        assert len(log) == 10 and block.names == ARM
+        with pytest.raises(IdentificationError, match=f"'/joint_states' at log time {T0 + 10}"):
+            next(it)
+    with bagio.open_bag(path) as bag:
+        with pytest.raises(IdentificationError, match='not in bag'):
+            next(bagio.iter_joint_state_blocks(bag, '/nope'))

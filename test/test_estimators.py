@@ -514,3 +514,82 @@ def test_residual_statistics_for_any_theta_and_long_run_variance():
     np.testing.assert_allclose(stats.long_run_variance(theta), 1.0, rtol=0.2)
     direct = 100 * np.linalg.norm(e, axis=0) / np.linalg.norm(tau, axis=0)
     np.testing.assert_allclose(stats.relative_error(theta), direct, rtol=1e-6)
+
+
+# -- RLS update paths: information form (Cholesky) and QR --------------------------------------
+def _count_qr(monkeypatch):
+    import identification_node.estimators as est
+    calls = []
+    qr = est._qr_r
+    monkeypatch.setattr(est, '_qr_r', lambda a: calls.append(a.shape) or qr(a))
+    return calls
+
+
+@pytest.mark.parametrize('lam', [1.0, 0.995])
+def test_rls_information_form_equals_qr_update_when_well_conditioned(mit, monkeypatch, lam):
+    import identification_node.estimators as est
+    rng = np.random.default_rng(31)
+    Y = np.concatenate([mit['Yb']] * 4)
+    tau = noisy(Y, mit['beta'], 0.5, rng)
+    w = rng.uniform(0.5, 2.0, size=tau.shape) * (rng.random(tau.shape) > 0.1)
+    runs = {}
+    for name, limit in (('information', est._INFORMATION_MAX_CONDITION), ('qr', 0.0)):
+        monkeypatch.setattr(est, '_INFORMATION_MAX_CONDITION', limit)
+        rls = RecursiveLeastSquares(15, lam)
+        rls.update(Y[:300], tau[:300], w[:300])  # excites every direction
+        calls = _count_qr(monkeypatch)
+        for k in range(300, len(Y), 150):
+            rls.update(Y[k:k + 150], tau[k:k + 150], w[k:k + 150])
+        runs[name] = (rls, len(calls))
+        monkeypatch.undo()
+    (info, info_qr), (qr, qr_qr) = runs['information'], runs['qr']
+    assert info_qr == 0 and qr_qr > 0
+    np.testing.assert_allclose(info.theta, qr.theta, rtol=1e-9, atol=1e-9 * np.abs(qr.theta).max())
+    for attr in ('covariance', 'information', 'data_information'):
+        a, b = getattr(info, attr), getattr(qr, attr)
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max())
+    np.testing.assert_allclose(info.residual_rms, qr.residual_rms, rtol=1e-9)
+    assert_estimates_equal(info.estimate(), qr.estimate())
+    if lam == 1.0:  # and both are the weighted batch least squares
+        s = np.sqrt(w)
+        A = (Y * s[..., None]).reshape(-1, 15)
+        theta = np.linalg.lstsq(A, (tau * s).ravel(), rcond=None)[0]
+        np.testing.assert_allclose(info.theta, theta, rtol=1e-9)
+
+
+def test_rls_ill_conditioned_information_falls_back_to_qr(monkeypatch):
+    """Two nearly equal columns: forming A'A would square a condition number of ~1e7 (normal
+    equations lose ~all digits of that direction); the update must take the QR path and stay
+    as accurate as batch least squares by QR."""
+    rng = np.random.default_rng(32)
+    N, n, p = 2000, 2, 4
+    Y = rng.standard_normal((N, n, p))
+    Y[:, :, 3] = Y[:, :, 2] + 1e-7 * rng.standard_normal((N, n))
+    theta = np.array([1.0, -2.0, 3.0, 0.5])
+    tau = Y @ theta + 1e-9 * rng.standard_normal((N, n))
+    rls = RecursiveLeastSquares(p)
+    rls.update(Y[:500], tau[:500])
+    calls = _count_qr(monkeypatch)
+    for k in range(500, N, 500):
+        rls.update(Y[k:k + 500], tau[k:k + 500])
+    assert calls  # the QR update ran
+    A, b = Y.reshape(-1, p), tau.ravel()
+    ref = np.linalg.lstsq(A, b, rcond=None)[0]
+    normal = np.linalg.solve(A.T @ A, A.T @ b)
+    assert np.abs(normal - ref).max() > 1e3 * np.abs(rls.theta - ref).max()
+    np.testing.assert_allclose(rls.theta, ref, rtol=1e-6)
+
+
+def test_rls_not_yet_excited_uses_qr_then_information_form(mit, monkeypatch):
+    """Rank-deficient information (one sample) cannot be Cholesky-factored: QR; once the data
+    excite every direction the cheap update takes over."""
+    rng = np.random.default_rng(33)
+    tau = noisy(mit['Yb'], mit['beta'], 0.5, rng)
+    rls = RecursiveLeastSquares(15)
+    calls = _count_qr(monkeypatch)
+    rls.update(mit['Yb'][:1], tau[:1])
+    assert calls and rls.rank < 15
+    rls.update(mit['Yb'][1:200], tau[1:200])
+    calls.clear()
+    rls.update(mit['Yb'][200:], tau[200:])
+    assert not calls and rls.rank == 15

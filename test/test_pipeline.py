@@ -2,6 +2,8 @@
 import numpy as np
 import pytest
 
+from identification_node.errors import IdentificationError
+from identification_node.estimators import RecursiveLeastSquares, ResidualStatistics
 from identification_node.identifiability import BaseParameters
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.records import JointStateRecord
@@ -212,6 +214,132 @@ def test_freeze_and_reset():
     assert p.estimate().num_samples == 0 and p.received == 0
 
 
+def as_blocks(records):
+    """Runs of records sharing names and array lengths as blocks (add_joint_states), single
+    records where a run has one."""
+    out, run = [], []
+
+    def close():
+        if len(run) == 1:
+            out.append(run[0])
+        elif run:
+            out.append(JointStateRecord(
+                np.array([r.stamp_ns for r in run], dtype=np.int64), run[0].names,
+                *(np.array([r[f] for r in run]).reshape(len(run), -1) for f in (2, 3, 4))))
+        run.clear()
+
+    for r in records:
+        if run and (r.names, *map(len, r[2:])) != (run[0].names, *map(len, run[0][2:])):
+            close()
+        run.append(r)
+    close()
+    return out
+
+
+def test_blocks_equal_records_one_by_one():
+    sim = simulate(duration=6.0)
+    js = joint_records(sim)
+    r = js[3000]
+    odd = [  # structural rejections as runs (blocks) of 3, non-finite rows inside runs
+        *(r._replace(stamp_ns=r.stamp_ns + i, names=('joint1', 'joint2', 'elbow', 'gripper'))
+          for i in (1, 2, 3)),
+        *(r._replace(stamp_ns=r.stamp_ns + i, velocity=np.array([1.0])) for i in (4, 5, 6)),
+        *(r._replace(stamp_ns=r.stamp_ns + i, velocity=np.empty(0)) for i in (7, 8, 9)),
+        r._replace(stamp_ns=r.stamp_ns + 10, position=np.array([0.0, np.nan, 0.1, 0.2])),
+    ]
+    shift = -10 * 10 ** 9
+    restarted = [x._replace(stamp_ns=x.stamp_ns + shift) for x in js[4000:]]
+    # out of order and repeated stamps inside runs, a restart in the middle of a run
+    stream = js[:2990] + js[2995:3001] + odd + [js[3000], js[2990]] + js[3001:4000] + restarted
+    blocks = as_blocks(stream)
+    assert len(blocks) < 20 and any(np.ndim(b.stamp_ns) for b in blocks)
+    results = []
+    for items in (stream, blocks):
+        p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+        outs, count = [], 0
+        for item in items:  # processed every 50 messages, blocks cut there
+            if not np.ndim(item.stamp_ns):
+                p.add_joint_state(item)
+                count += 1
+                if count % 50 == 0:
+                    outs.append(p.process())
+                continue
+            start = 0
+            while start < len(item.stamp_ns):
+                stop = min(len(item.stamp_ns), start + 50 - count % 50)
+                p.add_joint_states(JointStateRecord(item.stamp_ns[start:stop], item.names,
+                                                    *(a[start:stop] for a in item[2:])))
+                count += stop - start
+                start = stop
+                if count % 50 == 0:
+                    outs.append(p.process())
+        outs.append(p.process(flush=True))
+        results.append((p, np.concatenate([o.predicted for o in outs])))
+    (one, pred_one), (blk, pred_blk) = results
+    assert one.rejected == blk.rejected
+    assert {k: v for k, v in blk.rejected.items() if v} == {
+        'missing_joints': 3, 'length_mismatch': 3, 'missing_velocity': 3, 'non_finite': 1,
+        'repeated_stamp': 1, 'out_of_order': 1, 'stream_restart': 7}
+    assert (one.received, one.used, one.restarts) == (blk.received, blk.used, blk.restarts)
+    np.testing.assert_allclose(blk.estimate().values, one.estimate().values, rtol=1e-10)
+    np.testing.assert_allclose(pred_blk, pred_one, rtol=1e-9, atol=1e-9)
+
+
+def test_bad_block_shapes_are_refused():
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    names = ('joint1', 'joint2', 'joint3')
+    with pytest.raises(IdentificationError, match='block'):
+        p.add_joint_states(JointStateRecord(np.arange(3), names, np.zeros((2, 3)),
+                                            np.zeros((3, 3)), np.zeros((3, 0))))
+    with pytest.raises(IdentificationError, match='block'):
+        p.add_joint_states(JointStateRecord(5, names, np.zeros(3), np.zeros(3), np.zeros(3)))
+    p.add_joint_states(JointStateRecord(np.zeros(0, dtype=np.int64), names, *np.zeros((3, 0, 3))))
+    p.process(flush=True)
+    assert p.received == 0
+
+
+class _Checked(IdentificationPipeline):
+    """The pipeline, also feeding a reference RLS and residual sums by their public, checked
+    methods with the base regressor rows."""
+
+    def reset(self):
+        super().reset()
+        self.ref_rls = RecursiveLeastSquares(self.base.num_base, self.config.forgetting)
+        self.ref_res = ResidualStatistics(self.base.num_base, self.robot.dof, self._block)
+
+    def _gather(self, Yt, w):
+        assert len(Yt) >= self.config.update_batch  # (applied at once: same batches)
+        Y, tau = Yt[:, :, :-1], Yt[:, :, -1].copy()
+        Yb = self.base.base_regressor(Y).copy()
+        self.ref_rls.update(Yb, tau, w)
+        root = np.sqrt(np.broadcast_to(np.ones(tau.shape) if w is None else w, tau.shape))
+        self.ref_res.add(Yb * root[..., None], tau * root)
+        super()._gather(Yt, w)
+
+
+@pytest.mark.parametrize('forgetting, extras', [(1.0, ()), (0.998, ('fv', 'fc'))])
+def test_shared_information_equals_the_checked_estimator_calls(forgetting, extras):
+    robot = load_robot('mit_dd_arm', extras=extras)
+    base = BaseParameters.from_robot(robot)
+    sim = simulate(duration=3.0)
+    p = _Checked(robot, PipelineConfig(forgetting=forgetting, joint_noise_std=[0.5, 1.0, 2.0]),
+                 base)
+    feed(p, joint_records(sim), chunk=400)
+    assert p.excluded_rows > 0 or not extras  # zero weights (Coulomb exclusion) were there
+    np.testing.assert_allclose(p.rls.theta, p.ref_rls.theta, rtol=1e-9,
+                               atol=1e-9 * np.abs(p.ref_rls.theta).max())
+    np.testing.assert_allclose(p.rls.covariance, p.ref_rls.covariance, rtol=1e-8,
+                               atol=1e-9 * np.abs(p.ref_rls.covariance).max())
+    assert p.rls.num_samples == p.ref_rls.num_samples
+    for f in ('gram', 'cross', 'sq'):
+        a, b = getattr(p.residuals, f), getattr(p.ref_res, f)
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * np.abs(b).max())
+    theta = p.rls.theta
+    np.testing.assert_allclose(p.residuals.long_run_variance(theta),
+                               p.ref_res.long_run_variance(theta), rtol=1e-8)
+    assert p.residuals.blocks == p.ref_res.blocks
+
+
 @pytest.mark.parametrize('field, value', [
     ('forgetting', 1.5), ('half_window', 0), ('velocity', 'guess'), ('align_tolerance', -1.0),
     ('joint_noise_std', [1.0]), ('max_gap', float('nan'))])
@@ -219,3 +347,12 @@ def test_bad_configuration_names_the_parameter(field, value):
     from identification_node.errors import IdentificationError
     with pytest.raises(IdentificationError, match=field):
         IdentificationPipeline(ROBOT, PipelineConfig(**{field: value}), BASE)
+
+
+def test_non_finite_rows_raise_through_the_checked_path():
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    rows = np.ones((60, ROBOT.dof, BASE.num_base + 1))
+    rows[7, 1, 2] = np.nan
+    p._updates, p._pending_samples = [(rows, None)], 60
+    with pytest.raises(IdentificationError, match='NaN or inf'):
+        p._apply_updates()

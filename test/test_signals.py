@@ -152,6 +152,76 @@ def test_frequency_response_matches_streaming_output():
     assert abs(sm.frequency_response(np.array([0.45 * rate]), rate)[0][0]) < 0.1
 
 
+def _window_fits(t, x, L, order, centres):
+    """Independent reference: numpy's polynomial least-squares fit of each window (in time
+    relative to its centre), its value and derivatives at the centre."""
+    out = np.empty((3, len(centres), x.shape[1]))
+    for i, c in enumerate(centres):
+        w = slice(c - L, c + L + 1)
+        h = 0.5 * (t[c + L] - t[c - L])
+        coef = np.polynomial.polynomial.polyfit((t[w] - t[c]) / h, x[w], order)
+        out[:, i] = coef[0], coef[1] / h, 2 * coef[2] / h ** 2
+    return out
+
+
+def test_uniform_stamps_take_fixed_weights_equal_to_the_general_fit(monkeypatch):
+    rng = np.random.default_rng(41)
+    n, L = 3000, 10
+    # stamps exact in binary (the general fit's own rounding stays ~1e-13), ~1 kHz, with a
+    # jittered stretch and a gap: those windows need the general fit
+    t = 4.0 + np.arange(n) * 2.0 ** -10
+    t[1000:1200] += rng.uniform(-2e-4, 2e-4, 200)
+    t[2000:] += 0.25
+    x = np.column_stack([np.sin(3 * t), np.cos(11 * t) + 0.01 * rng.standard_normal(n), t ** 2])
+    uniform_calls = []
+    fast = FixedLagSmoother(3, half_window=L, order=3, max_gap=0.05)
+    fit = fast._fit_uniform
+    monkeypatch.setattr(fast, '_fit_uniform', lambda *a: uniform_calls.append(a[3]) or fit(*a))
+    general = FixedLagSmoother(3, half_window=L, order=3, max_gap=0.05)
+    monkeypatch.setattr(general, '_runs', lambda T, starts: [(starts, False)])
+    got = [fast.push(t[k:k + 700], x[k:k + 700]) for k in range(0, n, 700)]
+    want = [general.push(t[k:k + 700], x[k:k + 700]) for k in range(0, n, 700)]
+    got, want = ([np.concatenate(p) for p in zip(*r)] for r in (got, want))
+    assert sum(uniform_calls) > 0.8 * len(got[0])  # most windows took the fixed weights
+    np.testing.assert_array_equal(got[0], want[0])
+    for a, b in zip(got[1:], want[1:]):  # O(1) signals (t^2: cancellation in the fit)
+        np.testing.assert_allclose(a[:, :2], b[:, :2], rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    centres = np.searchsorted(t, got[0])
+    jittered = (centres > 1000 - L) & (centres < 1200 + L)
+    for a, b in zip(got[1:], want[1:]):  # the jittered windows: the same computation
+        np.testing.assert_array_equal(a[jittered], b[jittered])
+    ref = _window_fits(t, x, L, 3, centres)
+    for a, r, tol in zip(got[1:], ref, (1e-9, 1e-8, 1e-6)):  # polyfit's own rounding
+        np.testing.assert_allclose(a, r, rtol=tol, atol=tol * np.abs(r).max())
+    for r in (got, want):  # (t^2)'' = 2, to the rounding of both
+        np.testing.assert_allclose(r[3][:, 2], 2.0, rtol=1e-8)
+
+
+def test_long_uniform_push_in_blocks_equals_chunked_pushes():
+    t = np.arange(9000) * 2.0 ** -10  # more windows than one block of the fixed-weight fit
+    x = np.column_stack([np.sin(2 * t), np.cos(5 * t)])
+    one = FixedLagSmoother(2, half_window=10, order=3).push(t, x)
+    sm = FixedLagSmoother(2, half_window=10, order=3)
+    parts = [sm.push(t[k:k + 1000], x[k:k + 1000]) for k in range(0, 9000, 1000)]
+    for a, b in zip(one, (np.concatenate(p) for p in zip(*parts))):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    assert len(one[0]) == 9000 - 20
+
+
+def test_uniformity_tolerance_is_relative_to_the_step_and_the_stamp_rounding(monkeypatch):
+    L, n = 5, 400
+    sm = FixedLagSmoother(1, half_window=L, order=2)
+    starts = np.arange(n - 2 * L)
+    # 10 days of seconds at 1 kHz: float rounding of the stamps (~1e-10 s) is uniform
+    t = 864000.0 + np.arange(n) * 1e-3
+    assert all(u for _, u in sm._runs(t, starts))
+    t = np.arange(n) * 1e-3
+    t[200] += 1e-11  # 1e-8 of a step: not uniform around it
+    runs = sm._runs(t, starts)
+    assert [u for _, u in runs] == [True, False, True]
+    assert np.array_equal(runs[1][0], np.arange(200 - 2 * L, 201))
+
+
 def test_zero_phase_lowpass_has_no_delay():
     rate = 1000.0
     t = np.arange(4000) / rate
