@@ -36,7 +36,7 @@ from .torque import JointTorqueConfig, TorqueConverter
 REJECT_REASONS = (
     'empty', 'length_mismatch', 'duplicate_names', 'missing_joints', 'non_finite',
     'missing_velocity', 'missing_effort', 'out_of_order', 'repeated_stamp', 'no_current',
-    'unmatched_current', 'unknown_channels', 'stream_restart',
+    'unmatched_current', 'unknown_channels', 'stream_restart', 'malformed',
 )
 
 
@@ -245,6 +245,11 @@ class IdentificationPipeline:
 
     def _reject(self, reason: str, count: int = 1) -> None:
         self.rejected[reason] += int(count)
+
+    def add_malformed(self) -> None:
+        """Count a message that could not even be decoded (received, and rejected)."""
+        self.received += 1
+        self._reject('malformed')
 
     def _joint_index(self, names: tuple) -> np.ndarray | str:
         idx = self._index_cache.get(names)

@@ -457,6 +457,7 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
               js_like(3000, dt=5, position=[0.1, 0.2]),
               js_like(3000, dt=6, name=[], position=[], velocity=[]),
               js_like(3000), js_like(2990)]           # repeated and out-of-order stamps
+    GARBAGE = b'\x00\x01\x00\x00' + b'\x07\x00\x00\x00' * 3   # truncated CDR
     bad_cur = [restamped(JointState(name=channels, effort=[math.nan] * len(channels)),
                          stamps[3500] + 100),
                restamped(JointState(name=['motor9/ia'], effort=[1.0]), stamps[3500] + 200)]
@@ -486,12 +487,13 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
                 if k == 3000 and not shift:
                     for m in bad_js:
                         pub_js.publish(m)
+                    pub_js.publish(GARBAGE)   # raw bytes that are no JointState
             time.sleep(0.02)
 
     send(list(range(4000)))
     time.sleep(0.3)
     send(list(range(4000, N)), shift=-10 * 10 ** 9)
-    total = len(keep_js) + len(bad_js)
+    total = len(keep_js) + len(bad_js) + 1
     assert wait_for(lambda: int((last_status(diag, 'bad') or {}).get(
         'samples_received', 0)) >= total, 10), last_status(diag, 'bad')
     ros.client.destroy_publisher(pub_js)
@@ -502,7 +504,7 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
     rejected = {r: int(values[f'rejected.{r}']) for r in REJECT_REASONS}
     expected = {'non_finite': 3, 'missing_joints': 2, 'length_mismatch': 1, 'empty': 1,
                 'repeated_stamp': 1, 'out_of_order': 1, 'no_current': 20,
-                'unmatched_current': 30, 'unknown_channels': 1}
+                'unmatched_current': 30, 'unknown_channels': 1, 'malformed': 1}
     assert {k: v for k, v in rejected.items() if k != 'stream_restart' and v} == expected
     assert int(values['stream_restarts']) == 1
     assert int(values['samples_received']) == total

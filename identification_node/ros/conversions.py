@@ -1,4 +1,4 @@
-"""Conversions between ROS messages and the core's plain records."""
+"""Conversions between ROS messages and the core's plain arrays: stamps and JointState output."""
 from __future__ import annotations
 
 import array
@@ -8,8 +8,6 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import JointState
 
-from ..records import JointStateRecord
-
 
 def stamp_ns(stamp: Time) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
@@ -18,14 +16,6 @@ def stamp_ns(stamp: Time) -> int:
 def time_msg(ns: int) -> Time:
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
-
-
-def joint_state_record(msg: JointState) -> JointStateRecord:
-    """Copy a JointState into the pipeline's record (no validation: the pipeline does it)."""
-    return JointStateRecord(stamp_ns(msg.header.stamp), tuple(msg.name),
-                            np.array(msg.position, dtype=float),
-                            np.array(msg.velocity, dtype=float),
-                            np.array(msg.effort, dtype=float))
 
 
 def publish_joint_states(publisher, stamps_ns: np.ndarray, names: Sequence[str], position=None,

@@ -30,12 +30,14 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
+from ..bagio import JointStateDecoder
+from ..errors import IdentificationError
 from ..pipeline import PipelineOutput
 from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
 from ..urdf_export import consistency_problems, identified_urdf
 from .spin import run_node
-from .conversions import joint_state_record, publish_joint_states
+from .conversions import publish_joint_states
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -77,11 +79,12 @@ class IdentificationNode(Node):
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
 
         overrides = QoSOverridingOptions.with_default_policies()
+        self._decode_js, self._decode_cur = JointStateDecoder(), JointStateDecoder()
         self.create_subscription(JointState, 'joint_states', self._on_joint_state, INPUT_QOS,
-                                 qos_overriding_options=overrides)
+                                 qos_overriding_options=overrides, raw=True)
         if self.pipeline.converter.needs_currents:
             self.create_subscription(JointState, 'motor_currents', self._on_currents,
-                                     INPUT_QOS, qos_overriding_options=overrides)
+                                     INPUT_QOS, qos_overriding_options=overrides, raw=True)
         self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
         self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
@@ -130,11 +133,19 @@ class IdentificationNode(Node):
         return SetParametersResult(successful=True)
 
     # -- input ------------------------------------------------------------------------------------
-    def _on_joint_state(self, msg: JointState) -> None:
-        self.pipeline.add_joint_state(joint_state_record(msg))
+    # Subscriptions are raw: the CDR bytes are decoded by the bag reader's JointState decoder
+    # (a few microseconds), not turned into Python message objects by rclpy first.
+    def _on_joint_state(self, raw: bytes) -> None:
+        try:
+            self.pipeline.add_joint_state(self._decode_js(raw))
+        except IdentificationError:
+            self.pipeline.add_malformed()
 
-    def _on_currents(self, msg: JointState) -> None:
-        self.pipeline.add_currents(joint_state_record(msg))
+    def _on_currents(self, raw: bytes) -> None:
+        try:
+            self.pipeline.add_currents(self._decode_cur(raw))
+        except IdentificationError:
+            self.pipeline.add_malformed()
 
     # -- processing and output --------------------------------------------------------------------
     def _process(self) -> None:
