@@ -21,14 +21,9 @@ from identification_node.settings import Settings, read_parameter_file
 from identification_node.signals import central_derivatives, zero_phase_lowpass
 from identification_node.simulation import SensorNoise, simulate_kinematic
 from identification_node.trajectories import FourierTrajectory
+from test_bags import BAGS
 
 REPO = Path(__file__).resolve().parents[1]
-BAGS = {  # bag: config
-    'mit_paper_moves': 'identification.yaml',
-    'mit_exciting': 'identification.yaml',
-    'mit_paper_moves_sqlite3': 'identification.yaml',
-    'crs_a465_fourier': 'crs_a465.yaml',
-}
 NOISE = np.array([0.8, 0.4, 0.2])      # N m, per joint of the MIT arm
 
 
