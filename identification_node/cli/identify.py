@@ -99,7 +99,7 @@ def result_document(result, validation=None) -> dict:
     return plain(doc)
 
 
-def format_report(doc: dict, pipeline=None) -> str:
+def format_report(doc: dict) -> str:
     lines = [f"{doc['robot']} from {doc['bag']}: {doc['num_samples']} samples used "
              f"({doc['messages']} messages)",
              f"method: {doc['method']} ({doc['processing'].get('processing', '')})"]

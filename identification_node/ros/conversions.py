@@ -9,10 +9,6 @@ from builtin_interfaces.msg import Time
 from sensor_msgs.msg import JointState
 
 
-def stamp_ns(stamp: Time) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
 def time_msg(ns: int) -> Time:
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
