@@ -14,8 +14,9 @@ ESTIMATE_FILE = 'estimate.yaml'
 URDF_FILE = 'identified.urdf'
 
 
-def estimate_document(pipeline: IdentificationPipeline, covariance: bool = True) -> dict:
-    """Plain-data summary of the running estimate (names, values, stddev, health)."""
+def estimate_document(pipeline: IdentificationPipeline) -> dict:
+    """Plain-data summary of the running estimate (names, values, stddev, covariance, health,
+    and the closest full parameter set)."""
     est = pipeline.estimate()
     robot, base = pipeline.robot, pipeline.base
     phi = pipeline.standard_parameters()
@@ -36,9 +37,8 @@ def estimate_document(pipeline: IdentificationPipeline, covariance: bool = True)
         'consistency_problems': problems,
         'standard_parameters': dict(zip(robot.param_names, map(float, phi))),
         'rejected': {k: v for k, v in pipeline.rejected.items() if v},
+        'covariance': pipeline.covariance.tolist(),
     }
-    if covariance:
-        doc['covariance'] = pipeline.covariance.tolist()
     return plain(doc)
 
 
@@ -51,7 +51,8 @@ def save_results(pipeline: IdentificationPipeline, directory: str | os.PathLike)
         note = ('identified by identification_node; ' + (
             'physically consistent' if doc['physically_consistent'] else
             'NOT physically consistent: ' + '; '.join(doc['consistency_problems'])))
-        urdf = identified_urdf(pipeline.robot, pipeline.standard_parameters(), note)
+        phi = np.array(list(doc['standard_parameters'].values()))  # in param_names order
+        urdf = identified_urdf(pipeline.robot, phi, note)
         paths.append(atomic_write_text(directory / URDF_FILE, urdf))
     return paths
 

@@ -110,7 +110,7 @@ class Settings:
         values = {k: default for k, (default, _) in PARAMETERS.items()}
         values.update(given)
         for name, (default, _) in PARAMETERS.items():
-            values[name] = _coerce(name, values[name], default)
+            values[name] = coerce(name, values[name], default)
         for name in ('process_period', 'publish.estimate_rate', 'publish.diagnostics_rate'):
             if not values[name] > 0:
                 raise IdentificationError(f'parameter {name} = {values[name]} must be > 0')
@@ -185,7 +185,7 @@ class Settings:
             raise IdentificationError(text) from None
 
 
-def _coerce(name: str, value: Any, default: Any) -> Any:
+def coerce(name: str, value: Any, default: Any) -> Any:
     """Value converted to the default's type, or IdentificationError naming the parameter."""
     def bad(expected: str) -> IdentificationError:
         return IdentificationError(f'parameter {name} = {value!r} must be {expected}')
@@ -195,7 +195,7 @@ def _coerce(name: str, value: Any, default: Any) -> Any:
             value = [value]
         value = list(value)
         kind = type(default[0]) if default else (float if name == 'joint_noise_std' else str)
-        return [_coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
+        return [coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise bad('true or false')

@@ -70,7 +70,7 @@ class IdentificationNode(Node):
 
     def __init__(self, node_name: str = 'identification_node', **kwargs: Any):
         super().__init__(node_name, **kwargs)
-        self.settings = Settings.from_dict(self._declare_settings())
+        self.settings = Settings.from_dict(declare_settings(self, PARAMETERS))
         self.pipeline = self.settings.build()
         self.robot = self.pipeline.robot
         base = self.pipeline.base
@@ -99,6 +99,7 @@ class IdentificationNode(Node):
         self._effort_rate = s['publish.effort_rate']
         self._last_effort_slot = -1
         self._consistency: list[str] = []
+        self._urdf_samples = 0
         self._received_at_last_diag = 0
         self._last_diag_time = self.get_clock().now()
         self.create_timer(s['process_period'], self._process)
@@ -110,9 +111,6 @@ class IdentificationNode(Node):
             f'{self.pipeline.delay:.0f} samples')
 
     # -- parameters -------------------------------------------------------------------------------
-    def _declare_settings(self) -> dict[str, Any]:
-        return declare_settings(self, PARAMETERS)
-
     def _declare_estimate_parameters(self, names: list[str]) -> None:
         self._estimate_names = {'base_parameter_names'}
         self.declare_parameter('base_parameter_names', list(names), ParameterDescriptor(
@@ -185,7 +183,10 @@ class IdentificationNode(Node):
             self.set_parameters(params)
         finally:
             self._internal_update = False
-        if est.num_samples and self.robot.kind == 'urdf':
+        # The URDF topic is latched: rebuild it only when new samples changed the estimate.
+        if est.num_samples and est.num_samples != self._urdf_samples and \
+                self.robot.kind == 'urdf':
+            self._urdf_samples = est.num_samples
             phi = self.pipeline.standard_parameters()
             self._consistency = consistency_problems(self.robot, phi)
             self._pub_urdf.publish(String(data=identified_urdf(self.robot, phi)))

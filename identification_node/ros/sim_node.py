@@ -45,7 +45,7 @@ from std_msgs.msg import String
 
 from ..errors import IdentificationError
 from ..robot import RobotModel
-from ..settings import PARAMETERS, PER_JOINT, Settings, _coerce, flatten
+from ..settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
 from ..simulation import ArmSimulator, SensorNoise, SimResult
 from ..torque import TorqueConverter
 from ..trajectories import Trajectory, load_trajectory
@@ -142,7 +142,7 @@ class SimSetup:
         v.update(given)
         for name in SIM_PARAMETERS:
             if name not in ROBOT_KEYS + PER_JOINT:
-                v[name] = _coerce(name, v[name], SIM_PARAMETERS[name][0])
+                v[name] = coerce(name, v[name], SIM_PARAMETERS[name][0])
         if not 1000.0 <= v['rate'] <= 1e6:
             raise _bad('rate', v['rate'], 'in [1000, 1e6] Hz (lower the published rate with '
                        'publish_decimation)')
