@@ -18,10 +18,9 @@ numerical work for everything queued, in batches:
 from __future__ import annotations
 
 import collections
-import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -133,6 +132,8 @@ class IdentificationPipeline:
         configs = [self.config.torque.get(j, JointTorqueConfig()) for j in robot.joint_names]
         self.converter = TorqueConverter(robot.joint_names, configs)
         self._channels = {name: (i, k) for name, i, k in self.converter.current_channel_slots()}
+        self._measured_columns = np.array([robot.joint_names.index(j)
+                                           for j in self.converter.measured_joints], dtype=int)
         self._channel_index = tuple(np.array(list(self._channels.values()), dtype=int)
                                     .reshape(-1, 2).T)
         # The torque is smoothed too, so residuals are correlated over the window: the
@@ -167,7 +168,7 @@ class IdentificationPipeline:
             raise IdentificationError(
                 f'joint state block: stamps {M} and arrays '
                 f'{[np.shape(a) for a in arrays]}; expected (M,) and (M, k)')
-        self._js_queue.append(block)
+        self._js_queue.append(block._replace(stamp_ns=np.asarray(block.stamp_ns)))
 
     def add_currents(self, record: JointStateRecord) -> None:
         self._cur_queue.append(record)
@@ -215,13 +216,8 @@ class IdentificationPipeline:
         cur = self._take(self._cur_queue)
         if cur:
             self._currents = self._currents.concat(self._convert_currents(cur))
-        k = 0
-        while k < len(js):  # blocks at once, runs of single records together, in order
-            if np.ndim(js[k].stamp_ns):
-                new, k = self._convert_block(js[k]), k + 1
-            else:
-                j = next((i for i in range(k, len(js)) if np.ndim(js[i].stamp_ns)), len(js))
-                new, k = self._convert_joint_states(js[k:j]), j
+        for block in _blocks(js):
+            new = self._convert_block(block)
             # the conversion may restart the stream (dropping what is pending): read after
             self._pending_js = self._pending_js.concat(new)
         ready = self._decide_ready(flush)
@@ -266,33 +262,9 @@ class IdentificationPipeline:
             self._index_cache[names] = idx
         return idx
 
-    def _convert_joint_states(self, records: list) -> _Samples:
-        """Validate joint-state records and order them by stamp; rejects are counted."""
-        n = self.robot.dof
-        self.received += len(records)
-        kept = []
-        need_effort = bool(self.converter.measured_joints)
-        for r in records:
-            reason = self._structure_problem(r)
-            if reason is None and self._velocity_mode is None:
-                self._velocity_mode = 'measured' if len(r.velocity) else 'differentiate'
-            if reason is None and self._velocity_mode == 'measured' and not len(r.velocity):
-                reason = 'missing_velocity'
-            if reason is None and need_effort and not len(r.effort):
-                reason = 'missing_effort'
-            if reason is not None:
-                self._reject(reason)
-                continue
-            kept.append(r)
-        if not kept:
-            return _Samples.empty(n)
-        s = _Samples(self._seconds([int(r.stamp_ns) for r in kept]),
-                     *(self._joint_rows(kept, f) for f in ('position', 'velocity', 'effort')))
-        return self._finite_in_order(s)
-
     def _convert_block(self, b: JointStateRecord) -> _Samples:
-        """_convert_joint_states for a block (add_joint_states): its rows share the
-        structure, so one check decides for all of them."""
+        """Validate a block of joint states (rows sharing names and layout, so one check
+        decides for all of them) in the robot's joint order, by stamp; rejects are counted."""
         n, M = self.robot.dof, len(b.stamp_ns)
         self.received += M
         if M == 0:
@@ -311,7 +283,7 @@ class IdentificationPipeline:
             self._velocity_mode = 'measured' if vel else 'differentiate'
         if reason is None and self._velocity_mode == 'measured' and not vel:
             reason = 'missing_velocity'
-        if reason is None and self.converter.measured_joints and not eff:
+        if reason is None and len(self._measured_columns) and not eff:
             reason = 'missing_effort'
         if reason is not None:
             self._reject(reason, M)
@@ -327,36 +299,20 @@ class IdentificationPipeline:
         finite = np.isfinite(s.q).all(axis=1)
         if self._velocity_mode == 'measured':
             finite &= np.isfinite(s.qd).all(axis=1)
-        measured = list(self.converter.measured_joints)
-        if measured:
-            cols = [self.robot.joint_names.index(j) for j in measured]
-            finite &= np.isfinite(s.eff[:, cols]).all(axis=1)
-        self._reject('non_finite', np.count_nonzero(~finite))
-        return self._in_order(s.select(finite))
-
-    def _joint_rows(self, records: list, field: str) -> np.ndarray:
-        """``field`` of valid records as (M, n) in the robot's joint order, NaN rows where it
-        is empty; stacked at once when the records share their names and lengths."""
-        names = records[0].names
-        rows = [getattr(r, field) for r in records]
-        if all(r.names is names or r.names == names for r in records) and all(map(len, rows)):
-            return np.array(rows, dtype=float)[:, self._joint_index(tuple(names))]
-        nan = np.full(self.robot.dof, np.nan)
-        return np.array([np.asarray(x, dtype=float)[self._joint_index(tuple(r.names))] if len(x)
-                         else nan for r, x in zip(records, rows)])
-
-    def _structure_problem(self, r) -> str | None:
-        if not len(r.names) or not len(r.position):
-            return 'empty'
-        k = len(r.names)
-        if len(r.position) != k or len(r.velocity) not in (0, k) or len(r.effort) not in (0, k):
-            return 'length_mismatch'
-        idx = self._joint_index(tuple(r.names))
-        return idx if isinstance(idx, str) else None
+        if len(self._measured_columns):
+            finite &= np.isfinite(s.eff[:, self._measured_columns]).all(axis=1)
+        if not finite.all():
+            self._reject('non_finite', np.count_nonzero(~finite))
+            s = s.select(finite)
+        return self._in_order(s)
 
     def _in_order(self, s: _Samples) -> _Samples:
         """Keep samples whose stamp exceeds every stamp accepted before; a backward jump of
         more than ``restart_jump`` starts a new stream (the smoother restarts)."""
+        t = s.stamps
+        if len(t) and t[0] > self._last_stamp and (len(t) == 1 or (t[1:] > t[:-1]).all()):
+            self._last_stamp = float(t[-1])   # the usual case: all in order
+            return s
         parts = []
         while len(s.stamps):
             prior = np.maximum.accumulate(np.concatenate([[self._last_stamp], s.stamps]))[:-1]
@@ -484,6 +440,8 @@ class IdentificationPipeline:
     def _with_torque(self, s: _Samples, currents, theta) -> _Samples:
         s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)
         ok = np.isfinite(s.tau).all(axis=1)
+        if ok.all():
+            return s
         self._reject('non_finite', np.count_nonzero(~ok))
         return s.select(ok)
 
@@ -495,7 +453,8 @@ class IdentificationPipeline:
             self._smoother = FixedLagSmoother(
                 len(channels) * n, half_window=int(self.config.half_window),
                 order=int(self.config.smoother_order), max_gap=self.config.max_gap)
-        t, x, xd, xdd = self._smoother.push(s.stamps, np.hstack(channels))
+        # stamps increasing and values finite: checked on the way in
+        t, x, xd, xdd = self._smoother.push_checked(s.stamps, np.hstack(channels))
         if len(t) == 0:
             return PipelineOutput.empty(n)
         q = x[:, :n]
@@ -505,7 +464,7 @@ class IdentificationPipeline:
         # [Y | tau] (N, n, p + 1): the regressor and the torque, for the base rows at once
         p = self.robot.num_params
         Yt = self._buffer('regressor', (len(t), n, p + 1))
-        self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p])
+        self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p], checked=True)
         Yt[:, :, p] = tau
         if not self.frozen:
             self._gather(Yt, self._row_weights(t, qd, qdd))
@@ -667,21 +626,45 @@ class IdentificationPipeline:
         return self.base.closest_standard(self.rls.theta, self.robot.phi_model)
 
 
-@dataclass
-class _Samples:
-    """Validated samples in stamp order (internal)."""
-    stamps: np.ndarray
-    q: np.ndarray
-    qd: np.ndarray
-    eff: np.ndarray
-    currents: np.ndarray | None = None
-    theta: np.ndarray | None = None
-    used: np.ndarray | None = None
-    tau: np.ndarray | None = None
+def _blocks(records: list) -> Iterator[JointStateRecord]:
+    """The queued joint states as blocks: blocks as they are, and each run of single records
+    sharing names and array lengths stacked into one (the live node's usual batch)."""
+    i = 0
+    while i < len(records):
+        r = records[i]
+        if isinstance(r.stamp_ns, np.ndarray):
+            yield r
+            i += 1
+            continue
+        names, lengths = r.names, (len(r.position), len(r.velocity), len(r.effort))
+        j = i + 1
+        while j < len(records) and not isinstance(records[j].stamp_ns, np.ndarray) and (
+                records[j].names is names or records[j].names == names) and (
+                len(records[j].position), len(records[j].velocity),
+                len(records[j].effort)) == lengths:
+            j += 1
+        run = records[i:j]
+        M = len(run)
+        yield JointStateRecord(
+            np.array([x.stamp_ns for x in run], dtype=np.int64), names,
+            *(np.array([getattr(x, f) for x in run], dtype=float).reshape(M, k)
+              for f, k in zip(('position', 'velocity', 'effort'), lengths)))
+        i = j
 
-    def __post_init__(self):
-        if self.currents is not None and self.used is None:
-            self.used = np.zeros(len(self.stamps), dtype=bool)
+
+class _Samples:
+    """Validated samples in stamp order (internal): stamps (M,) s, q, qd, eff (M, n); for
+    currents also currents (M, n, 3), theta (M, n) and the used flags (M,); tau once known."""
+    __slots__ = ('stamps', 'q', 'qd', 'eff', 'currents', 'theta', 'used', 'tau')
+
+    def __init__(self, stamps: np.ndarray, q: np.ndarray, qd: np.ndarray, eff: np.ndarray,
+                 currents: np.ndarray | None = None, theta: np.ndarray | None = None,
+                 used: np.ndarray | None = None, tau: np.ndarray | None = None):
+        self.stamps, self.q, self.qd, self.eff = stamps, q, qd, eff
+        self.currents, self.theta, self.tau = currents, theta, tau
+        if currents is not None and used is None:
+            used = np.zeros(len(stamps), dtype=bool)
+        self.used = used
 
     @classmethod
     def empty(cls, n: int, with_currents: bool = False) -> _Samples:
@@ -690,10 +673,11 @@ class _Samples:
             return cls(np.empty(0), z, z, z, np.empty((0, n, 3)), z)
         return cls(np.empty(0), z, z, z)
 
+    def _arrays(self) -> list:
+        return [getattr(self, name) for name in self.__slots__]
+
     def _map(self, fn) -> _Samples:
-        return dataclasses.replace(self, **{
-            f.name: fn(getattr(self, f.name)) for f in dataclasses.fields(self)
-            if getattr(self, f.name) is not None})
+        return _Samples(*[None if a is None else fn(a) for a in self._arrays()])
 
     def select(self, mask: np.ndarray) -> _Samples:
         return self._map(lambda a: a[mask])
@@ -709,12 +693,9 @@ class _Samples:
             return other
         if len(other.stamps) == 0:
             return self
+        merged = _Samples(*[None if a is None else np.concatenate([a, b])
+                            for a, b in zip(self._arrays(), other._arrays())])
         if self.currents is not None:
             # Current messages may interleave: keep the buffer sorted by stamp.
-            merged = dataclasses.replace(self, **{
-                f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])
-                for f in dataclasses.fields(self) if getattr(self, f.name) is not None})
             return merged.select(np.argsort(merged.stamps, kind='stable'))
-        return dataclasses.replace(self, **{
-            f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])
-            for f in dataclasses.fields(self) if getattr(self, f.name) is not None})
+        return merged

@@ -190,6 +190,9 @@ class RobotModel:
         width = 10 * (m.njoints - 1)
         self._flat = (self.idx_v[:, None] * width + cols[None, :])
         self._q_neutral = pin.neutral(m)
+        self._identity_q = (m.nq == len(jms) and not self.continuous.any()
+                            and np.array_equal(self.idx_q, np.arange(m.nq)))
+        self._identity_v = m.nv == len(jms) and np.array_equal(self.idx_v, np.arange(m.nv))
         lower, upper = m.lowerPositionLimit[self.idx_q], m.upperPositionLimit[self.idx_q]
         lower = np.where(self.continuous, -np.inf, lower)
         upper = np.where(self.continuous, np.inf, upper)
@@ -270,9 +273,8 @@ class RobotModel:
                 raise IdentificationError(
                     f'{name} has shape {a.shape}; expected (N, {self.dof}) for joints '
                     f'{self.joint_names}')
-            bad = ~np.isfinite(a)
-            if bad.any():
-                k = int(np.argwhere(bad)[0][0])
+            if not np.isfinite(a).all():
+                k = int(np.argwhere(~np.isfinite(a))[0][0])
                 raise IdentificationError(f'{name} contains NaN or inf (first at sample {k})')
             out.append(a)
         if len({a.shape[0] for a in out}) > 1:
@@ -284,6 +286,8 @@ class RobotModel:
         """Pinocchio configurations (N, nq) for joint positions (N, n); continuous joints
         are stored as (cos, sin)."""
         q = np.atleast_2d(q)
+        if self._identity_q:   # pinocchio's configuration is the joint vector itself
+            return np.ascontiguousarray(q, dtype=float)
         Q = np.tile(self._q_neutral, (q.shape[0], 1))
         plain = ~self.continuous
         Q[:, self.idx_q[plain]] = q[:, plain]
@@ -292,6 +296,8 @@ class RobotModel:
         return Q
 
     def _tangent(self, x: np.ndarray) -> np.ndarray:
+        if self._identity_v:
+            return np.ascontiguousarray(x, dtype=float)
         V = np.zeros((x.shape[0], self.model.nv))
         V[:, self.idx_v] = x
         return V
@@ -311,12 +317,15 @@ class RobotModel:
             return None
 
     def regressor(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-                  out: np.ndarray | None = None, method: str | None = None) -> np.ndarray:
+                  out: np.ndarray | None = None, method: str | None = None, *,
+                  checked: bool = False) -> np.ndarray:
         """Regressor Y (N, n, p) with tau = Y @ phi, for N samples of (q, qd, qdd).
-        ``method`` overrides ``regressor_method`` for this call."""
+        ``method`` overrides ``regressor_method`` for this call; ``checked``: the samples are
+        (N, n) finite float arrays already (the pipeline's), so they are not checked again."""
         if method not in (None, 'batch', 'pinocchio'):
             raise IdentificationError(f"regressor method {method!r}: use 'batch' or 'pinocchio'")
-        q, qd, qdd = self.check_samples(q, qd, qdd)
+        if not checked:
+            q, qd, qdd = self.check_samples(q, qd, qdd)
         N = q.shape[0]
         if method is None:
             # The batched path costs a few hundred microseconds per call: small batches (the

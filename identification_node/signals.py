@@ -32,6 +32,7 @@ _BLOCK = 4096   # windows per batched solve: bounds memory for long offline call
 # nanosecond quantisation of stamps: 1e-9 s / 1 ms = 1e-6) plus the rounding of the stamps as
 # floats (which the general fit sees as well).
 _UNIFORM_TOL = 1e-9
+_FEW = 64       # up to this many windows a batch is not split into uniform and jittered runs
 
 
 def _as_samples(x: np.ndarray, name: str, finite: bool = True) -> np.ndarray:
@@ -93,6 +94,7 @@ class FixedLagSmoother:
         self.max_gap = float(max_gap)
         p = np.arange(self.order + 1)
         self._hankel = p[:, None] + p[None, :]
+        self._offsets = np.arange(2 * self.half_window + 1)
         # Value, first and second derivative weights (in scaled time) of a uniform window.
         k = np.arange(-self.half_window, self.half_window + 1) / self.half_window
         gram, powers = self._normal(k[None, :])
@@ -145,33 +147,47 @@ class FixedLagSmoother:
             raise IdentificationError(
                 f'time stamp {t[0]!r} not after the previous one {self._t[-1]!r} '
                 '(call reset() when time restarts)')
+        return self.push_checked(t, x)
+
+    def push_checked(self, t: np.ndarray, x: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``push`` without its checks, for callers that validated already: t (N,) float
+        strictly increasing past the stamps pushed before, x (N, c) finite floats, N >= 1."""
         T = np.concatenate([self._t, t])
         X = np.concatenate([self._x, x])
         L, K = self.half_window, 2 * self.half_window + 1
-        seg = np.concatenate([[0], np.cumsum(np.diff(T) > self.max_gap)])  # segment id/sample
-        last = int(np.searchsorted(seg, seg[-1]))            # first sample of the last segment
+        d = np.diff(T)
+        starts = np.arange(max(T.size - K + 1, 0))
+        last = 0                                             # first sample of the last segment
+        if d.size and d.max() > self.max_gap:
+            seg = np.concatenate([[0], np.cumsum(d > self.max_gap)])  # segment id per sample
+            last = int(np.searchsorted(seg, seg[-1]))
+            starts = starts[seg[starts] == seg[starts + K - 1]]  # windows not spanning a gap
         self._t, self._x = T[max(last, T.size - 2 * L):], X[max(last, T.size - 2 * L):]
-        if T.size < K:
-            return self._empty()
-        starts = np.arange(T.size - K + 1)
-        starts = starts[seg[starts] == seg[starts + K - 1]]  # windows not spanning a gap
         if starts.size == 0:
             return self._empty()
         out = []
-        for run, uniform in self._runs(T, starts):
+        for run, uniform in self._runs(T, d, starts):
             for i in range(0, run.size, _BLOCK):
                 out.append(self._fit_uniform(T, X, int(run[i]), min(_BLOCK, run.size - i))
                            if uniform else self._fit(T, X, run[i:i + _BLOCK]))
+        if len(out) == 1:
+            return out[0]
         return tuple(np.concatenate(parts) for parts in zip(*out))
 
-    def _runs(self, T: np.ndarray, starts: np.ndarray) -> list[tuple[np.ndarray, bool]]:
+    def _runs(self, T: np.ndarray, d: np.ndarray, starts: np.ndarray
+              ) -> list[tuple[np.ndarray, bool]]:
         """``starts`` split into runs of consecutive windows that all are, or all are not,
-        uniformly sampled (within _UNIFORM_TOL)."""
+        uniformly sampled (within _UNIFORM_TOL); d = diff(T). A few windows with jittered
+        stamps among them are all fitted in general (the fixed weights only save time)."""
         K = 2 * self.half_window + 1
-        d = np.diff(T)
         rounding = 8 * np.finfo(float).eps * max(abs(T[0]), abs(T[-1]))
         if d.max() - d.min() <= _UNIFORM_TOL * d.min() + rounding:   # usual: all uniform
+            if starts[-1] - starts[0] == starts.size - 1:
+                return [(starts, True)]
             uniform = np.ones(starts.size, dtype=bool)
+        elif starts.size <= _FEW:
+            return [(starts, False)]
         else:
             steps = np.lib.stride_tricks.sliding_window_view(d, K - 1)
             uniform = np.empty(starts.size, dtype=bool)
@@ -204,15 +220,15 @@ class FixedLagSmoother:
         a polynomial in u (centred, scaled time) over each window: gram c = powers @ v."""
         powers = np.empty((u.shape[0], 2 * self.order + 1, u.shape[1]))
         powers[:, 0] = 1.0
-        for j in range(1, 2 * self.order + 1):     # products, not float pow: 10x faster
-            np.multiply(powers[:, j - 1], u, out=powers[:, j])
+        powers[:, 1:] = u[:, None, :]
+        np.cumprod(powers, axis=1, out=powers)     # products, not float pow: 10x faster
         gram = powers.sum(axis=2)[:, self._hankel]
         return gram, powers[:, :self.order + 1]
 
     def _fit(self, T: np.ndarray, X: np.ndarray, starts: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        L, K = self.half_window, 2 * self.half_window + 1
-        idx = starts[:, None] + np.arange(K)
+        L = self.half_window
+        idx = starts[:, None] + self._offsets
         tw = T[idx]
         tc = tw[:, L]
         h = 0.5 * (tw[:, -1] - tw[:, 0])

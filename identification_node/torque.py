@@ -18,6 +18,7 @@ sits in channel 0.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 from typing import Any, Mapping, Sequence
@@ -180,11 +181,11 @@ class TorqueConverter:
     def dof(self) -> int:
         return len(self.joint_names)
 
-    @property
+    @functools.cached_property
     def needs_currents(self) -> bool:
         return bool((~self._measured).any())
 
-    @property
+    @functools.cached_property
     def needs_measured(self) -> bool:
         return bool(self._measured.any())
 

@@ -178,7 +178,7 @@ def test_uniform_stamps_take_fixed_weights_equal_to_the_general_fit(monkeypatch)
     fit = fast._fit_uniform
     monkeypatch.setattr(fast, '_fit_uniform', lambda *a: uniform_calls.append(a[3]) or fit(*a))
     general = FixedLagSmoother(3, half_window=L, order=3, max_gap=0.05)
-    monkeypatch.setattr(general, '_runs', lambda T, starts: [(starts, False)])
+    monkeypatch.setattr(general, '_runs', lambda T, d, starts: [(starts, False)])
     got = [fast.push(t[k:k + 700], x[k:k + 700]) for k in range(0, n, 700)]
     want = [general.push(t[k:k + 700], x[k:k + 700]) for k in range(0, n, 700)]
     got, want = ([np.concatenate(p) for p in zip(*r)] for r in (got, want))
@@ -214,11 +214,13 @@ def test_uniformity_tolerance_is_relative_to_the_step_and_the_stamp_rounding(mon
     starts = np.arange(n - 2 * L)
     # 10 days of seconds at 1 kHz: float rounding of the stamps (~1e-10 s) is uniform
     t = 864000.0 + np.arange(n) * 1e-3
-    assert all(u for _, u in sm._runs(t, starts))
+    assert all(u for _, u in sm._runs(t, np.diff(t), starts))
     t = np.arange(n) * 1e-3
     t[200] += 1e-11  # 1e-8 of a step: not uniform around it
-    runs = sm._runs(t, starts)
+    runs = sm._runs(t, np.diff(t), starts)
     assert [u for _, u in runs] == [True, False, True]
+    # a few windows with jitter among them are fitted in general, all of them
+    assert [u for _, u in sm._runs(t, np.diff(t), starts[150:200])] == [False]
     assert np.array_equal(runs[1][0], np.arange(200 - 2 * L, 201))
 
 
