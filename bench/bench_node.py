@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import struct
 import subprocess
 import sys
 import time
@@ -71,6 +72,7 @@ def publisher(rate: float, seconds: float, warmup: float) -> None:
     rclpy.shutdown()
 
 
+STAMP = struct.Struct('<iI')   # header.stamp (sec, nanosec) after the 4-byte CDR header
 NODE_ARGS: list[str] = []   # extra '-p name:=value' for the node (--node-param)
 
 
@@ -83,8 +85,10 @@ def run_rate(rate: float, seconds: float, warmup: float) -> dict:
     import numpy as np
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.task import Future
     from sensor_msgs.msg import JointState
+
+    from identification_node.ros.spin import make_executor
 
     node_proc = subprocess.Popen(
         [sys.executable, '-m', 'identification_node', 'node', '--ros-args',
@@ -96,29 +100,34 @@ def run_rate(rate: float, seconds: float, warmup: float) -> dict:
     rclpy.init()
     node = rclpy.create_node('bench_listener')
 
-    def on_effort(msg: JointState) -> None:
-        s = msg.header.stamp
-        latencies.append(time.time_ns() - (s.sec * 1_000_000_000 + s.nanosec))
+    def on_effort(raw: bytes) -> None:   # the header stamp straight from the CDR bytes
+        sec, nanosec = STAMP.unpack_from(raw, 4)
+        latencies.append(time.time_ns() - (sec * 1_000_000_000 + nanosec))
 
     def on_diag(msg: DiagnosticArray) -> None:
         for status in msg.status:
             if status.name.endswith(': identification'):
                 diag.update({kv.key: kv.value for kv in status.values})
     node.create_subscription(JointState, '/identification_node/predicted_effort', on_effort,
-                             1000)
+                             1000, raw=True)
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
-    executor = SingleThreadedExecutor()
+    executor = make_executor()   # a listener that keeps up at 8 kHz: it measures latency
     executor.add_node(node)
+    never = Future()
+
+    def spin(seconds: float) -> None:
+        executor.spin_until_future_complete(never, timeout_sec=seconds)
+
     end = time.monotonic() + 30
     while not diag and time.monotonic() < end:   # the node is up and publishing
-        executor.spin_once(timeout_sec=0.1)
+        spin(0.1)
     pub = subprocess.Popen([sys.executable, __file__, '--publish', str(rate), str(seconds),
                             str(warmup)], cwd=REPO, stdout=subprocess.PIPE, text=True)
     cpu0 = None
     received0 = 0
     t_start = time.monotonic()
     while pub.poll() is None:
-        executor.spin_once(timeout_sec=0.01)
+        spin(0.01)
         if cpu0 is None and time.monotonic() - t_start > warmup + 1.0:
             cpu0, received0, lat0 = cpu_seconds(node_proc.pid), int(
                 diag.get('samples_received', 0)), len(latencies)
@@ -126,7 +135,7 @@ def run_rate(rate: float, seconds: float, warmup: float) -> dict:
     cpu1 = cpu_seconds(node_proc.pid)
     end = time.monotonic() + 2.0
     while time.monotonic() < end:
-        executor.spin_once(timeout_sec=0.05)
+        spin(0.05)
     received = int(diag.get('samples_received', 0))
     rejected = int(diag.get('samples_rejected', 0))
     node_proc.terminate()

@@ -72,6 +72,26 @@ def test_encoder_byte_identical_to_rosbags_and_decoders_agree():
         _assert_msg(fast, stamp, names, arrays)
 
 
+def test_batch_encoder_byte_identical_to_rosbags():
+    rng = np.random.default_rng(7)
+    Time, Header = TS.types['builtin_interfaces/msg/Time'], TS.types['std_msgs/msg/Header']
+    for k in range(40):
+        _, names, _, _ = _random_joint_state(rng, k)
+        N, n = int(rng.integers(0, 6)), len(names)
+        stamps = rng.integers(-3 * 10**9, 2 * 10**18, N)
+        fields = [None if rng.random() < 0.3 else rng.standard_normal((N, n)) for _ in range(3)]
+        if N and n and fields[0] is not None:
+            fields[0] = np.asfortranarray(fields[0])   # any memory layout
+            fields[0][0, 0] = np.nan
+        got = bagio.encode_joint_states(stamps, names, *fields)
+        assert len(got) == N
+        for i, raw in enumerate(got):
+            sec, nsec = divmod(int(stamps[i]), 10**9)
+            msg = TS.types[bagio.JOINT_STATE](Header(Time(sec, nsec), ''), list(names), *(
+                np.empty(0) if f is None else np.ascontiguousarray(f[i]) for f in fields))
+            assert raw == bytes(TS.serialize_cdr(msg, bagio.JOINT_STATE, little_endian=True))
+
+
 def test_fast_decoder_on_repeated_names_with_shifting_alignment():
     # same names, frame_id lengths shift the name block by 0..3 bytes: cache must stay right
     dec = bagio.JointStateDecoder()

@@ -18,6 +18,7 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type registration)
+from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_event_handler import ParameterEventHandler
 from sensor_msgs.msg import JointState
@@ -30,6 +31,8 @@ from identification_node.identifiability import BaseParameters
 from identification_node.pipeline import REJECT_REASONS
 from identification_node.records import JointStateRecord
 from identification_node.robot import load_robot
+from identification_node.bagio import encode_joint_states
+from identification_node.ros.conversions import PolledSubscription
 from identification_node.ros.node import IdentificationNode
 from identification_node.ros.sim_node import SampleSource, SimSetup
 from identification_node.settings import Settings
@@ -242,6 +245,39 @@ def mit(ros, diag, tmp_path_factory):
 
 
 # -- while the stream runs ------------------------------------------------------------------------
+def test_polled_input_takes_every_message_in_order_and_only_when_polled(ros):
+    """The node's inputs are taken from the middleware queue by its timer, never dispatched
+    by the executor: a burst deeper than one poll arrives complete, in order, byte-exact."""
+    node = Node('polled', context=ros.context)
+    got, polling = [], [False]
+
+    def handle(raw: bytes) -> None:
+        assert polling[0], 'dispatched by the executor'
+        got.append(raw)
+    source = PolledSubscription(node, JointState, '/polled/joint_states', handle, RELIABLE)
+    assert source.polled        # this rclpy keeps the node's subscriptions in a list
+    ros.add(node)               # spun by an executor, as the identification node is
+    pub = ros.client.create_publisher(JointState, '/polled/joint_states', RELIABLE)
+    assert wait_for(lambda: pub.get_subscription_count(), 10)
+    sent = encode_joint_states(np.arange(300) * 10**6, ['a', 'b'], np.random.rand(300, 2))
+    for raw in sent:
+        pub.publish(raw)
+    time.sleep(0.5)             # the executor spins meanwhile: it must not take them
+    assert got == []
+
+    def poll() -> int:
+        polling[0] = True
+        try:
+            return source.poll()
+        finally:
+            polling[0] = False
+    assert wait_for(lambda: poll() == 0 and len(got) == len(sent), 10)
+    assert got == sent
+    source.destroy()
+    ros.client.destroy_publisher(pub)
+    ros.remove(node)
+
+
 def test_estimate_parameters_while_streaming(ros, mit):
     target = '/services'
     node = mit.services

@@ -2,8 +2,8 @@
 
 Subscribes to ``joint_states`` and, when a joint's torque comes from motor currents, to
 ``motor_currents`` (sensor_msgs/JointState; channels ``<joint>/ia|ib|ic`` or ``<joint>/i``,
-amperes in effort, optional electrical angle in position). Callbacks only copy the message into
-the pipeline; a timer runs the pipeline in batches and publishes:
+amperes in effort, optional electrical angle in position). A timer takes the queued input
+messages, copies them into the pipeline, runs it on them in one batch and publishes:
 
 - ``~/predicted_effort``, ``~/measured_effort`` (JointState, stamped with the sample's stamp),
 - ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations),
@@ -37,7 +37,7 @@ from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
 from ..urdf_export import consistency_problems, identified_urdf
 from .spin import run_node
-from .conversions import publish_joint_states
+from .conversions import PolledSubscription, publish_joint_states
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -80,11 +80,12 @@ class IdentificationNode(Node):
 
         overrides = QoSOverridingOptions.with_default_policies()
         self._decode_js, self._decode_cur = JointStateDecoder(), JointStateDecoder()
-        self.create_subscription(JointState, 'joint_states', self._on_joint_state, INPUT_QOS,
-                                 qos_overriding_options=overrides, raw=True)
+        self._inputs = [PolledSubscription(self, JointState, 'joint_states', self._on_joint_state,
+                                           INPUT_QOS, qos_overriding_options=overrides)]
         if self.pipeline.converter.needs_currents:
-            self.create_subscription(JointState, 'motor_currents', self._on_currents,
-                                     INPUT_QOS, qos_overriding_options=overrides, raw=True)
+            self._inputs.append(PolledSubscription(
+                self, JointState, 'motor_currents', self._on_currents, INPUT_QOS,
+                qos_overriding_options=overrides))
         self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
         self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
@@ -131,8 +132,9 @@ class IdentificationNode(Node):
         return SetParametersResult(successful=True)
 
     # -- input ------------------------------------------------------------------------------------
-    # Subscriptions are raw: the CDR bytes are decoded by the bag reader's JointState decoder
-    # (a few microseconds), not turned into Python message objects by rclpy first.
+    # The processing timer takes the queued input messages (PolledSubscription) as CDR bytes,
+    # decoded by the bag reader's JointState decoder (a few microseconds), not turned into
+    # Python message objects by rclpy first.
     def _on_joint_state(self, raw: bytes) -> None:
         try:
             self.pipeline.add_joint_state(self._decode_js(raw))
@@ -147,6 +149,8 @@ class IdentificationNode(Node):
 
     # -- processing and output --------------------------------------------------------------------
     def _process(self) -> None:
+        for source in self._inputs:
+            source.poll()
         if self.pipeline.pending:
             self._publish_efforts(self.pipeline.process())
 
@@ -258,6 +262,11 @@ class IdentificationNode(Node):
             'num_samples': est.num_samples, 'time': est.stamp, 'converged': est.converged,
             'condition_number': est.condition_number}))
         return res
+
+    def destroy_node(self) -> None:
+        for source in self._inputs:
+            source.destroy()
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:
