@@ -184,7 +184,7 @@ class IdentificationNode(Node):
                    for n, s in zip(est.names, est.stddev)]
         self._internal_update = True
         try:
-            self.set_parameters(params)
+            self.set_parameters_atomically(params)   # one parameter event, one snapshot
         finally:
             self._internal_update = False
         # The URDF topic is latched: rebuild it only when new samples changed the estimate.
