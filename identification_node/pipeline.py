@@ -1,11 +1,12 @@
 """The identification pipeline: stamped joint states and currents in, base-parameter estimate out.
 
-One plain class, fed by the ROS node's callbacks (which only copy the message) and by bag
+One plain class, fed by the ROS node (its timer copies the queued messages in) and by bag
 replay alike. ``add_joint_state`` / ``add_currents`` queue records (``add_joint_states`` a
 block of joint states of one layout, as bag replay reads them); ``process`` does the
 numerical work for everything queued, in batches:
 
-1. validation per message (counted rejections by reason, never an exception or a NaN),
+1. validation (runs of messages sharing names and layout stacked into blocks checked at once;
+   counted rejections by reason, never an exception or a NaN),
 2. stamp order (out of order or repeated stamps are rejected; a backward jump larger than
    ``restart_jump`` is taken as a restarted stream),
 3. alignment of motor currents to joint states by header stamp (nearest within
@@ -154,7 +155,7 @@ class IdentificationPipeline:
         self.frozen = False
         self.reset()
 
-    # -- input: called from callbacks, so nothing but a copy -------------------------------------
+    # -- input: called on the ROS side, so nothing but a copy ------------------------------------
     def add_joint_state(self, record: JointStateRecord) -> None:
         self._js_queue.append(record)
 

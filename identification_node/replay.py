@@ -1,7 +1,7 @@
 """Offline identification: a recorded bag streamed through the live pipeline, without DDS.
 
 The bag's messages go through the same IdentificationPipeline (validation, alignment,
-smoother, RLS) as the node's callbacks feed, in log-time order and fixed-size batches, so the
+smoother, RLS) as the node feeds, in log-time order and fixed-size batches, so the
 result is deterministic and memory does not grow with the bag's length.
 """
 from __future__ import annotations

@@ -30,12 +30,13 @@ class PolledSubscription:
     """A raw subscription of ``node`` that the executor never dispatches: ``poll`` takes every
     queued message from the middleware and calls ``handle(cdr_bytes)`` for each.
 
-    An executor callback costs about 40 us of CPU per message in rclpy (half the node's
-    receive cost at 1 kHz); taking the queue in a batch from a timer costs a few us per
-    message. The subscription is created by ``create_subscription`` (topic remapping, QoS
-    and QoS overrides as usual) and then taken off the node's list of subscriptions, which is
-    what executors dispatch. If this rclpy has no such list the subscription stays dispatched
-    and ``poll`` finds nothing to take: the same messages, at the usual cost.
+    With rclpy's EventsExecutor, receiving 1 kHz through a callback per message cost the
+    process 81 us of CPU per message, taking the queue in batches from a timer 58 us
+    (measured with a no-op handler). The subscription is created by ``create_subscription``
+    (topic remapping, QoS and QoS overrides as usual) and then taken off the node's list of
+    subscriptions, which is what executors dispatch. If this rclpy has no such list the
+    subscription stays dispatched and ``poll`` finds nothing to take: the same messages, at
+    the usual cost.
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str, handle: Callable[[bytes], None],
