@@ -148,7 +148,7 @@ class IdentificationPipeline:
                          if len(self.config.joint_noise_std) else None)
         self._js_queue: collections.deque = collections.deque()
         self._cur_queue: collections.deque = collections.deque()
-        self._index_cache: dict[tuple, np.ndarray | str] = {}
+        self._index_cache: dict[tuple, np.ndarray | slice | str] = {}
         self._work: dict[str, np.ndarray] = {}
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._row_columns = np.append(self.base.base_index, robot.num_params)
@@ -248,7 +248,9 @@ class IdentificationPipeline:
         self.received += 1
         self._reject('malformed')
 
-    def _joint_index(self, names: tuple) -> np.ndarray | str:
+    def _joint_index(self, names: tuple) -> np.ndarray | slice | str:
+        """Message columns in the robot's joint order (a plain slice when the message has
+        exactly the robot's joints in its order), or the reason to reject the layout."""
         idx = self._index_cache.get(names)
         if idx is None:
             pos = {name: i for i, name in enumerate(names)}
@@ -258,6 +260,8 @@ class IdentificationPipeline:
                 idx = 'missing_joints'
             else:
                 idx = np.array([pos[j] for j in self.robot.joint_names])
+                if len(names) == len(idx) and (idx == np.arange(len(idx))).all():
+                    idx = slice(None)
             if len(self._index_cache) > 256:
                 self._index_cache.clear()
             self._index_cache[names] = idx
@@ -289,7 +293,7 @@ class IdentificationPipeline:
         if reason is not None:
             self._reject(reason, M)
             return _Samples.empty(n)
-        nan = np.full((M, n), np.nan)
+        nan = np.full((M, n), np.nan) if not (vel and eff) else None
         s = _Samples(self._seconds(b.stamp_ns), np.asarray(b.position, dtype=float)[:, idx],
                      np.asarray(b.velocity, dtype=float)[:, idx] if vel else nan,
                      np.asarray(b.effort, dtype=float)[:, idx] if eff else nan)
@@ -439,6 +443,9 @@ class IdentificationPipeline:
         return np.where(np.abs(ref[pick] - t) <= self.config.align_tolerance, pick, -1)
 
     def _with_torque(self, s: _Samples, currents, theta) -> _Samples:
+        if len(self._measured_columns) == self.robot.dof:
+            s.tau = s.eff   # every joint's torque measured: checked finite on the way in
+            return s
         s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)
         ok = np.isfinite(s.tau).all(axis=1)
         if ok.all():
