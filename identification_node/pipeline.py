@@ -1,7 +1,7 @@
 """The identification pipeline: stamped joint states and currents in, base-parameter estimate out.
 
-One plain class, fed by the ROS node (its timer copies the queued messages in) and by bag
-replay alike. ``add_joint_state`` / ``add_currents`` queue records (``add_joint_states`` a
+One plain class, fed by the ROS node (its processing thread copies the queued messages in) and
+by bag replay alike. ``add_joint_state`` / ``add_currents`` queue records (``add_joint_states`` a
 block of joint states of one layout, as bag replay reads them); ``process`` does the
 numerical work for everything queued, in batches:
 

@@ -246,7 +246,7 @@ def mit(ros, diag, tmp_path_factory):
 
 # -- while the stream runs ------------------------------------------------------------------------
 def test_polled_input_takes_every_message_in_order_and_only_when_polled(ros):
-    """The node's inputs are taken from the middleware queue by its timer, never dispatched
+    """The node's inputs are taken from the middleware queue when polled, never dispatched
     by the executor: a burst deeper than one poll arrives complete, in order, byte-exact."""
     node = Node('polled', context=ros.context)
     got, polling = [], [False]
@@ -278,13 +278,43 @@ def test_polled_input_takes_every_message_in_order_and_only_when_polled(ros):
     ros.remove(node)
 
 
+def test_effort_topics_are_published_only_to_subscribers(ros):
+    """Nobody listens to ~/measured_effort: it is not even serialized; ~/predicted_effort,
+    subscribed, gets every sample through the smoother, stamped with the sample's stamp."""
+    node = start_node(ros, 'lazy', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
+                                    'process_period': 0.01}, 'lazy')
+    published = {'predicted': 0, 'measured': 0}
+    for key, pub in (('predicted', node._pub_predicted), ('measured', node._pub_measured)):
+        def counting(raw, key=key, publish=pub.publish):
+            published[key] += 1
+            publish(raw)
+        pub.publish = counting
+    got = Collector(ros, JointState, '/lazy/predicted_effort')
+    sender = ros.client.create_publisher(JointState, '/lazy/joint_states', RELIABLE)
+    assert wait_for(lambda: sender.get_subscription_count()
+                    and node._pub_predicted.get_subscription_count(), 10)
+    n, names = 200, node.robot.joint_names
+    stamps = 10**9 + np.arange(n) * 10**6
+    rng = np.random.default_rng(3)
+    for msg in joint_state_msgs(stamps, names, *rng.normal(size=(3, n, len(names)))):
+        sender.publish(msg)
+    lag = int(node.pipeline.delay)
+    through = n - 2 * lag             # all but the smoother's first and last half windows
+    assert wait_for(lambda: len(got) >= through, 10)
+    assert [stamp_ns(m) for m in got.snapshot()] == list(stamps[lag:lag + through])
+    assert published == {'predicted': through, 'measured': 0}
+    got.close()
+    ros.client.destroy_publisher(sender)
+    ros.remove(node)
+
+
 def test_estimate_parameters_while_streaming(ros, mit):
     target = '/services'
     node = mit.services
     names = node.pipeline.base.names
     got = ros.get_parameters(target, ['base_parameter_names'])
     assert got['base_parameter_names'] == names
-    assert wait_for(lambda: node.pipeline.estimate().num_samples > 1000, 20)
+    assert wait_for(lambda: node.estimate().num_samples > 1000, 20)
     # A ParameterEventHandler sees the estimate being refreshed.
     seen = []
     handler = ParameterEventHandler(ros.client)
@@ -311,7 +341,7 @@ def test_estimate_parameters_while_streaming(ros, mit):
 def test_services_while_streaming(ros, mit):
     node = mit.services
     names = node.pipeline.base.names
-    assert wait_for(lambda: node.pipeline.estimate().num_samples > 1000, 20)
+    assert wait_for(lambda: node.estimate().num_samples > 1000, 20)
     # freeze: the estimate stops moving while the stream goes on; get_estimate (JSON) and the
     # parameters agree exactly.
     assert ros.call(SetBool, '/services/freeze', SetBool.Request(data=True)).success

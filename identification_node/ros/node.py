@@ -2,8 +2,10 @@
 
 Subscribes to ``joint_states`` and, when a joint's torque comes from motor currents, to
 ``motor_currents`` (sensor_msgs/JointState; channels ``<joint>/ia|ib|ic`` or ``<joint>/i``,
-amperes in effort, optional electrical angle in position). A timer takes the queued input
-messages, copies them into the pipeline, runs it on them in one batch and publishes:
+amperes in effort, optional electrical angle in position). A processing thread of its own
+takes the queued input messages every ``process_period`` (wall clock), copies them into the
+pipeline, runs it on them in one batch and publishes (the effort topics only while they have
+subscribers):
 
 - ``~/predicted_effort``, ``~/measured_effort`` (JointState, stamped with the sample's stamp),
 - ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations),
@@ -17,6 +19,8 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
+import traceback
 from typing import Any
 
 import numpy as np
@@ -32,11 +36,11 @@ from std_srvs.srv import SetBool, Trigger
 
 from ..bagio import JointStateDecoder
 from ..errors import IdentificationError
-from ..pipeline import PipelineOutput
+from ..pipeline import EstimateReport, PipelineOutput
 from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
 from ..urdf_export import consistency_problems, identified_urdf
-from .spin import run_node
+from .spin import PeriodicThread, run_node
 from .conversions import PolledSubscription, publish_joint_states
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
@@ -103,9 +107,13 @@ class IdentificationNode(Node):
         self._urdf_samples = 0
         self._received_at_last_diag = 0
         self._last_diag_time = self.get_clock().now()
-        self.create_timer(s['process_period'], self._process)
         self.create_timer(1.0 / s['publish.estimate_rate'], self.refresh_estimate)
         self.create_timer(1.0 / s['publish.diagnostics_rate'], self._publish_diagnostics)
+        # The pipeline is shared by the processing thread and the executor's callbacks.
+        self._lock = threading.Lock()
+        self._processing = PeriodicThread(s['process_period'], self._process,
+                                          'identification_processing',
+                                          self._on_processing_error, alive=self.context.ok)
         self.get_logger().info(
             f'identifying {base.num_base} base parameters of {self.robot.name} '
             f'(joints {", ".join(self.robot.joint_names)}); smoother delay '
@@ -132,7 +140,7 @@ class IdentificationNode(Node):
         return SetParametersResult(successful=True)
 
     # -- input ------------------------------------------------------------------------------------
-    # The processing timer takes the queued input messages (PolledSubscription) as CDR bytes,
+    # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes,
     # decoded by the bag reader's JointState decoder (a few microseconds), not turned into
     # Python message objects by rclpy first.
     def _on_joint_state(self, raw: bytes) -> None:
@@ -149,13 +157,23 @@ class IdentificationNode(Node):
 
     # -- processing and output --------------------------------------------------------------------
     def _process(self) -> None:
-        for source in self._inputs:
-            source.poll()
-        if self.pipeline.pending:
-            self._publish_efforts(self.pipeline.process())
+        with self._lock:
+            for source in self._inputs:
+                source.poll()
+            if not self.pipeline.pending:
+                return
+            out = self.pipeline.process()
+        self._publish_efforts(out)
+
+    def _on_processing_error(self, exc: BaseException) -> None:
+        self.get_logger().error('processing failed: ' + ''.join(
+            traceback.format_exception(exc)), throttle_duration_sec=5.0)
 
     def _publish_efforts(self, out: PipelineOutput) -> None:
-        if len(out.stamps_ns) == 0:
+        outputs = [(pub, effort) for pub, effort in ((self._pub_predicted, out.predicted),
+                                                     (self._pub_measured, out.measured))
+                   if pub.get_subscription_count()]   # none serialized for nobody
+        if len(out.stamps_ns) == 0 or not outputs:
             return
         keep = slice(None)
         if self._effort_rate > 0:
@@ -165,13 +183,17 @@ class IdentificationNode(Node):
             self._last_effort_slot = int(slots[-1])
         names = self.robot.joint_names
         stamps = out.stamps_ns[keep]
-        for pub, effort in ((self._pub_predicted, out.predicted),
-                            (self._pub_measured, out.measured)):
+        for pub, effort in outputs:
             publish_joint_states(pub, stamps, names, position=out.q[keep], effort=effort[keep])
+
+    def estimate(self) -> EstimateReport:
+        """The pipeline's estimate (safe from any thread: processing runs on its own)."""
+        with self._lock:
+            return self.pipeline.estimate()
 
     def refresh_estimate(self) -> None:
         """Publish base_parameters and the identified URDF; refresh the estimate parameters."""
-        est = self.pipeline.estimate()
+        est = self.estimate()
         b = len(est.names)
         msg = Float64MultiArray()
         msg.layout.dim = [MultiArrayDimension(label='value_stddev', size=2, stride=2 * b),
@@ -191,17 +213,20 @@ class IdentificationNode(Node):
         if est.num_samples and est.num_samples != self._urdf_samples and \
                 self.robot.kind == 'urdf':
             self._urdf_samples = est.num_samples
-            phi = self.pipeline.standard_parameters()
+            with self._lock:
+                phi = self.pipeline.standard_parameters()
             self._consistency = consistency_problems(self.robot, phi)
             self._pub_urdf.publish(String(data=identified_urdf(self.robot, phi)))
 
     def _publish_diagnostics(self) -> None:
         p = self.pipeline
-        est = p.estimate()
+        with self._lock:
+            est = p.estimate()
+            received, used, restarts, rejected = p.received, p.used, p.restarts, dict(p.rejected)
         now = self.get_clock().now()
         dt = (now - self._last_diag_time).nanoseconds * 1e-9
-        rate = (p.received - self._received_at_last_diag) / dt if dt > 0 else 0.0
-        self._received_at_last_diag, self._last_diag_time = p.received, now
+        rate = (received - self._received_at_last_diag) / dt if dt > 0 else 0.0
+        self._received_at_last_diag, self._last_diag_time = received, now
         status = DiagnosticStatus(name=f'{self.get_name()}: identification',
                                   hardware_id=self.robot.name)
         if est.converged:
@@ -212,15 +237,15 @@ class IdentificationNode(Node):
             status.level = DiagnosticStatus.WARN
             status.message += '; identified parameters not physically consistent'
         values = {
-            'input_rate_hz': f'{rate:.1f}', 'samples_received': p.received,
-            'samples_used': p.used, 'samples_rejected': sum(p.rejected.values()),
+            'input_rate_hz': f'{rate:.1f}', 'samples_received': received,
+            'samples_used': used, 'samples_rejected': sum(rejected.values()),
             'condition_number': f'{est.condition_number:.6g}',
             'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
-            'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': p.restarts,
+            'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
             'smoother_delay_samples': int(p.delay),
             'physically_consistent': not self._consistency,
         }
-        values.update({f'rejected.{k}': v for k, v in p.rejected.items()})
+        values.update({f'rejected.{k}': v for k, v in rejected.items()})
         values.update({f'residual_rms.{j}': f'{r:.6g}'
                        for j, r in zip(self.robot.joint_names, est.residual_rms)})
         if self._consistency:
@@ -232,20 +257,23 @@ class IdentificationNode(Node):
 
     # -- services -----------------------------------------------------------------------------
     def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        self.pipeline.reset()
+        with self._lock:
+            self.pipeline.reset()
         self.refresh_estimate()
         res.success, res.message = True, 'estimate reset'
         return res
 
     def _srv_freeze(self, req: SetBool.Request, res: SetBool.Response) -> SetBool.Response:
-        self.pipeline.frozen = bool(req.data)
+        with self._lock:
+            self.pipeline.frozen = bool(req.data)
         res.success = True
         res.message = 'updates frozen' if req.data else 'updates resumed'
         return res
 
     def _srv_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         try:
-            paths = save_results(self.pipeline, self.settings.output_directory)
+            with self._lock:
+                paths = save_results(self.pipeline, self.settings.output_directory)
         except OSError as exc:
             res.success, res.message = False, f'cannot save: {exc}'
             return res
@@ -255,7 +283,7 @@ class IdentificationNode(Node):
     def _srv_get_estimate(self, _req: Trigger.Request,
                           res: Trigger.Response) -> Trigger.Response:
         self.refresh_estimate()
-        est = self.pipeline.estimate()
+        est = self.estimate()
         res.success = True
         res.message = json.dumps(plain({
             'names': est.names, 'values': est.values.tolist(), 'stddev': est.stddev.tolist(),
@@ -264,6 +292,7 @@ class IdentificationNode(Node):
         return res
 
     def destroy_node(self) -> None:
+        self._processing.stop()
         for source in self._inputs:
             source.destroy()
         super().destroy_node()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import signal
 import sys
+import threading
 import time
 from typing import Any, Callable, Iterator
 
@@ -51,6 +52,45 @@ def stop_signals() -> Iterator[StopSignals]:
     finally:
         for sig, old in handlers.items():
             signal.signal(sig, old)
+
+
+class PeriodicThread:
+    """Calls ``func()`` every ``period`` seconds of wall-clock time on a daemon thread of its
+    own, on a fixed schedule (a late call moves the schedule instead of bursting to catch up),
+    until ``stop()`` or until ``alive()`` turns false. An exception from ``func`` goes to
+    ``on_error`` and the schedule goes on.
+
+    For periodic work that would otherwise be an executor timer: with the EventsExecutor every
+    timer tick wakes two threads (its timer thread, then the executor), here one.
+    """
+
+    def __init__(self, period: float, func: Callable[[], None], name: str,
+                 on_error: Callable[[BaseException], None],
+                 alive: Callable[[], bool] = lambda: True) -> None:
+        self.period, self._func, self._on_error, self._alive = period, func, on_error, alive
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        due = time.monotonic()
+        while True:
+            due += self.period
+            wait = due - time.monotonic()
+            if wait < 0:
+                due, wait = time.monotonic(), 0.0
+            if self._stop.wait(wait) or not self._alive():
+                return
+            try:
+                self._func()
+            except Exception as exc:   # noqa: BLE001 - reported, and the schedule goes on
+                self._on_error(exc)
+
+    def stop(self) -> None:
+        """Stop the schedule and wait for a call in progress to finish."""
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join()
 
 
 def make_executor():

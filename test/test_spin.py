@@ -1,0 +1,42 @@
+"""PeriodicThread: the node's processing schedule (no ROS needed)."""
+import threading
+import time
+
+from identification_node.ros.spin import PeriodicThread
+from ros_helpers import wait_for
+
+
+def test_periodic_calls_until_stopped_then_none():
+    calls = []
+    thread = PeriodicThread(0.002, lambda: calls.append(1), 'test', on_error=print)
+    assert wait_for(lambda: len(calls) >= 20, 10)
+    thread.stop()
+    stopped_at = len(calls)
+    time.sleep(0.05)
+    assert len(calls) == stopped_at
+
+
+def test_errors_are_reported_and_the_schedule_goes_on():
+    calls, errors = [], []
+
+    def work():
+        calls.append(1)
+        if len(calls) % 2:
+            raise ValueError(len(calls))
+    thread = PeriodicThread(0.002, work, 'test', on_error=errors.append)
+    assert wait_for(lambda: len(calls) >= 10, 10)
+    thread.stop()
+    assert errors and all(isinstance(e, ValueError) for e in errors)
+    assert len(errors) in (len(calls) // 2, (len(calls) + 1) // 2)
+
+
+def test_ends_by_itself_when_no_longer_alive():
+    alive, calls = [True], []
+    names = {t.name for t in threading.enumerate()}
+    thread = PeriodicThread(0.002, lambda: calls.append(1), 'periodic-alive', on_error=print,
+                            alive=lambda: alive[0])
+    assert 'periodic-alive' not in names
+    assert wait_for(lambda: len(calls) >= 3, 10)
+    alive[0] = False
+    assert wait_for(lambda: 'periodic-alive' not in {t.name for t in threading.enumerate()}, 10)
+    thread.stop()    # no-op once ended
