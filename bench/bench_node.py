@@ -5,9 +5,13 @@ The identification node runs in its own process on a 7-DOF Panda-like arm
 fixed rate, stamped with the wall clock at publication; this process subscribes to
 ~/predicted_effort and measures the latency from the sample's stamp to its arrival. CPU per
 message is the node process's user + system time over the run divided by the messages it
-received. Prints one line per rate and the highest rate with no sample lost.
+received. Prints one line per run, the median over ``--repeat`` runs per rate, and the highest
+rate with no sample lost in any run.
 
-    .venv/bin/python bench/bench_node.py [--rates 1000 5000 ...] [--seconds 6]
+``--listen-measured`` also subscribes to ~/measured_effort (the node publishes an effort
+topic only while it has subscribers).
+
+    .venv/bin/python bench/bench_node.py [--rates 1000 5000 ...] [--seconds 6] [--repeat 3]
 """
 from __future__ import annotations
 
@@ -81,7 +85,7 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def run_rate(rate: float, seconds: float, warmup: float) -> dict:
+def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool) -> dict:
     import numpy as np
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -111,6 +115,9 @@ def run_rate(rate: float, seconds: float, warmup: float) -> dict:
     node.create_subscription(JointState, '/identification_node/predicted_effort', on_effort,
                              1000, raw=True)
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    if listen_measured:
+        node.create_subscription(JointState, '/identification_node/measured_effort',
+                                 lambda raw: None, 1000, raw=True)
     executor = make_executor()   # a listener that keeps up at 8 kHz: it measures latency
     executor.add_node(node)
     never = Future()
@@ -159,27 +166,42 @@ def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == '--publish':
         publisher(*map(float, sys.argv[2:5]))
         return
+    import numpy as np
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--rates', type=float, nargs='+', default=[1000, 2000, 5000, 8000])
     parser.add_argument('--seconds', type=float, default=6.0)
     parser.add_argument('--warmup', type=float, default=2.0)
     parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
                         help='node parameter override, e.g. process_period:=0.005')
+    parser.add_argument('--repeat', type=int, default=1, help='runs per rate (median shown)')
+    parser.add_argument('--listen-measured', action='store_true',
+                        help='also subscribe to ~/measured_effort')
     args = parser.parse_args()
     for p in args.node_param:
         NODE_ARGS.extend(['-p', p])
-    print(f'7-DOF arm, {args.seconds:.0f} s per rate after {args.warmup:.0f} s warm-up; '
-          f'{os.cpu_count()} cores')
+    print(f'7-DOF arm, {args.seconds:.0f} s per run after {args.warmup:.0f} s warm-up; '
+          f'{os.cpu_count()} cores'
+          f'{"; ~/measured_effort subscribed too" if args.listen_measured else ""}')
     best = 0.0
     for rate in args.rates:
-        r = run_rate(rate, args.seconds, args.warmup)
-        best = rate if r['lost'] == 0 and rate > best else best
-        print(f"{rate:6.0f} Hz: lost {r['lost']:5d} of {int(rate * (args.seconds + args.warmup))}"
-              f"  node CPU {r['cpu_us_per_msg']:6.1f} us/msg ({r['cpu_percent']:5.1f} % of a "
-              f"core)  latency median {r['latency_ms_median']:6.2f} ms  p99 "
-              f"{r['latency_ms_p99']:6.2f} ms  (smoother delay {r['delay_ms']:.1f} ms)",
-              flush=True)
+        runs = []
+        for _ in range(args.repeat):
+            runs.append(run_rate(rate, args.seconds, args.warmup, args.listen_measured))
+            print(line(rate, runs[-1], args), flush=True)
+        if args.repeat > 1:
+            med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+            med['lost'] = max(r['lost'] for r in runs)
+            print(line(rate, med, args, f'median of {args.repeat}'), flush=True)
+        best = rate if all(r['lost'] == 0 for r in runs) and rate > best else best
     print(f'highest rate with no sample lost: {best:.0f} Hz')
+
+
+def line(rate: float, r: dict, args: argparse.Namespace, label: str = '') -> str:
+    return (f"{rate:6.0f} Hz: lost {int(r['lost']):5d} of "
+            f"{int(rate * (args.seconds + args.warmup))}  node CPU {r['cpu_us_per_msg']:6.1f} "
+            f"us/msg ({r['cpu_percent']:5.1f} % of a core)  latency median "
+            f"{r['latency_ms_median']:6.2f} ms  p99 {r['latency_ms_p99']:6.2f} ms  (smoother "
+            f"delay {r['delay_ms']:.1f} ms){'  ' + label if label else ''}")
 
 
 if __name__ == '__main__':
