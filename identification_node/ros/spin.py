@@ -1,4 +1,5 @@
-"""Running a node in its own process: executor choice, SIGINT/SIGTERM, exit codes.
+"""Running a node in its own process: executor choice, SIGINT/SIGTERM, exit codes, and a
+periodic thread for work that should not wait on the executor.
 
 rclpy's own signal handlers do not stop the EventsExecutor of this rclpy (waking it from
 another thread deadlocks, and its ``spin()`` starves timers), so processes here install their
