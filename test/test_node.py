@@ -605,3 +605,12 @@ def test_invalid_parameters_exit_2_naming_them(ros, tmp_path, params, name):
     assert proc.wait(30) == 2
     err = proc.stderr.read()
     assert f'parameter {name}' in err, err
+
+
+def test_unknown_parameters_are_named_in_a_warning(ros, tmp_path):
+    """A misspelt parameter is not dropped silently: the node starts and names it."""
+    proc = start_node_process(ros, 'typo', {'robot': 'mit_dd_arm', 'forgeting_factor': 0.9,
+                                            'forgetting_factor': 0.999}, tmp_path)
+    stop_process(proc)
+    err = proc.stderr.read()
+    assert re.search(r'ignoring parameters this node does not have: forgeting_factor\s', err), err

@@ -69,6 +69,18 @@ def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str,
     return values
 
 
+def warn_unknown_parameters(node: Node) -> list[str]:
+    """Log a warning naming the parameters given to ``node`` (command line, parameter files)
+    that it never declared, typically misspelt ones, which rclpy otherwise drops silently;
+    returns their names. Call once every parameter is declared."""
+    given = getattr(node, '_parameter_overrides', {})
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if unknown:
+        node.get_logger().warning('ignoring parameters this node does not have: '
+                                  + ', '.join(unknown))
+    return unknown
+
+
 class IdentificationNode(Node):
     """Wires the ROS interfaces to an IdentificationPipeline; no numerics of its own."""
 
@@ -114,6 +126,7 @@ class IdentificationNode(Node):
         self._processing = PeriodicThread(s['process_period'], self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
+        warn_unknown_parameters(self)
         self.get_logger().info(
             f'identifying {base.num_base} base parameters of {self.robot.name} '
             f'(joints {", ".join(self.robot.joint_names)}); smoother delay '

@@ -51,7 +51,7 @@ from ..torque import TorqueConverter
 from ..trajectories import Trajectory, load_trajectory
 from ..urdf_export import consistency_problems
 from .conversions import publish_joint_states, time_msg
-from .node import declare_settings
+from .node import declare_settings, warn_unknown_parameters
 from .spin import run_node
 
 MAX_BATCH = 20      # samples per catch-up batch
@@ -247,6 +247,7 @@ class SimulatedArmNode(Node):
         self._stop = threading.Event()
         robot = self.setup.robot
         total = self.setup.num_samples
+        warn_unknown_parameters(self)
         self.get_logger().info(
             f'simulating {robot.name} (joints {", ".join(robot.joint_names)}) on trajectory '
             f'{v["trajectory"]} at {v["rate"]:g} Hz, publishing every '
