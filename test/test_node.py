@@ -536,24 +536,23 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
     assert wait_for(lambda: pub_js.get_subscription_count() and pub_cur.get_subscription_count(),
                     10)
 
+    # (publisher, samples kept, messages, sample after which the bad ones go, bad ones);
+    # GARBAGE: raw bytes that are no JointState
+    streams = ((pub_cur, keep_cur, cur, 3500, bad_cur),
+               (pub_js, keep_js, js, 3000, bad_js + [GARBAGE]))
+
     def send(ks, shift=0):
         """Samples ks, currents first, in chunks of 20 every 20 ms (real time: faster, the
         node falls behind and its best-effort subscriptions drop messages)."""
         for start in range(0, len(ks), 20):
             chunk = ks[start:start + 20]
-            for k in chunk:
-                if k in keep_cur:
-                    pub_cur.publish(restamped(cur[k], stamps[k] + shift))
-                if k == 3500 and not shift:
-                    for m in bad_cur:
-                        pub_cur.publish(m)
-            for k in chunk:
-                if k in keep_js:
-                    pub_js.publish(restamped(js[k], stamps[k] + shift))
-                if k == 3000 and not shift:
-                    for m in bad_js:
-                        pub_js.publish(m)
-                    pub_js.publish(GARBAGE)   # raw bytes that are no JointState
+            for pub, keep, msgs, bad_at, bad in streams:
+                for k in chunk:
+                    if k in keep:
+                        pub.publish(restamped(msgs[k], stamps[k] + shift))
+                    if k == bad_at and not shift:
+                        for m in bad:
+                            pub.publish(m)
             time.sleep(0.02)
 
     send(list(range(4000)))

@@ -183,10 +183,12 @@ class IdentificationNode(Node):
             traceback.format_exception(exc)), throttle_duration_sec=5.0)
 
     def _publish_efforts(self, out: PipelineOutput) -> None:
+        if len(out.stamps_ns) == 0:
+            return
         outputs = [(pub, effort) for pub, effort in ((self._pub_predicted, out.predicted),
                                                      (self._pub_measured, out.measured))
                    if pub.get_subscription_count()]   # none serialized for nobody
-        if len(out.stamps_ns) == 0 or not outputs:
+        if not outputs:
             return
         keep = slice(None)
         if self._effort_rate > 0:
