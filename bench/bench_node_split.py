@@ -1,0 +1,158 @@
+"""Where the node's CPU goes at 1 kHz, and what a Python node costs with no identification.
+
+Runs the identification node in a child process on the 7-DOF arm of bench_node.py (same
+publisher, ~/predicted_effort subscribed by a listener process so it is published), and
+measures the thread CPU time of the three parts of each processing run: taking and decoding
+the queued messages (``poll``), the pipeline (``pipeline``), and serializing and publishing
+the efforts (``publish``), plus the whole process's CPU. ``passthrough`` runs replace the
+pipeline by one that hands the received samples straight back as output: the same messages
+in and out at the same schedule, none of the identification, i.e. the floor of the ROS side.
+Runs of the two kinds alternate (this machine's CPU readings drift between runs); the medians
+are printed last.
+
+    .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_node import PANDA, REPO  # noqa: E402  (also sets a private ROS domain)
+
+PARTS = ('poll', 'pipeline', 'publish')
+
+
+def listen(seconds: float) -> None:
+    """Subscribe to ~/predicted_effort for ``seconds`` (raw, nothing done with it)."""
+    import rclpy
+    from sensor_msgs.msg import JointState
+    rclpy.init()
+    node = rclpy.create_node('bench_split_listener')
+    node.create_subscription(JointState, '/identification_node/predicted_effort',
+                             lambda raw: None, 1000, raw=True)
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    rclpy.shutdown()
+
+
+def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
+    """The node in this process with timed parts; returns per-part CPU (s), runs, messages."""
+    import numpy as np
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.task import Future
+
+    from identification_node.pipeline import IdentificationPipeline, PipelineOutput
+    from identification_node.ros import conversions, node as node_module
+    from identification_node.ros.spin import make_executor
+
+    spent = dict.fromkeys(PARTS, 0.0)
+    runs = [0]
+
+    def timed(part: str, func):
+        def wrapper(*args, **kwargs):
+            start = time.thread_time()
+            try:
+                return func(*args, **kwargs)
+            finally:
+                spent[part] += time.thread_time() - start
+                runs[0] += part == 'pipeline'
+        return wrapper
+
+    def passthrough(self: IdentificationPipeline, flush: bool = False) -> PipelineOutput:
+        records = self._take(self._js_queue)
+        self.received += len(records)
+        if not records:
+            return PipelineOutput.empty(self.robot.dof)
+        stamps = np.array([r.stamp_ns for r in records], dtype=np.int64)
+        q = np.array([r.position for r in records])
+        return PipelineOutput(stamps, q, q, q, q, q)
+
+    process = passthrough if mode == 'passthrough' else IdentificationPipeline.process
+    IdentificationPipeline.process = timed('pipeline', process)
+    conversions.PolledSubscription.poll = timed('poll', conversions.PolledSubscription.poll)
+    node_class = node_module.IdentificationNode
+    node_class._publish_efforts = timed('publish', node_class._publish_efforts)
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = node_class(parameter_overrides=[Parameter('robot', value=str(PANDA)),
+                                           Parameter('torque_source', value=['measured'])])
+    executor = make_executor()
+    executor.add_node(node)
+    never = Future()
+    total = seconds + warmup
+    helpers = [subprocess.Popen([sys.executable, __file__, '--listen', str(total + 4)], cwd=REPO)]
+    time.sleep(1.0)
+    helpers.append(subprocess.Popen(
+        [sys.executable, str(REPO / 'bench' / 'bench_node.py'), '--publish', str(rate),
+         str(seconds), str(warmup)], cwd=REPO, stdout=subprocess.DEVNULL))
+    end = time.monotonic() + 30
+    while node.pipeline.received < rate * warmup and time.monotonic() < end:
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
+    for part in PARTS:
+        spent[part] = 0.0
+    runs[0], received0 = 0, node.pipeline.received
+    cpu0, t0 = time.process_time(), time.monotonic()
+    while time.monotonic() - t0 < seconds - 1.0:
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
+    result = {'cpu': time.process_time() - cpu0, 'wall': time.monotonic() - t0,
+              'runs': runs[0], 'messages': node.pipeline.received - received0, **spent}
+    for helper in helpers:
+        helper.kill()
+    print(json.dumps(result), flush=True)
+    os._exit(0)   # no teardown to wait for
+
+
+def measure(mode: str, args: argparse.Namespace) -> dict:
+    out = subprocess.run([sys.executable, __file__, '--run', mode, str(args.rate),
+                          str(args.seconds), str(args.warmup)], cwd=REPO,
+                         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def line(mode: str, r: dict, label: str = '') -> str:
+    runs, wall = max(r['runs'], 1), r['wall']
+    parts = '  '.join(f'{p} {1e6 * r[p] / runs:4.0f} us' for p in PARTS)
+    return (f'{mode:11s}: node {100 * r["cpu"] / wall:5.1f} % of a core '
+            f'({1e6 * r["cpu"] / max(r["messages"], 1):5.1f} us/msg); per processing run '
+            f'({r["messages"] / runs:.1f} msgs): {parts}; parts '
+            f'{100 * sum(r[p] for p in PARTS) / wall:4.1f} % of a core'
+            f'{"  " + label if label else ""}')
+
+
+def main() -> None:
+    if sys.argv[1:2] == ['--listen']:
+        listen(float(sys.argv[2]))
+        return
+    if sys.argv[1:2] == ['--run']:
+        run_node(sys.argv[2], *map(float, sys.argv[3:6]))
+        return
+    import numpy as np
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--rate', type=float, default=1000.0)
+    parser.add_argument('--seconds', type=float, default=6.0)
+    parser.add_argument('--warmup', type=float, default=2.0)
+    parser.add_argument('--repeat', type=int, default=3, help='runs of each kind, alternating')
+    args = parser.parse_args()
+    print(f'7-DOF arm at {args.rate:.0f} Hz, {args.seconds:.0f} s per run; {os.cpu_count()} '
+          'cores; thread CPU per processing run')
+    results: dict[str, list] = {'identifying': [], 'passthrough': []}
+    for _ in range(args.repeat):
+        for mode, runs in results.items():
+            runs.append(measure(mode, args))
+            print(line(mode, runs[-1]), flush=True)
+    for mode, runs in results.items():
+        med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+        print(line(mode, med, f'median of {args.repeat}'))
+
+
+if __name__ == '__main__':
+    main()
