@@ -55,7 +55,7 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     from identification_node.ros.spin import make_executor
 
     spent = dict.fromkeys(PARTS, 0.0)
-    runs = [0]
+    calls = dict.fromkeys(PARTS, 0)
 
     def timed(part: str, func):
         def wrapper(*args, **kwargs):
@@ -64,7 +64,7 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
                 return func(*args, **kwargs)
             finally:
                 spent[part] += time.thread_time() - start
-                runs[0] += part == 'pipeline'
+                calls[part] += 1
         return wrapper
 
     def passthrough(self: IdentificationPipeline, flush: bool = False) -> PipelineOutput:
@@ -97,14 +97,14 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     end = time.monotonic() + 30
     while node.pipeline.received < rate * warmup and time.monotonic() < end:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    for part in PARTS:
-        spent[part] = 0.0
-    runs[0], received0 = 0, node.pipeline.received
+    spent.update(dict.fromkeys(PARTS, 0.0))
+    calls.update(dict.fromkeys(PARTS, 0))
+    received0 = node.pipeline.received
     cpu0, t0 = time.process_time(), time.monotonic()
     while time.monotonic() - t0 < seconds - 1.0:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
     result = {'cpu': time.process_time() - cpu0, 'wall': time.monotonic() - t0,
-              'runs': runs[0], 'messages': node.pipeline.received - received0, **spent}
+              'runs': calls['pipeline'], 'messages': node.pipeline.received - received0, **spent}
     for helper in helpers:
         helper.kill()
     print(json.dumps(result), flush=True)
