@@ -21,10 +21,11 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, field
-from typing import Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from . import compiled
 from .errors import IdentificationError
 from .estimators import RecursiveLeastSquares, ResidualStatistics, _information
 from .identifiability import BaseParameters
@@ -58,6 +59,7 @@ class PipelineConfig:
     converged_ratio: float = 0.1
     max_condition: float = 1e8
     min_samples: int = 1000
+    compiled: bool = True    # the compiled per-run step when built (compiled.py)
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""
@@ -152,6 +154,9 @@ class IdentificationPipeline:
         self._work: dict[str, np.ndarray] = {}
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._row_columns = np.append(self.base.base_index, robot.num_params)
+        self._step = (compiled.make_step(robot, self.base.base_index, self.config.half_window,
+                                         self.config.smoother_order, self.config.max_gap)
+                      if self.config.compiled else None)
         self.frozen = False
         self.reset()
 
@@ -199,9 +204,15 @@ class IdentificationPipeline:
         self._newest_js = -math.inf
         self._pending_js = _Samples.empty(n)
         self._currents = _Samples.empty(n, with_currents=True)
-        self._smoother: FixedLagSmoother | None = None
+        # FixedLagSmoother, or the compiled step (its own smoother) once the stream started
+        self._smoother: FixedLagSmoother | Any | None = None
         for q in (self._js_queue, self._cur_queue):
             q.clear()
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled per-run step does the smoothing and regressor (compiled.py)."""
+        return self._step is not None
 
     @property
     def delay(self) -> float:
@@ -456,51 +467,62 @@ class IdentificationPipeline:
     def _estimate(self, s: _Samples) -> PipelineOutput:
         n = self.robot.dof
         measured_velocity = self._velocity_mode == 'measured'
-        channels = [s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau]
-        if self._smoother is None:
-            self._smoother = FixedLagSmoother(
-                len(channels) * n, half_window=int(self.config.half_window),
-                order=int(self.config.smoother_order), max_gap=self.config.max_gap)
-        # stamps increasing and values finite: checked on the way in
-        t, x, xd, xdd = self._smoother.push_checked(s.stamps, np.hstack(channels))
+        channels = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
+        if self._step is not None:
+            if self._smoother is None:     # (re)started stream: the step's buffer too
+                self._step.reset()
+                self._smoother = self._step
+            # stamps increasing and values finite: checked on the way in
+            t, q, qd, qdd, tau, rows, predicted = self._step.push(
+                s.stamps, channels, self._rls.theta, measured_velocity)
+        else:
+            t, q, qd, qdd, tau, rows, predicted = self._smooth_and_regress(
+                s.stamps, channels, measured_velocity)
         if len(t) == 0:
             return PipelineOutput.empty(n)
+        if not self.frozen:
+            self._gather(rows, self._row_weights(t, qd, qdd))
+            self.used += len(t)
+        stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
+        self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
+        return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
+
+    def _smooth_and_regress(self, t: np.ndarray, x: np.ndarray, measured_velocity: bool
+                            ) -> tuple[np.ndarray, ...]:
+        """The Python path of compiled.make_step's ``push``: smoother outputs t_c, q, qd,
+        qdd, tau, the rows [Yb | tau] (N, n, b + 1) and the predicted torque Yb theta."""
+        n = self.robot.dof
+        if self._smoother is None:
+            self._smoother = FixedLagSmoother(
+                x.shape[1], half_window=int(self.config.half_window),
+                order=int(self.config.smoother_order), max_gap=self.config.max_gap)
+        t, x, xd, xdd = self._smoother.push_checked(t, x)
         q = x[:, :n]
         qd, qdd = (x[:, n:2 * n], xd[:, n:2 * n]) if measured_velocity else (xd[:, :n],
                                                                              xdd[:, :n])
         tau = x[:, -n:]
         # [Y | tau] (N, n, p + 1): the regressor and the torque, for the base rows at once
-        p = self.robot.num_params
+        p, b = self.robot.num_params, self.base.num_base
         Yt = self._buffer('regressor', (len(t), n, p + 1))
         self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p], checked=True)
         Yt[:, :, p] = tau
-        if not self.frozen:
-            self._gather(Yt, self._row_weights(t, qd, qdd))
-            self.used += len(t)
-        theta = np.zeros(p + 1)
-        theta[self.base.base_index] = self._rls.theta
-        predicted = Yt @ theta  # = base regressor @ base parameters (the estimate so far)
-        stamps_ns = self._epoch_ns + np.round(t * 1e9).astype(np.int64)
-        self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
-        return PipelineOutput(stamps_ns, q, qd, qdd, tau, predicted)
-
-    def _gather(self, Yt: np.ndarray, w: np.ndarray | None) -> None:
-        """Queue the weighted rows [Yb | tau] (the base regressor columns and the torque of
-        [Y | tau] (N, n, p + 1)) of a batch for the RLS and residual statistics; update them
-        once ``update_batch`` samples are gathered."""
-        N, n = Yt.shape[:2]
-        b = self.base.num_base
-        now = not self._updates and N >= self.config.update_batch
-        # rows applied at once live in a reused work array (Yt's is reused by the next batch)
-        rows = self._buffer('rows', (N, n, b + 1)) if now else np.empty((N, n, b + 1))
+        # rows applied within this call live in a reused work array (as Yt's)
+        now = not self._updates and len(t) >= self.config.update_batch
+        rows = self._buffer('rows', (len(t), n, b + 1)) if now else np.empty((len(t), n, b + 1))
         np.take(Yt, self._row_columns, axis=2, out=rows, mode='clip')
+        return t, q, qd, qdd, tau, rows, rows[:, :, :b] @ self._rls.theta
+
+    def _gather(self, rows: np.ndarray, w: np.ndarray | None) -> None:
+        """Queue the rows [Yb | tau] (N, n, b + 1) of a batch, weighted by ``w`` (in place),
+        for the RLS and residual statistics; update them once ``update_batch`` samples are
+        gathered."""
         used = None
         if w is not None:
-            root = np.sqrt(np.broadcast_to(w, (N, n)))
+            root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
             rows *= root[:, :, None]
             used = root > 0
         self._updates.append((rows, used))
-        self._pending_samples += N
+        self._pending_samples += len(rows)
         if self._pending_samples >= self.config.update_batch:
             self._apply_updates()
 

@@ -307,14 +307,13 @@ class _Checked(IdentificationPipeline):
         self.ref_rls = RecursiveLeastSquares(self.base.num_base, self.config.forgetting)
         self.ref_res = ResidualStatistics(self.base.num_base, self.robot.dof, self._block)
 
-    def _gather(self, Yt, w):
-        assert len(Yt) >= self.config.update_batch  # (applied at once: same batches)
-        Y, tau = Yt[:, :, :-1], Yt[:, :, -1].copy()
-        Yb = self.base.base_regressor(Y).copy()
+    def _gather(self, rows, w):
+        assert len(rows) >= self.config.update_batch  # (applied at once: same batches)
+        Yb, tau = rows[:, :, :-1].copy(), rows[:, :, -1].copy()
         self.ref_rls.update(Yb, tau, w)
         root = np.sqrt(np.broadcast_to(np.ones(tau.shape) if w is None else w, tau.shape))
         self.ref_res.add(Yb * root[..., None], tau * root)
-        super()._gather(Yt, w)
+        super()._gather(rows, w)
 
 
 @pytest.mark.parametrize('forgetting, extras', [(1.0, ()), (0.998, ('fv', 'fc'))])

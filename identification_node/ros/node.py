@@ -130,7 +130,8 @@ class IdentificationNode(Node):
         self.get_logger().info(
             f'identifying {base.num_base} base parameters of {self.robot.name} '
             f'(joints {", ".join(self.robot.joint_names)}); smoother delay '
-            f'{self.pipeline.delay:.0f} samples')
+            f'{self.pipeline.delay:.0f} samples; '
+            f'{"compiled" if self.pipeline.compiled else "Python"} per-run step')
 
     # -- parameters -------------------------------------------------------------------------------
     def _declare_estimate_parameters(self, names: list[str]) -> None:
@@ -257,7 +258,7 @@ class IdentificationNode(Node):
             'condition_number': f'{est.condition_number:.6g}',
             'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
             'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
-            'smoother_delay_samples': int(p.delay),
+            'smoother_delay_samples': int(p.delay), 'compiled_step': p.compiled,
             'physically_consistent': not self._consistency,
         }
         values.update({f'rejected.{k}': v for k, v in rejected.items()})

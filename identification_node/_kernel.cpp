@@ -1,0 +1,372 @@
+// The pipeline's per-run numerical step compiled: fixed-lag smoother, regressor, base rows and
+// predicted torque for the samples of one processing run, in one call (see compiled.py).
+//
+// Same definitions as the Python path it stands in for (tests hold the two equal):
+// - smoother: signals.FixedLagSmoother (local polynomial least squares over 2L+1 samples in
+//   centred, scaled time u = (t - t_c) / h, h = half the window's span; value, first and
+//   second derivative at the centre; no window across a stamp gap larger than max_gap),
+// - regressor: robot.RobotModel.regressor, i.e. pinocchio's computeJointTorqueRegressor
+//   (standard parameters [m, mx, my, mz, Ixx, Ixy, Ixz, Iyy, Iyz, Izz] of each body about its
+//   joint frame origin, in that frame) by the Newton-Euler recursion of regressor_batch.py, in
+//   joint frames; then the per-joint extra columns fv, fc, fo, Ia,
+// - rows [Yb | tau] (base columns, then the torque) and the prediction Yb theta.
+// Units SI; joints and parameters in the robot's order (robot.param_names).
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <stdexcept>
+#include <vector>
+
+namespace py = pybind11;
+using Array = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using Index = py::array_t<long long, py::array::c_style | py::array::forcecast>;
+
+namespace {
+
+using V3 = std::array<double, 3>;
+using M3 = std::array<double, 9>;   // row major
+
+V3 add(const V3 &a, const V3 &b) { return {a[0] + b[0], a[1] + b[1], a[2] + b[2]}; }
+V3 scale(const V3 &a, double s) { return {a[0] * s, a[1] * s, a[2] * s}; }
+double dot(const V3 &a, const V3 &b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+V3 cross(const V3 &a, const V3 &b) {
+  return {a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
+}
+V3 mul(const M3 &R, const V3 &v) {
+  return {R[0] * v[0] + R[1] * v[1] + R[2] * v[2], R[3] * v[0] + R[4] * v[1] + R[5] * v[2],
+          R[6] * v[0] + R[7] * v[1] + R[8] * v[2]};
+}
+V3 mul_t(const M3 &R, const V3 &v) {   // R^T v
+  return {R[0] * v[0] + R[3] * v[1] + R[6] * v[2], R[1] * v[0] + R[4] * v[1] + R[7] * v[2],
+          R[2] * v[0] + R[5] * v[1] + R[8] * v[2]};
+}
+M3 mul(const M3 &A, const M3 &B) {
+  M3 C{};
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      C[3 * r + c] = A[3 * r] * B[c] + A[3 * r + 1] * B[3 + c] + A[3 * r + 2] * B[6 + c];
+  return C;
+}
+// Rotation by angle q about the unit axis s (Rodrigues).
+M3 rotation(const V3 &s, double q) {
+  const double c = std::cos(q), sn = std::sin(q), v = 1.0 - c;
+  return {c + s[0] * s[0] * v,        s[0] * s[1] * v - s[2] * sn, s[0] * s[2] * v + s[1] * sn,
+          s[1] * s[0] * v + s[2] * sn, c + s[1] * s[1] * v,        s[1] * s[2] * v - s[0] * sn,
+          s[2] * s[0] * v - s[1] * sn, s[2] * s[1] * v + s[0] * sn, c + s[2] * s[2] * v};
+}
+
+enum Extra { kViscous = 0, kCoulomb = 1, kOffset = 2, kRotor = 3 };
+
+struct Joint {
+  int parent;      // index of the parent joint, -1 for the universe
+  int robot;       // the joint's index in the robot's order (row of Y, block of parameters)
+  bool revolute;   // else prismatic
+  M3 R0;           // placement in the parent joint frame at q = 0
+  V3 p0, s;        // its translation; unit axis in the joint frame
+  std::vector<int> chain;   // ancestors-or-self, root first
+};
+
+class Step {
+ public:
+  // The robot's kinematic tree, joints parents first: parent index (-1: universe), robot
+  // index, placement (4, 4) in the parent joint frame, kind (0 revolute or continuous,
+  // 1 prismatic) and unit axis in the joint frame; gravity (3,) m/s^2 in the universe frame.
+  // extras: codes of the per-joint extra columns; base_columns (b,): the base parameters'
+  // columns of Y; the smoother's half window, polynomial order and max_gap (s).
+  Step(Index parents, Index robot_index, Array placements, Index kinds, Array axes,
+       Array gravity, Index extras, double coulomb_velocity, Index base_columns,
+       int half_window, int order, double max_gap)
+      : coulomb_velocity_(coulomb_velocity), half_window_(half_window), order_(order),
+        max_gap_(max_gap) {
+    auto P = parents.unchecked<1>();
+    auto I = robot_index.unchecked<1>();
+    auto M = placements.unchecked<3>();
+    auto K = kinds.unchecked<1>();
+    auto A = axes.unchecked<2>();
+    n_ = static_cast<int>(P.shape(0));
+    if (I.shape(0) != n_ || M.shape(0) != n_ || K.shape(0) != n_ || A.shape(0) != n_ ||
+        M.shape(1) != 4 || M.shape(2) != 4 || A.shape(1) != 3)
+      throw std::invalid_argument("joint tree arrays disagree in shape");
+    if (half_window < 1 || order < 2 || order > 4 || order > 2 * half_window || !(max_gap > 0))
+      throw std::invalid_argument("bad smoother settings");
+    std::vector<bool> seen(n_, false);
+    for (int j = 0; j < n_; ++j) {
+      Joint joint;
+      joint.parent = static_cast<int>(P(j));
+      joint.robot = static_cast<int>(I(j));
+      if (joint.parent < -1 || joint.parent >= j || joint.robot < 0 || joint.robot >= n_ ||
+          seen[joint.robot])
+        throw std::invalid_argument("parents must come first and robot indices be a permutation");
+      seen[joint.robot] = true;
+      joint.revolute = K(j) == 0;
+      for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) joint.R0[3 * r + c] = M(j, r, c);
+        joint.p0[r] = M(j, r, 3);
+        joint.s[r] = A(j, r);
+      }
+      if (joint.parent >= 0) joint.chain = joints_[joint.parent].chain;
+      joint.chain.push_back(j);
+      joints_.push_back(joint);
+    }
+    auto g = gravity.unchecked<1>();
+    gravity_ = {g(0), g(1), g(2)};
+    auto E = extras.unchecked<1>();
+    for (py::ssize_t k = 0; k < E.shape(0); ++k) extras_.push_back(static_cast<int>(E(k)));
+    num_params_ = n_ * (10 + static_cast<int>(extras_.size()));
+    auto B = base_columns.unchecked<1>();
+    for (py::ssize_t k = 0; k < B.shape(0); ++k) {
+      base_.push_back(static_cast<int>(B(k)));
+      if (base_.back() < 0 || base_.back() >= num_params_)
+        throw std::invalid_argument("base column out of range");
+    }
+    motion_.resize(n_);
+  }
+
+  int dof() const { return n_; }
+  int buffered() const { return static_cast<int>(t_.size()); }
+
+  void reset() {
+    t_.clear();
+    x_.clear();
+  }
+
+  // Push samples t (N,) s, x (N, c) (strictly increasing stamps after the buffered ones,
+  // finite values: the pipeline checked them); c = 2n as [q | tau], or 3n as [q | qd | tau]
+  // when ``measured_velocity``. Returns (t_c (M,), q, qd, qdd, tau (M, n), rows (M, n, b + 1),
+  // predicted (M, n) = Yb theta) for every window completed.
+  py::tuple push(Array t_new, Array x_new, Array theta, bool measured_velocity) {
+    auto tn = t_new.unchecked<1>();
+    auto xn = x_new.unchecked<2>();
+    auto th = theta.unchecked<1>();
+    const int c = static_cast<int>(xn.shape(1));
+    const int b = static_cast<int>(base_.size());
+    if (xn.shape(0) != tn.shape(0) || c != (measured_velocity ? 3 : 2) * n_ ||
+        th.shape(0) != b)
+      throw std::invalid_argument("push: shapes of t, x or theta do not fit the model");
+    if (!t_.empty() && c != channels_)
+      throw std::invalid_argument("push: channel count changed without reset()");
+    channels_ = c;
+    for (py::ssize_t k = 0; k < tn.shape(0); ++k) {
+      t_.push_back(tn(k));
+      for (int j = 0; j < c; ++j) x_.push_back(xn(k, j));
+    }
+    const int N = static_cast<int>(t_.size()), L = half_window_, K = 2 * L + 1;
+    // Windows [s, s + K) within one segment (no gap > max_gap); the buffer keeps the last
+    // segment's newest 2L samples.
+    std::vector<int> segment(N, 0), starts;
+    for (int k = 1; k < N; ++k) segment[k] = segment[k - 1] + (t_[k] - t_[k - 1] > max_gap_);
+    for (int s = 0; s + K <= N; ++s)
+      if (segment[s] == segment[s + K - 1]) starts.push_back(s);
+    int last = N - 1;
+    while (last > 0 && segment[last - 1] == segment[N - 1]) --last;
+    const int M = static_cast<int>(starts.size());
+    py::array_t<double> tc(M), q({M, n_}), qd({M, n_}), qdd({M, n_}), tau({M, n_}),
+        predicted({M, n_}), rows({M, n_, b + 1});
+    {
+      auto Tc = tc.mutable_unchecked<1>();
+      auto Q = q.mutable_unchecked<2>();
+      auto Qd = qd.mutable_unchecked<2>();
+      auto Qdd = qdd.mutable_unchecked<2>();
+      auto U = tau.mutable_unchecked<2>();
+      auto Pr = predicted.mutable_unchecked<2>();
+      auto R = rows.mutable_unchecked<3>();
+      py::gil_scoped_release unlocked;
+      const int p = order_ + 1;
+      std::vector<double> powers(static_cast<size_t>(p) * K), coef(static_cast<size_t>(p) * c);
+      std::vector<double> y(static_cast<size_t>(n_) * num_params_);
+      for (int m = 0; m < M; ++m) {
+        const int s = starts[m];
+        const double centre = t_[s + L], h = 0.5 * (t_[s + K - 1] - t_[s]);
+        for (int k = 0; k < K; ++k) {
+          const double u = (t_[s + k] - centre) / h;
+          powers[k] = 1.0;
+          for (int e = 1; e < p; ++e) powers[e * K + k] = powers[(e - 1) * K + k] * u;
+        }
+        fit(powers.data(), p, K, &x_[static_cast<size_t>(s) * c], c, coef.data());
+        Tc(m) = centre;
+        for (int i = 0; i < n_; ++i) {
+          Q(m, i) = coef[i];
+          if (measured_velocity) {
+            Qd(m, i) = coef[n_ + i];
+            Qdd(m, i) = coef[c + n_ + i] / h;
+          } else {
+            Qd(m, i) = coef[c + i] / h;
+            Qdd(m, i) = 2.0 * coef[2 * c + i] / (h * h);
+          }
+          U(m, i) = coef[c - n_ + i];
+        }
+        regressor(&Q(m, 0), &Qd(m, 0), &Qdd(m, 0), y.data());
+        for (int i = 0; i < n_; ++i) {
+          const double *yi = y.data() + static_cast<size_t>(i) * num_params_;
+          double sum = 0.0;
+          for (int j = 0; j < b; ++j) {
+            R(m, i, j) = yi[base_[j]];
+            sum += yi[base_[j]] * th(j);
+          }
+          R(m, i, b) = U(m, i);
+          Pr(m, i) = sum;
+        }
+      }
+    }
+    const int keep = N ? std::max(last, N - 2 * L) : 0;
+    if (keep > 0) {
+      t_.erase(t_.begin(), t_.begin() + keep);
+      x_.erase(x_.begin(), x_.begin() + static_cast<std::ptrdiff_t>(keep) * c);
+    }
+    return py::make_tuple(tc, q, qd, qdd, tau, rows, predicted);
+  }
+
+  // Y (N, n, p) for samples (N, n) of q, qd, qdd: RobotModel.regressor's definition.
+  py::array_t<double> regress(Array q, Array qd, Array qdd) {
+    auto Q = q.unchecked<2>();
+    auto V = qd.unchecked<2>();
+    auto A = qdd.unchecked<2>();
+    const py::ssize_t N = Q.shape(0);
+    if (Q.shape(1) != n_ || V.shape(0) != N || V.shape(1) != n_ || A.shape(0) != N ||
+        A.shape(1) != n_)
+      throw std::invalid_argument("regress: q, qd, qdd must be (N, n)");
+    py::array_t<double> out({N, static_cast<py::ssize_t>(n_),
+                             static_cast<py::ssize_t>(num_params_)});
+    auto O = out.mutable_unchecked<3>();
+    for (py::ssize_t k = 0; k < N; ++k)
+      regressor(Q.data(k, 0), V.data(k, 0), A.data(k, 0), O.mutable_data(k, 0, 0));
+    return out;
+  }
+
+ private:
+  // Least-squares polynomial coefficients coef (p, c) of the K samples x (K, c) (rows c
+  // apart) with Vandermonde rows powers (p, K): the normal equations, by Cholesky.
+  static void fit(const double *powers, int p, int K, const double *x, int c, double *coef) {
+    double G[25], Lc[25];
+    for (int a = 0; a < p; ++a)
+      for (int e = 0; e <= a; ++e) {
+        double sum = 0.0;
+        for (int k = 0; k < K; ++k) sum += powers[a * K + k] * powers[e * K + k];
+        G[a * p + e] = G[e * p + a] = sum;
+      }
+    for (int a = 0; a < p; ++a)
+      for (int e = 0; e <= a; ++e) {
+        double sum = G[a * p + e];
+        for (int k = 0; k < e; ++k) sum -= Lc[a * p + k] * Lc[e * p + k];
+        Lc[a * p + e] = a == e ? std::sqrt(sum) : sum / Lc[e * p + e];
+      }
+    std::fill(coef, coef + static_cast<size_t>(p) * c, 0.0);
+    for (int k = 0; k < K; ++k)
+      for (int a = 0; a < p; ++a) {
+        const double w = powers[a * K + k];
+        for (int j = 0; j < c; ++j) coef[a * c + j] += w * x[k * c + j];
+      }
+    for (int j = 0; j < c; ++j) {   // L L' coef = rhs
+      for (int a = 0; a < p; ++a) {
+        double sum = coef[a * c + j];
+        for (int k = 0; k < a; ++k) sum -= Lc[a * p + k] * coef[k * c + j];
+        coef[a * c + j] = sum / Lc[a * p + a];
+      }
+      for (int a = p - 1; a >= 0; --a) {
+        double sum = coef[a * c + j];
+        for (int k = a + 1; k < p; ++k) sum -= Lc[k * p + a] * coef[k * c + j];
+        coef[a * c + j] = sum / Lc[a * p + a];
+      }
+    }
+  }
+
+  // Full regressor rows (n, p) of one sample into y; q, qd, qdd (n,) in the robot's order.
+  void regressor(const double *q, const double *qd, const double *qdd, double *y) {
+    std::fill(y, y + static_cast<size_t>(n_) * num_params_, 0.0);
+    std::vector<V3> w(n_), wd(n_), a(n_);
+    for (int j = 0; j < n_; ++j) {
+      const Joint &J = joints_[j];
+      const double x = q[J.robot], xd = qd[J.robot], xdd = qdd[J.robot];
+      const M3 R = J.revolute ? mul(J.R0, rotation(J.s, x)) : J.R0;
+      const V3 pos = J.revolute ? J.p0 : add(J.p0, mul(J.R0, scale(J.s, x)));
+      V3 wp{0, 0, 0}, wdp{0, 0, 0}, ap = scale(gravity_, -1.0);
+      if (J.parent >= 0) {
+        wp = w[J.parent];
+        wdp = wd[J.parent];
+        ap = a[J.parent];
+      }
+      // kinematics of the joint frame, in it: w, wd, origin acceleration minus gravity
+      w[j] = mul_t(R, wp);
+      wd[j] = mul_t(R, wdp);
+      a[j] = mul_t(R, add(ap, add(cross(wdp, pos), cross(wp, cross(wp, pos)))));
+      const V3 rate = scale(J.s, xd);
+      if (J.revolute) {
+        wd[j] = add(wd[j], add(scale(J.s, xdd), cross(w[j], rate)));
+        w[j] = add(w[j], rate);
+      } else {
+        a[j] = add(a[j], add(scale(J.s, xdd), scale(cross(w[j], rate), 2.0)));
+      }
+      // motion subspaces (linear at the origin; angular) of the ancestors-or-self, here
+      std::vector<std::array<V3, 2>> &u = motion_[j];
+      u.resize(J.chain.size());
+      for (size_t k = 0; k + 1 < J.chain.size(); ++k) {
+        const std::array<V3, 2> &up = motion_[J.parent][k];
+        u[k] = {mul_t(R, add(up[0], cross(up[1], pos))), mul_t(R, up[1])};
+      }
+      u.back() = J.revolute ? std::array<V3, 2>{V3{0, 0, 0}, J.s}
+                            : std::array<V3, 2>{J.s, V3{0, 0, 0}};
+      const V3 &W = w[j], &D = wd[j], &Acc = a[j];
+      const double ww = dot(W, W);
+      for (size_t k = 0; k < J.chain.size(); ++k) {
+        const V3 &ul = u[k][0], &ua = u[k][1];
+        double *yk = y + static_cast<size_t>(joints_[J.chain[k]].robot) * num_params_ +
+                     10 * J.robot;
+        yk[0] = dot(ul, Acc);
+        const V3 mc = add(add(cross(ul, D), scale(W, dot(ul, W))),
+                          add(scale(ul, -ww), cross(Acc, ua)));
+        yk[1] = mc[0];
+        yk[2] = mc[1];
+        yk[3] = mc[2];
+        const V3 cw = cross(ua, W);   // B(ua, wd) + B(ua x w, w), B(x, y) = x' I y
+        yk[4] = ua[0] * D[0] + cw[0] * W[0];
+        yk[5] = ua[0] * D[1] + ua[1] * D[0] + cw[0] * W[1] + cw[1] * W[0];
+        yk[6] = ua[0] * D[2] + ua[2] * D[0] + cw[0] * W[2] + cw[2] * W[0];
+        yk[7] = ua[1] * D[1] + cw[1] * W[1];
+        yk[8] = ua[1] * D[2] + ua[2] * D[1] + cw[1] * W[2] + cw[2] * W[1];
+        yk[9] = ua[2] * D[2] + cw[2] * W[2];
+      }
+    }
+    const int ne = static_cast<int>(extras_.size());
+    for (int i = 0; i < n_; ++i) {
+      double *yi = y + static_cast<size_t>(i) * num_params_ + 10 * n_ + i * ne;
+      for (int e = 0; e < ne; ++e) {
+        switch (extras_[e]) {
+          case kViscous: yi[e] = qd[i]; break;
+          case kCoulomb:
+            yi[e] = coulomb_velocity_ > 0 ? std::tanh(qd[i] / coulomb_velocity_)
+                                          : static_cast<double>((qd[i] > 0) - (qd[i] < 0));
+            break;
+          case kRotor: yi[e] = qdd[i]; break;
+          default: yi[e] = 1.0; break;
+        }
+      }
+    }
+  }
+
+  std::vector<Joint> joints_;
+  std::vector<std::vector<std::array<V3, 2>>> motion_;   // per joint, per chain entry
+  V3 gravity_{};
+  int n_ = 0, num_params_ = 0, channels_ = 0;
+  std::vector<int> extras_, base_;
+  double coulomb_velocity_;
+  int half_window_, order_;
+  double max_gap_;
+  std::vector<double> t_, x_;
+};
+
+}  // namespace
+
+PYBIND11_MODULE(_kernel, m) {
+  m.doc() = "The identification pipeline's per-run numerical step, compiled (see compiled.py).";
+  py::class_<Step>(m, "Step")
+      .def(py::init<Index, Index, Array, Index, Array, Array, Index, double, Index, int, int,
+                    double>())
+      .def_property_readonly("dof", &Step::dof)
+      .def_property_readonly("buffered", &Step::buffered)
+      .def("reset", &Step::reset)
+      .def("push", &Step::push)
+      .def("regress", &Step::regress);
+}
