@@ -4,11 +4,12 @@ Runs the identification node in a child process on the 7-DOF arm of bench_node.p
 publisher, ~/predicted_effort subscribed by a listener process so it is published), and
 measures the thread CPU time of the three parts of each processing run: taking and decoding
 the queued messages (``poll``), the pipeline (``pipeline``), and serializing and publishing
-the efforts (``publish``), plus the whole process's CPU. ``passthrough`` runs replace the
-pipeline by one that hands the received samples straight back as output: the same messages
-in and out at the same schedule, none of the identification, i.e. the floor of the ROS side.
-Runs of the two kinds alternate (this machine's CPU readings drift between runs); the medians
-are printed last.
+the efforts (``publish``), plus the whole process's CPU. ``compiled`` runs identify with the
+compiled per-run step (compiled.py), ``python`` runs with the Python path; ``passthrough``
+runs replace the pipeline by one that hands the received samples straight back as output: the
+same messages in and out at the same schedule, none of the identification, i.e. the floor of
+the ROS side. Runs of the kinds alternate (this machine's CPU readings drift between runs);
+the medians are printed last.
 
     .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
 """
@@ -84,7 +85,10 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = node_class(parameter_overrides=[Parameter('robot', value=str(PANDA)),
-                                           Parameter('torque_source', value=['measured'])])
+                                           Parameter('torque_source', value=['measured']),
+                                           Parameter('compiled', value=mode != 'python')])
+    if mode == 'compiled' and not node.pipeline.compiled:
+        sys.exit('the compiled per-run step is not built')
     executor = make_executor()
     executor.add_node(node)
     never = Future()
@@ -144,7 +148,7 @@ def main() -> None:
     args = parser.parse_args()
     print(f'7-DOF arm at {args.rate:.0f} Hz, {args.seconds:.0f} s per run; {os.cpu_count()} '
           'cores; thread CPU per processing run')
-    results: dict[str, list] = {'identifying': [], 'passthrough': []}
+    results: dict[str, list] = {'compiled': [], 'python': [], 'passthrough': []}
     for _ in range(args.repeat):
         for mode, runs in results.items():
             runs.append(measure(mode, args))
