@@ -21,7 +21,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -204,10 +204,15 @@ class IdentificationPipeline:
         self._newest_js = -math.inf
         self._pending_js = _Samples.empty(n)
         self._currents = _Samples.empty(n, with_currents=True)
-        # FixedLagSmoother, or the compiled step (its own smoother) once the stream started
-        self._smoother: FixedLagSmoother | Any | None = None
+        self._restart_smoother()
         for q in (self._js_queue, self._cur_queue):
             q.clear()
+
+    def _restart_smoother(self) -> None:
+        """Forget the smoother's window (a new stream): the Python one is made on first use."""
+        self._smoother: FixedLagSmoother | None = None
+        if self._step is not None:
+            self._step.reset()
 
     @property
     def compiled(self) -> bool:
@@ -360,7 +365,7 @@ class IdentificationPipeline:
         self._reject('stream_restart', sum(len(p.stamps) for p in parts)
                      + len(self._pending_js.stamps))
         parts.clear()
-        self._smoother = None
+        self._restart_smoother()
         self._pending_js = _Samples.empty(self.robot.dof)
         self._currents = self._currents.select(
             self._currents.stamps < self._last_stamp - self.config.restart_jump)
@@ -469,9 +474,6 @@ class IdentificationPipeline:
         measured_velocity = self._velocity_mode == 'measured'
         channels = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
         if self._step is not None:
-            if self._smoother is None:     # (re)started stream: the step's buffer too
-                self._step.reset()
-                self._smoother = self._step
             # stamps increasing and values finite: checked on the way in
             t, q, qd, qdd, tau, rows, predicted = self._step.push(
                 s.stamps, channels, self._rls.theta, measured_velocity)
