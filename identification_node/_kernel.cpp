@@ -123,9 +123,11 @@ class Step {
         throw std::invalid_argument("base column out of range");
     }
     motion_.resize(n_);
+    w_.resize(n_);
+    wd_.resize(n_);
+    a_.resize(n_);
   }
 
-  int dof() const { return n_; }
   int buffered() const { return static_cast<int>(t_.size()); }
 
   void reset() {
@@ -276,7 +278,7 @@ class Step {
   // Full regressor rows (n, p) of one sample into y; q, qd, qdd (n,) in the robot's order.
   void regressor(const double *q, const double *qd, const double *qdd, double *y) {
     std::fill(y, y + static_cast<size_t>(n_) * num_params_, 0.0);
-    std::vector<V3> w(n_), wd(n_), a(n_);
+    std::vector<V3> &w = w_, &wd = wd_, &a = a_;
     for (int j = 0; j < n_; ++j) {
       const Joint &J = joints_[j];
       const double x = q[J.robot], xd = qd[J.robot], xdd = qdd[J.robot];
@@ -347,7 +349,9 @@ class Step {
   }
 
   std::vector<Joint> joints_;
-  std::vector<std::vector<std::array<V3, 2>>> motion_;   // per joint, per chain entry
+  // per-sample work: per joint its motion subspaces (per chain entry), w, wd, a
+  std::vector<std::vector<std::array<V3, 2>>> motion_;
+  std::vector<V3> w_, wd_, a_;
   V3 gravity_{};
   int n_ = 0, num_params_ = 0, channels_ = 0;
   std::vector<int> extras_, base_;
@@ -364,7 +368,6 @@ PYBIND11_MODULE(_kernel, m) {
   py::class_<Step>(m, "Step")
       .def(py::init<Index, Index, Array, Index, Array, Array, Index, double, Index, int, int,
                     double>())
-      .def_property_readonly("dof", &Step::dof)
       .def_property_readonly("buffered", &Step::buffered)
       .def("reset", &Step::reset)
       .def("push", &Step::push)
