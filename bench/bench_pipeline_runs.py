@@ -1,0 +1,116 @@
+"""What one processing run of the pipeline costs, back to back and at the node's schedule.
+
+No ROS: the 7-DOF arm of bench_node.py at 1 kHz, its JointState messages encoded as CDR, and
+runs of 2 or 3 messages (2.5 on average, as the node at 1 kHz with ``process_period`` 2.5 ms)
+decoded (bagio.JointStateDecoder), added and processed by an IdentificationPipeline with the
+compiled or the Python per-run step. Each run's thread CPU time is measured two ways: runs back
+to back (hot caches), and runs ``--period`` apart with the thread asleep in between, as the
+node's processing thread runs them (what the node pays). A fixed reference workload (a Python
+loop and a few small numpy operations) and ``time.sleep`` itself are measured the same two
+ways, so the machine's own wake-up penalty shows beside the pipeline's. Kinds alternate.
+
+    .venv/bin/python bench/bench_pipeline_runs.py [--runs 4000] [--period 0.0025] [--repeat 3]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_node import PANDA  # noqa: E402
+
+
+def reference_work() -> float:
+    """A fixed small workload: a Python loop and numpy operations on a short array."""
+    s = 0.0
+    for i in range(300):
+        s += i
+    a = np.arange(50.0)
+    for _ in range(20):
+        a = a * 1.0001 + 1.0
+    return s + float(a[0])
+
+
+def per_run(work, runs: int, period: float) -> float:
+    """Mean thread CPU (us) of ``work(k)`` for k < runs, ``period`` s of sleep before each."""
+    cpu = 0.0
+    for k in range(runs):
+        if period:
+            time.sleep(period)
+        start = time.thread_time()
+        work(k)
+        cpu += time.thread_time() - start
+    return 1e6 * cpu / runs
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--runs', type=int, default=4000)
+    parser.add_argument('--period', type=float, default=0.0025, help='s between paced runs')
+    parser.add_argument('--repeat', type=int, default=3)
+    args = parser.parse_args()
+
+    from identification_node.bagio import JointStateDecoder, encode_joint_states
+    from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+    from identification_node.robot import load_robot
+    from identification_node.simulation import SensorNoise, simulate_kinematic
+    from identification_node.torque import JointTorqueConfig
+    from identification_node.trajectories import FourierTrajectory
+
+    robot = load_robot(str(PANDA))
+    warm = 400
+    N = int(2.5 * (args.runs + warm)) + 3
+    sim = simulate_kinematic(robot, None, FourierTrajectory.random(robot, seed=1),
+                             np.arange(N) * 1e-3, SensorNoise(torque_std=0.2))
+    messages = encode_joint_states(10**18 + np.arange(N) * 10**6, robot.joint_names,
+                                   sim.q_meas, sim.qd_meas, sim.tau_meas)
+    starts = np.concatenate([[0], np.cumsum(2 + np.arange(args.runs + warm) % 2)])
+    torque = {j: JointTorqueConfig(source='measured') for j in robot.joint_names}
+
+    def pipeline_work(compiled: bool):
+        pipeline = IdentificationPipeline(robot, PipelineConfig(torque=torque,
+                                                                compiled=compiled))
+        if compiled and not pipeline.compiled:
+            sys.exit('the compiled per-run step is not built')
+        decode = JointStateDecoder()
+
+        def work(k: int) -> None:
+            for raw in messages[starts[k]:starts[k + 1]]:
+                pipeline.add_joint_state(decode(raw))
+            pipeline.process()
+        work.pipeline = pipeline
+        return work
+
+    kinds = {'compiled pipeline': lambda: pipeline_work(True),
+             'Python pipeline': lambda: pipeline_work(False),
+             'reference workload': lambda: lambda k: reference_work(),
+             'sleep alone': None}
+    print(f'7-DOF arm, 1 kHz, runs of 2.5 messages; thread CPU per run (us), back to back and '
+          f'{1e3 * args.period:g} ms apart; {args.runs} runs, median of {args.repeat}')
+    results: dict[str, list] = {kind: [] for kind in kinds}
+    for _ in range(args.repeat):
+        for kind, make in kinds.items():
+            if make is None:   # the sleep's own CPU, nothing measured between
+                start = time.thread_time()
+                for _ in range(args.runs):
+                    time.sleep(args.period)
+                results[kind].append((0.0, 1e6 * (time.thread_time() - start) / args.runs))
+                continue
+            figures = []
+            for period in (0.0, args.period):
+                work = make()
+                per_run(work, warm, 0.0)    # the smoother's window filled, caches warm
+                figures.append(per_run(lambda k: work(k + warm), args.runs, period))
+            results[kind].append(tuple(figures))
+    for kind, runs in results.items():
+        hot, paced = np.median(np.array(runs), axis=0)
+        ratio = f'{paced / hot:4.1f}x' if hot else '     '
+        print(f'{kind:19s}: back to back {hot:6.1f} us, paced {paced:6.1f} us  {ratio}')
+
+
+if __name__ == '__main__':
+    main()
