@@ -2,12 +2,13 @@
 
 No ROS: the 7-DOF arm of bench_node.py at 1 kHz, its JointState messages encoded as CDR, and
 runs of 2 or 3 messages (2.5 on average, as the node at 1 kHz with ``process_period`` 2.5 ms)
-decoded (bagio.JointStateDecoder), added and processed by an IdentificationPipeline with the
-compiled or the Python per-run step. Each run's thread CPU time is measured two ways: runs back
-to back (hot caches), and runs ``--period`` apart with the thread asleep in between, as the
-node's processing thread runs them (what the node pays). A fixed reference workload (a Python
-loop and a few small numpy operations) and ``time.sleep`` itself are measured the same two
-ways, so the machine's own wake-up penalty shows beside the pipeline's. Kinds alternate.
+added as the node adds them (``add_joint_state_cdr``) and processed by an
+IdentificationPipeline with the compiled or the Python per-run step. Each run's thread CPU time
+is measured two ways: runs back to back (hot caches), and runs ``--period`` apart with the
+thread asleep in between, as the node's processing thread runs them (what the node pays). A
+fixed reference workload (a Python loop and a few small numpy operations) and ``time.sleep``
+itself are measured the same two ways, so the machine's own wake-up penalty shows beside the
+pipeline's. Kinds alternate.
 
     .venv/bin/python bench/bench_pipeline_runs.py [--runs 4000] [--period 0.0025] [--repeat 3]
 """
@@ -54,7 +55,7 @@ def main() -> None:
     parser.add_argument('--repeat', type=int, default=3)
     args = parser.parse_args()
 
-    from identification_node.bagio import JointStateDecoder, encode_joint_states
+    from identification_node.bagio import encode_joint_states
     from identification_node.pipeline import IdentificationPipeline, PipelineConfig
     from identification_node.robot import load_robot
     from identification_node.simulation import SensorNoise, simulate_kinematic
@@ -76,11 +77,9 @@ def main() -> None:
                                                                 compiled=compiled))
         if compiled and not pipeline.compiled:
             sys.exit('the compiled per-run step is not built')
-        decode = JointStateDecoder()
 
         def work(k: int) -> None:
-            for raw in messages[starts[k]:starts[k + 1]]:
-                pipeline.add_joint_state(decode(raw))
+            pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
             pipeline.process()
         work.pipeline = pipeline
         return work

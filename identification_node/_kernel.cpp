@@ -11,13 +11,25 @@
 //   joint frames; then the per-joint extra columns fv, fc, fo, Ia,
 // - rows [Yb | tau] (base columns, then the torque) and the prediction Yb theta.
 // Units SI; joints and parameters in the robot's order (robot.param_names).
+//
+// push_cdr also takes the run's input as it comes from the middleware: sensor_msgs/JointState
+// CDR messages, decoded (bagio.JointStateDecoder's layout), columns in the robot's order by a
+// layout the pipeline registered, stamps in seconds since its epoch; when every message is
+// clean (decodable, known layout, lengths right, values finite, stamps increasing after the
+// last one) it pushes them, else it changes nothing and the pipeline's Python validation
+// (which counts the rejections) takes the run.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
 
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <map>
 #include <stdexcept>
+#include <string>
 #include <vector>
 
 namespace py = pybind11;
@@ -142,19 +154,161 @@ class Step {
   py::tuple push(Array t_new, Array x_new, Array theta, bool measured_velocity) {
     auto tn = t_new.unchecked<1>();
     auto xn = x_new.unchecked<2>();
-    auto th = theta.unchecked<1>();
     const int c = static_cast<int>(xn.shape(1));
-    const int b = static_cast<int>(base_.size());
-    if (xn.shape(0) != tn.shape(0) || c != (measured_velocity ? 3 : 2) * n_ ||
-        th.shape(0) != b)
-      throw std::invalid_argument("push: shapes of t, x or theta do not fit the model");
-    if (!t_.empty() && c != channels_)
-      throw std::invalid_argument("push: channel count changed without reset()");
-    channels_ = c;
+    if (xn.shape(0) != tn.shape(0) || c != (measured_velocity ? 3 : 2) * n_)
+      throw std::invalid_argument("push: shapes of t or x do not fit the model");
+    check(theta, c);
     for (py::ssize_t k = 0; k < tn.shape(0); ++k) {
       t_.push_back(tn(k));
       for (int j = 0; j < c; ++j) x_.push_back(xn(k, j));
     }
+    return windows(theta, measured_velocity);
+  }
+
+  // The column of each robot joint in messages whose names are ``names`` (message order).
+  void set_layout(const std::vector<std::string> &names, Index columns) {
+    auto C = columns.unchecked<1>();
+    if (C.shape(0) != n_) throw std::invalid_argument("set_layout: one column per joint");
+    std::string blob(4, '\0');
+    const std::uint32_t count = static_cast<std::uint32_t>(names.size());
+    std::memcpy(&blob[0], &count, 4);
+    for (const std::string &name : names) {
+      blob.resize((blob.size() + 3) & ~size_t{3}, '\0');
+      const std::uint32_t length = static_cast<std::uint32_t>(name.size() + 1);
+      blob.append(reinterpret_cast<const char *>(&length), 4);
+      blob.append(name);
+      blob.push_back('\0');
+    }
+    std::vector<int> &index = layouts_[blob];
+    index.assign(n_, 0);
+    for (int i = 0; i < n_; ++i) {
+      if (C(i) < 0 || C(i) >= static_cast<long long>(names.size()))
+        throw std::invalid_argument("set_layout: column out of range");
+      index[i] = static_cast<int>(C(i));
+    }
+    if (layouts_.size() > 64) layouts_ = {{blob, index}};
+  }
+
+  // The samples of JointState CDR messages, pushed as ``push`` does (x = [q | tau] or
+  // [q | qd | tau], torque = effort), when all are clean (see the top); stamps in seconds
+  // since epoch_ns. Returns push's tuple and the newest stamp, or None with nothing changed.
+  py::object push_cdr(const py::list &messages, long long epoch_ns, double last_stamp,
+                      Array theta, bool measured_velocity) {
+    const int c = (measured_velocity ? 3 : 2) * n_;
+    check(theta, c);
+    const std::uint16_t one = 1;
+    if (*reinterpret_cast<const unsigned char *>(&one) != 1) return py::none();  // big-endian
+    const size_t count = messages.size(), old_t = t_.size(), old_x = x_.size();
+    auto undo = [&]() {
+      t_.resize(old_t);
+      x_.resize(old_x);
+      return py::none();
+    };
+    double last = last_stamp;
+    for (size_t k = 0; k < count; ++k) {
+      PyObject *item = messages[k].ptr();
+      if (!PyBytes_Check(item)) return undo();
+      Message msg;
+      if (!parse(PyBytes_AS_STRING(item), static_cast<size_t>(PyBytes_GET_SIZE(item)), &msg))
+        return undo();
+      auto layout = layouts_.find(msg.names);
+      if (layout == layouts_.end()) return undo();
+      const size_t width = msg.name_count;
+      if (msg.counts[0] != width || msg.counts[2] != width ||
+          (msg.counts[1] != 0 && msg.counts[1] != width) ||
+          (measured_velocity && msg.counts[1] != width))
+        return undo();
+      const double t = static_cast<double>(msg.stamp - epoch_ns) * 1e-9;
+      if (!(t > last)) return undo();
+      last = t;
+      t_.push_back(t);
+      const std::vector<int> &index = layout->second;
+      for (int f = 0; f < 3; ++f) {
+        if (f == 1 && !measured_velocity) continue;
+        const char *values = msg.data + msg.offsets[f];
+        for (int i = 0; i < n_; ++i) {
+          double v;
+          std::memcpy(&v, values + 8 * index[i], 8);
+          if (!std::isfinite(v)) return undo();
+          x_.push_back(v);
+        }
+      }
+    }
+    py::tuple out = windows(theta, measured_velocity);
+    return py::make_tuple(out[0], out[1], out[2], out[3], out[4], out[5], out[6], last);
+  }
+
+ private:
+  struct Message {
+    const char *data = nullptr;
+    std::int64_t stamp = 0;
+    std::string names;   // the name sequence's CDR bytes
+    size_t name_count = 0;
+    std::array<size_t, 3> offsets{}, counts{};
+  };
+
+  static std::uint32_t u32(const char *p) {
+    std::uint32_t v;
+    std::memcpy(&v, p, 4);
+    return v;
+  }
+
+  // Little-endian JointState CDR (bagio.JointStateDecoder._fast's offsets: alignment relative
+  // to the body at offset 4; a float64 sequence is 8-aligned only when not empty).
+  static bool parse(const char *d, size_t n, Message *msg) {
+    if (n < 16 || d[0] != 0 || d[1] != 1) return false;
+    std::int32_t sec;
+    std::memcpy(&sec, d + 4, 4);
+    msg->stamp = static_cast<std::int64_t>(sec) * 1000000000LL + u32(d + 8);
+    const size_t flen = u32(d + 12);
+    size_t p = 16 + flen;
+    if (flen == 0 || p > n || d[p - 1]) return false;
+    p = (p + 3) & ~size_t{3};
+    const size_t start = p;
+    if (p + 4 > n) return false;
+    const size_t names = u32(d + p);
+    p += 4;
+    if (5 * names > n - p) return false;
+    for (size_t k = 0; k < names; ++k) {
+      p = (p + 3) & ~size_t{3};
+      if (p + 4 > n) return false;
+      const size_t length = u32(d + p);
+      const size_t end = p + 4 + length;
+      if (length == 0 || end > n || d[end - 1]) return false;
+      p = end;
+    }
+    msg->names.assign(d + start, p - start);
+    msg->name_count = names;
+    for (int f = 0; f < 3; ++f) {
+      p = (p + 3) & ~size_t{3};
+      if (p + 4 > n) return false;
+      const size_t c = u32(d + p);
+      p += 4;
+      if (c) {
+        p = ((p + 3) & ~size_t{7}) + 4;
+        if (p > n || c > (n - p) / 8) return false;
+      }
+      msg->offsets[f] = p;
+      msg->counts[f] = c;
+      p += 8 * c;
+    }
+    msg->data = d;
+    return true;
+  }
+
+  void check(const Array &theta, int c) {
+    if (theta.ndim() != 1 || theta.shape(0) != static_cast<py::ssize_t>(base_.size()))
+      throw std::invalid_argument("push: theta must have one value per base parameter");
+    if (!t_.empty() && c != channels_)
+      throw std::invalid_argument("push: channel count changed without reset()");
+    if (t_.empty()) channels_ = c;
+  }
+
+  // Smooth and regress every window the buffer completes (push's outputs).
+  py::tuple windows(const Array &theta, bool measured_velocity) {
+    auto th = theta.unchecked<1>();
+    const int c = channels_;
+    const int b = static_cast<int>(base_.size());
     const int N = static_cast<int>(t_.size()), L = half_window_, K = 2 * L + 1;
     // Windows [s, s + K) within one segment (no gap > max_gap); the buffer keeps the last
     // segment's newest 2L samples.
@@ -221,6 +375,7 @@ class Step {
     return py::make_tuple(tc, q, qd, qdd, tau, rows, predicted);
   }
 
+ public:
   // Y (N, n, p) for samples (N, n) of q, qd, qdd: RobotModel.regressor's definition.
   py::array_t<double> regress(Array q, Array qd, Array qdd) {
     auto Q = q.unchecked<2>();
@@ -359,6 +514,7 @@ class Step {
   int half_window_, order_;
   double max_gap_;
   std::vector<double> t_, x_;
+  std::map<std::string, std::vector<int>> layouts_;   // names CDR bytes -> columns
 };
 
 }  // namespace
@@ -371,5 +527,7 @@ PYBIND11_MODULE(_kernel, m) {
       .def_property_readonly("buffered", &Step::buffered)
       .def("reset", &Step::reset)
       .def("push", &Step::push)
+      .def("set_layout", &Step::set_layout)
+      .def("push_cdr", &Step::push_cdr)
       .def("regress", &Step::regress);
 }

@@ -2,7 +2,8 @@
 
 One plain class, fed by the ROS node (its processing thread copies the queued messages in) and
 by bag replay alike. ``add_joint_state`` / ``add_currents`` queue records (``add_joint_states`` a
-block of joint states of one layout, as bag replay reads them); ``process`` does the
+block of joint states of one layout, as bag replay reads them; ``add_joint_state_cdr`` the
+JointState messages of a poll as CDR bytes, as the node takes them); ``process`` does the
 numerical work for everything queued, in batches:
 
 1. validation (runs of messages sharing names and layout stacked into blocks checked at once;
@@ -15,6 +16,11 @@ numerical work for everything queued, in batches:
 5. the fixed-lag smoother on positions (and measured velocities) and on torque alike, giving
    q, qd, qdd and tau for the window centre, ``delay`` seconds behind the newest sample,
 6. regressor, base regressor, recursive least squares (unless frozen), predicted torque.
+
+With the compiled step, a run of CDR messages with every joint's torque measured takes one
+compiled call for 1-6 (``compiled.make_step``'s ``push_cdr``) when all of them are clean; any
+message that is not (or currents) sends the run through the Python validation, which counts
+the rejections. Both give the same results (tested).
 """
 from __future__ import annotations
 
@@ -26,6 +32,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 
 from . import compiled
+from .bagio import JointStateDecoder
 from .errors import IdentificationError
 from .estimators import RecursiveLeastSquares, ResidualStatistics, _information
 from .identifiability import BaseParameters
@@ -157,6 +164,11 @@ class IdentificationPipeline:
         self._step = (compiled.make_step(robot, self.base.base_index, self.config.half_window,
                                          self.config.smoother_order, self.config.max_gap)
                       if self.config.compiled else None)
+        # the compiled call takes whole runs of CDR messages when torque is all measured
+        self._cdr_step = (self._step if len(self._measured_columns) == robot.dof
+                          and not self.converter.needs_currents else None)
+        self.compiled_runs = 0   # processing runs taken by that call
+        self._decoder = JointStateDecoder()
         self.frozen = False
         self.reset()
 
@@ -175,6 +187,11 @@ class IdentificationPipeline:
                 f'joint state block: stamps {M} and arrays '
                 f'{[np.shape(a) for a in arrays]}; expected (M,) and (M, k)')
         self._js_queue.append(block._replace(stamp_ns=np.asarray(block.stamp_ns)))
+
+    def add_joint_state_cdr(self, messages: list[bytes]) -> None:
+        """sensor_msgs/JointState messages as CDR bytes, in arrival order; decoded when
+        processed (one that cannot be decoded is counted 'malformed')."""
+        self._js_queue.append(messages)
 
     def add_currents(self, record: JointStateRecord) -> None:
         self._cur_queue.append(record)
@@ -230,6 +247,10 @@ class IdentificationPipeline:
         currents (end of a bag) instead of holding them for ``hold_time``."""
         n = self.robot.dof
         js = self._take(self._js_queue)
+        out = self._process_cdr(js) if self._cdr_step is not None else None
+        if out is not None:
+            return out
+        js = self._decoded(js)
         cur = self._take(self._cur_queue)
         if cur:
             self._currents = self._currents.concat(self._convert_currents(cur))
@@ -247,6 +268,40 @@ class IdentificationPipeline:
         out = []
         while queue:
             out.append(queue.popleft())
+        return out
+
+    def _process_cdr(self, js: list) -> PipelineOutput | None:
+        """The run in one compiled call when it is CDR messages only, all clean, and the stream
+        is under way (epoch and velocity mode known, nothing pending); else None."""
+        if (not js or self._epoch_ns is None or self._velocity_mode is None or self._cur_queue
+                or len(self._pending_js.stamps) or not all(type(m) is list for m in js)):
+            return None
+        messages = js[0] if len(js) == 1 else [raw for m in js for raw in m]
+        result = self._cdr_step.push_cdr(messages, self._epoch_ns, self._last_stamp,
+                                         self._rls.theta, self._velocity_mode == 'measured')
+        if result is None:
+            return None
+        *outputs, last = result
+        self.received += len(messages)
+        self._last_stamp = self._newest_js = last
+        self.compiled_runs += 1
+        return self._finish(*outputs)
+
+    def _decoded(self, js: list) -> list:
+        """The queued joint states with CDR messages decoded into records (the ones that
+        cannot be decoded counted as received and 'malformed')."""
+        if all(type(m) is not list for m in js):
+            return js
+        out = []
+        for item in js:
+            if type(item) is not list:
+                out.append(item)
+                continue
+            for raw in item:
+                try:
+                    out.append(self._decoder(raw))
+                except IdentificationError:
+                    self.add_malformed()
         return out
 
     def _seconds(self, stamps_ns: list[int]) -> np.ndarray:
@@ -276,6 +331,8 @@ class IdentificationPipeline:
                 idx = 'missing_joints'
             else:
                 idx = np.array([pos[j] for j in self.robot.joint_names])
+                if self._cdr_step is not None:
+                    self._cdr_step.set_layout(list(names), idx)
                 if len(names) == len(idx) and (idx == np.arange(len(idx))).all():
                     idx = slice(None)
             if len(self._index_cache) > 256:
@@ -470,7 +527,6 @@ class IdentificationPipeline:
         return s.select(ok)
 
     def _estimate(self, s: _Samples) -> PipelineOutput:
-        n = self.robot.dof
         measured_velocity = self._velocity_mode == 'measured'
         channels = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
         if self._step is not None:
@@ -480,6 +536,13 @@ class IdentificationPipeline:
         else:
             t, q, qd, qdd, tau, rows, predicted = self._smooth_and_regress(
                 s.stamps, channels, measured_velocity)
+        return self._finish(t, q, qd, qdd, tau, rows, predicted)
+
+    def _finish(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+                tau: np.ndarray, rows: np.ndarray, predicted: np.ndarray) -> PipelineOutput:
+        """The smoother's outputs of a run: rows gathered for the RLS (unless frozen), the
+        output stamped in integer ns."""
+        n = self.robot.dof
         if len(t) == 0:
             return PipelineOutput.empty(n)
         if not self.frozen:

@@ -1,12 +1,13 @@
 """The compiled per-run step against the Python path it stands in for (smoother, pinocchio's
 regressor, base rows, RLS), on the same streams."""
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from identification_node import compiled
+from identification_node import bagio, compiled
 from identification_node.identifiability import BaseParameters
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.records import JointStateRecord
@@ -128,5 +129,103 @@ def test_pipeline_compiled_equals_python():
     assert pipes[0].restarts == pipes[1].restarts == 1
     assert pipes[0].excluded_rows == pipes[1].excluded_rows > 0
     assert a.num_samples == b.num_samples
+    close(a.values, b.values, 1e-8)
+    close(a.stddev, b.stddev, 1e-7)
+
+
+def _cdr_stream(robot, n_samples: int, seed: int):
+    """CDR JointState messages of a simulated stream with every kind of bad message the
+    pipeline must reject (each counted as the Python validation counts it) and layouts the
+    compiled call must map (reordered names, an extra joint, frame ids shifting alignment)."""
+    traj = FourierTrajectory.random(robot, harmonics=4, period=5.0, seed=seed)
+    t = np.arange(n_samples) / 1000.0
+    sim = simulate_kinematic(robot, None, traj, t, SensorNoise(torque_std=0.3), seed=seed)
+    stamps = 10**18 + np.round(t * 1e9).astype(np.int64)
+    stamps[3000:] += 200_000_000            # a gap
+    stamps[4500:] -= 3 * 10**9              # a restart
+    names = list(robot.joint_names)
+    rng = np.random.default_rng(seed)
+    messages = []
+    for k, stamp in enumerate(stamps):
+        q, qd, tau = sim.q_meas[k], sim.qd_meas[k], sim.tau_meas[k]
+        order, frame = list(range(robot.dof)), ''
+        extra = False
+        if k % 997 == 5:
+            order = order[::-1]                         # reordered names
+        if k % 1013 == 7:
+            extra = True                                # an extra joint, NaN in it
+        if k % 11 == 3:
+            frame = 'f' * int(rng.integers(1, 8))       # alignment shifts
+        row_names = [names[i] for i in order] + (['gripper'] if extra else [])
+        arrays = [np.append(a[order], np.nan) if extra else a[order] for a in (q, qd, tau)]
+        raw = bagio.encode_joint_state(0.0, row_names, *arrays, frame_id=frame)
+        messages.append(raw[:4] + struct.pack('<iI', *divmod(int(stamp), 10**9)) + raw[12:])
+    bad = {
+        101: bagio.encode_joint_states([stamps[101]], names, np.full((1, robot.dof), np.nan),
+                                       sim.qd_meas[101:102], sim.tau_meas[101:102])[0],
+        202: messages[201],                                             # repeated stamp
+        303: messages[290],                                             # out of order
+        404: b'\x00\x01garbage',
+        505: bagio.encode_joint_states([stamps[505]], names, sim.q_meas[505:506], None,
+                                       sim.tau_meas[505:506])[0],       # no velocity
+        606: bagio.encode_joint_states([stamps[606]], names, sim.q_meas[606:607],
+                                       sim.qd_meas[606:607], None)[0],  # no effort
+        707: bagio.encode_joint_states([stamps[707]], names[:-1], sim.q_meas[707:708, :-1],
+                                       sim.qd_meas[707:708, :-1],
+                                       sim.tau_meas[707:708, :-1])[0],  # a joint missing
+    }
+    msg = bagio.make_joint_state(0.0, names, sim.q_meas[808], sim.qd_meas[808],
+                                 sim.tau_meas[808])
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamps[808]), 10**9)
+    bad[808] = bytes(bagio.jazzy_typestore().serialize_cdr(msg, bagio.JOINT_STATE,
+                                                           little_endian=False))  # big-endian
+    for k, raw in bad.items():
+        messages[k] = raw
+    return messages
+
+
+def test_pipeline_on_cdr_messages_compiled_equals_python():
+    """The node's input (CDR messages per run) through the compiled call and through the
+    Python decoding and validation: same outputs, counters (every rejection reason the stream
+    holds) and estimate; the compiled call takes the clean runs."""
+    robot = load_robot('mit_dd_arm', extras=('fv', 'fc'))
+    messages = _cdr_stream(robot, 6000, seed=2)
+    pipes = [IdentificationPipeline(robot, PipelineConfig(compiled=flag, forgetting=0.999))
+             for flag in (True, False)]
+    reference = IdentificationPipeline(robot, PipelineConfig(compiled=False, forgetting=0.999))
+    outs, runs = [[], [], []], 0
+    rng = np.random.default_rng(1)
+    k = 0
+    while k < len(messages):
+        m = int(rng.integers(1, 6)) if k < 5000 else 300
+        for p, out in zip(pipes + [reference], outs):
+            p.frozen = 2000 <= k < 2500
+            if p is reference:   # decoded beforehand, record by record
+                for raw in messages[k:k + m]:
+                    try:
+                        p.add_joint_state(bagio.decode_joint_state(raw))
+                    except Exception:   # noqa: BLE001 (the garbage message)
+                        p.add_malformed()
+            else:
+                p.add_joint_state_cdr(messages[k:k + m])
+            out.append(p.process())
+        k += m
+        runs += 1
+    fields = ('stamps_ns', 'q', 'qd', 'qdd', 'measured', 'predicted')
+    got, python, ref = ({f: np.concatenate([getattr(o, f) for o in out]) for f in fields}
+                        for out in outs)
+    for other in (python, ref):
+        assert np.array_equal(got['stamps_ns'], other['stamps_ns'])
+        for f in fields[1:]:
+            close(got[f], other[f], 1e-9)
+    expected = {'non_finite': 1, 'repeated_stamp': 1, 'out_of_order': 1, 'malformed': 1,
+                'missing_velocity': 1, 'missing_effort': 1, 'missing_joints': 1}
+    for p in pipes + [reference]:
+        assert {r: c for r, c in p.rejected.items() if c and r != 'stream_restart'} == expected
+        assert p.restarts == 1 and p.received == len(messages)
+    assert pipes[0].excluded_rows == pipes[1].excluded_rows > 0
+    assert pipes[1].compiled_runs == 0 and pipes[0].compiled_runs > 0.9 * runs
+    a, b = pipes[0].estimate(), pipes[1].estimate()
+    assert a.num_samples == b.num_samples > 5000
     close(a.values, b.values, 1e-8)
     close(a.stddev, b.stddev, 1e-7)

@@ -253,9 +253,9 @@ def test_polled_input_takes_every_message_in_order_and_only_when_polled(ros):
     node = Node('polled', context=ros.context)
     got, polling = [], [False]
 
-    def handle(raw: bytes) -> None:
+    def handle(raws: list[bytes]) -> None:
         assert polling[0], 'dispatched by the executor'
-        got.append(raw)
+        got.extend(raws)
     source = PolledSubscription(node, JointState, '/polled/joint_states', handle, RELIABLE)
     assert source.polled        # this rclpy keeps the node's subscriptions in a list
     ros.add(node)               # spun by an executor, as the identification node is

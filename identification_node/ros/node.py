@@ -95,9 +95,10 @@ class IdentificationNode(Node):
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
 
         overrides = QoSOverridingOptions.with_default_policies()
-        self._decode_js, self._decode_cur = JointStateDecoder(), JointStateDecoder()
-        self._inputs = [PolledSubscription(self, JointState, 'joint_states', self._on_joint_state,
-                                           INPUT_QOS, qos_overriding_options=overrides)]
+        self._decode_cur = JointStateDecoder()
+        self._inputs = [PolledSubscription(self, JointState, 'joint_states',
+                                           self.pipeline.add_joint_state_cdr, INPUT_QOS,
+                                           qos_overriding_options=overrides)]
         if self.pipeline.converter.needs_currents:
             self._inputs.append(PolledSubscription(
                 self, JointState, 'motor_currents', self._on_currents, INPUT_QOS,
@@ -154,20 +155,16 @@ class IdentificationNode(Node):
         return SetParametersResult(successful=True)
 
     # -- input ------------------------------------------------------------------------------------
-    # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes,
-    # decoded by the bag reader's JointState decoder (a few microseconds), not turned into
-    # Python message objects by rclpy first.
-    def _on_joint_state(self, raw: bytes) -> None:
-        try:
-            self.pipeline.add_joint_state(self._decode_js(raw))
-        except IdentificationError:
-            self.pipeline.add_malformed()
-
-    def _on_currents(self, raw: bytes) -> None:
-        try:
-            self.pipeline.add_currents(self._decode_cur(raw))
-        except IdentificationError:
-            self.pipeline.add_malformed()
+    # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes:
+    # joint states go to the pipeline as they are (it decodes them, compiled when it can),
+    # currents are decoded by the bag reader's JointState decoder. rclpy never turns them
+    # into Python message objects.
+    def _on_currents(self, raws: list[bytes]) -> None:
+        for raw in raws:
+            try:
+                self.pipeline.add_currents(self._decode_cur(raw))
+            except IdentificationError:
+                self.pipeline.add_malformed()
 
     # -- processing and output --------------------------------------------------------------------
     def _process(self) -> None:
