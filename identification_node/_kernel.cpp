@@ -17,7 +17,8 @@
 // layout the pipeline registered, stamps in seconds since its epoch; when every message is
 // clean (decodable, known layout, lengths right, values finite, stamps increasing after the
 // last one) it pushes them, else it changes nothing and the pipeline's Python validation
-// (which counts the rejections) takes the run.
+// (which counts the rejections) takes the run. And the output side: fill_joint_states
+// serializes JointState messages as bagio.encode_joint_states does (its compiled path).
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -517,6 +518,53 @@ class Step {
   std::map<std::string, std::vector<int>> layouts_;   // names CDR bytes -> columns
 };
 
+// JointState CDR messages filled in from a template (bagio.encode_joint_states' layout: the
+// CDR of a message with the same names and array lengths, zero stamp and values): one message
+// per stamp (N,) int64 ns, with the rows of position, velocity, effort (N, k) or None at the
+// byte offsets (3,) of the template's arrays.
+py::list fill_joint_states(py::array_t<std::uint8_t, py::array::c_style> templ, Index offsets,
+                           Index stamps, py::object position, py::object velocity,
+                           py::object effort) {
+  auto S = stamps.unchecked<1>();
+  auto O = offsets.unchecked<1>();
+  const py::ssize_t N = S.shape(0), size = templ.size();
+  if (O.shape(0) != 3) throw std::invalid_argument("fill_joint_states: three offsets");
+  std::array<Array, 3> arrays;
+  std::array<py::ssize_t, 3> widths{0, 0, 0};
+  const py::object fields[3] = {position, velocity, effort};
+  for (int f = 0; f < 3; ++f) {
+    if (fields[f].is_none()) continue;
+    arrays[f] = Array::ensure(fields[f]);
+    if (!arrays[f] || arrays[f].ndim() != 2 || arrays[f].shape(0) != N)
+      throw std::invalid_argument("fill_joint_states: arrays must be (N, k)");
+    widths[f] = arrays[f].shape(1);
+    if (O(f) < 0 || O(f) + 8 * widths[f] > size)
+      throw std::invalid_argument("fill_joint_states: an array does not fit the template");
+  }
+  if (size < 12) throw std::invalid_argument("fill_joint_states: template too short");
+  py::list out(N);
+  for (py::ssize_t m = 0; m < N; ++m) {
+    PyObject *bytes = PyBytes_FromStringAndSize(nullptr, size);
+    if (bytes == nullptr) throw py::error_already_set();
+    char *d = PyBytes_AS_STRING(bytes);
+    std::memcpy(d, templ.data(), size);
+    long long sec = S(m) / 1000000000LL, nsec = S(m) % 1000000000LL;
+    if (nsec < 0) {   // floor division, as np.divmod
+      sec -= 1;
+      nsec += 1000000000LL;
+    }
+    const std::int32_t sec32 = static_cast<std::int32_t>(static_cast<std::uint32_t>(sec));
+    const std::uint32_t nsec32 = static_cast<std::uint32_t>(nsec);
+    std::memcpy(d + 4, &sec32, 4);
+    std::memcpy(d + 8, &nsec32, 4);
+    for (int f = 0; f < 3; ++f)
+      if (widths[f])
+        std::memcpy(d + O(f), arrays[f].data(m, 0), 8 * widths[f]);
+    out[m] = py::reinterpret_steal<py::object>(bytes);
+  }
+  return out;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_kernel, m) {
@@ -530,4 +578,5 @@ PYBIND11_MODULE(_kernel, m) {
       .def("set_layout", &Step::set_layout)
       .def("push_cdr", &Step::push_cdr)
       .def("regress", &Step::regress);
+  m.def("fill_joint_states", &fill_joint_states);
 }

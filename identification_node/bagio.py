@@ -36,6 +36,11 @@ from rosbags.typesys.store import Typestore
 from identification_node.errors import IdentificationError
 from identification_node.records import JointStateRecord
 
+try:   # the compiled JointState filler (setup.py builds it when it can; else numpy below)
+    from identification_node import _kernel
+except ImportError:
+    _kernel = None
+
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 STRING = 'std_msgs/msg/String'
 CLOCK = 'rosgraph_msgs/msg/Clock'
@@ -807,21 +812,22 @@ def encode_joint_state(stamp: float, names: Sequence[str], position: Iterable[fl
 
 @functools.lru_cache(maxsize=64)
 def _joint_state_layout(names: tuple[str, ...], counts: tuple[int, int, int]
-                        ) -> tuple[np.ndarray, list]:
-    """CDR of a JointState with zero stamp and arrays of ``counts`` zeros, as uint8, and the
-    (byte offset, count) of its three arrays."""
+                        ) -> tuple[np.ndarray, list, np.ndarray]:
+    """CDR of a JointState with zero stamp and arrays of ``counts`` zeros, as uint8, the
+    (byte offset, count) of its three arrays, and the offsets alone (int64)."""
     template = encode_joint_state(0.0, names, *(np.zeros(c) for c in counts))
     spans: list = []
     JointStateDecoder()._fast(template, spans)
-    return np.frombuffer(template, np.uint8), spans
+    return np.frombuffer(template, np.uint8), spans, np.array([o for o, _ in spans])
 
 
 def encode_joint_states(stamps_ns: np.ndarray, names: Sequence[str],
                         position: np.ndarray | None = None, velocity: np.ndarray | None = None,
                         effort: np.ndarray | None = None) -> list[bytes]:
     """encode_joint_state for N messages at once: stamps_ns (N,) integer ns, arrays (N, n) or
-    None (an empty field). All messages share one layout, so they are filled in as rows of
-    one byte array; the same bytes as encoding them one by one."""
+    None (an empty field). All messages share one layout, so they are filled in from one
+    template (by the compiled filler when built, else as rows of one numpy byte array); the
+    same bytes as encoding them one by one."""
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     N = len(stamps)
     arrays = [None if a is None else np.ascontiguousarray(a, dtype=_F8)
@@ -829,8 +835,10 @@ def encode_joint_states(stamps_ns: np.ndarray, names: Sequence[str],
     if any(a is not None and (a.ndim != 2 or len(a) != N) for a in arrays):
         raise IdentificationError(f'arrays {[None if a is None else a.shape for a in arrays]} '
                                   f'do not have one row for each of the {N} stamps')
-    template, spans = _joint_state_layout(
+    template, spans, offsets = _joint_state_layout(
         tuple(names), tuple(0 if a is None else a.shape[1] for a in arrays))
+    if _kernel is not None:
+        return _kernel.fill_joint_states(template, offsets, stamps, *arrays)
     rows = np.empty((N, len(template)), dtype=np.uint8)
     rows[:] = template
     head = rows[:, 4:12].view('<u4')

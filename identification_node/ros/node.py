@@ -236,6 +236,7 @@ class IdentificationNode(Node):
         with self._lock:
             est = p.estimate()
             received, used, restarts, rejected = p.received, p.used, p.restarts, dict(p.rejected)
+            compiled_runs = p.compiled_runs
         now = self.get_clock().now()
         dt = (now - self._last_diag_time).nanoseconds * 1e-9
         rate = (received - self._received_at_last_diag) / dt if dt > 0 else 0.0
@@ -256,6 +257,7 @@ class IdentificationNode(Node):
             'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
             'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
             'smoother_delay_samples': int(p.delay), 'compiled_step': p.compiled,
+            'compiled_runs': compiled_runs,
             'physically_consistent': not self._consistency,
         }
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
