@@ -18,8 +18,10 @@ and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import threading
+import time
 import traceback
 from typing import Any
 
@@ -52,6 +54,9 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 ESTIMATE_PREFIX, STDDEV_PREFIX = 'estimate.', 'estimate_stddev.'
+# Whether the effort topics have subscribers is asked this often (s), not every run (it is a
+# middleware query): a new subscriber may miss the efforts of its first ~0.1 s.
+LISTENER_CHECK_PERIOD = 0.1
 
 
 def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str, Any]:
@@ -116,6 +121,8 @@ class IdentificationNode(Node):
         s = self.settings
         self._effort_rate = s['publish.effort_rate']
         self._last_effort_slot = -1
+        self._effort_listened = (False, False)   # (predicted, measured), checked at most
+        self._listeners_checked = -math.inf      # every LISTENER_CHECK_PERIOD s
         self._consistency: list[str] = []
         self._urdf_samples = 0
         self._received_at_last_diag = 0
@@ -183,9 +190,14 @@ class IdentificationNode(Node):
     def _publish_efforts(self, out: PipelineOutput) -> None:
         if len(out.stamps_ns) == 0:
             return
-        outputs = [(pub, effort) for pub, effort in ((self._pub_predicted, out.predicted),
-                                                     (self._pub_measured, out.measured))
-                   if pub.get_subscription_count()]   # none serialized for nobody
+        now = time.monotonic()
+        if now - self._listeners_checked >= LISTENER_CHECK_PERIOD:
+            self._listeners_checked = now
+            self._effort_listened = (self._pub_predicted.get_subscription_count() > 0,
+                                     self._pub_measured.get_subscription_count() > 0)
+        outputs = [(pub, effort) for pub, effort, listened in zip(
+            (self._pub_predicted, self._pub_measured), (out.predicted, out.measured),
+            self._effort_listened) if listened]   # none serialized for nobody
         if not outputs:
             return
         keep = slice(None)
