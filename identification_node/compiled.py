@@ -2,11 +2,15 @@
 
 ``_kernel.cpp`` (C++17, built by setup.py when pybind11 is there; no other dependency) does the
 fixed-lag smoother, regressor, base rows and predicted torque of one processing run in one
-call. The live node runs the pipeline every few milliseconds on a few samples, where
-the Python path's cost is the number of Python and numpy calls, not the arithmetic; compiled,
-the step takes a fraction of it. The Python path (signals.FixedLagSmoother,
-RobotModel.regressor) stays the reference: both give the same results to rounding (tested),
-and the pipeline falls back to it when the extension is missing.
+call, and with measured torque also the decoding and validation of the run's JointState
+messages before them (``push_cdr``). The live node runs the pipeline every few milliseconds
+on a few samples, woken from sleep with cold caches, where the Python path's cost is the
+amount of Python and numpy code it goes through, not the arithmetic; compiled, the run takes
+a fraction of it (bench/bench_pipeline_runs.py). The Python path (bagio.JointStateDecoder,
+the pipeline's validation, signals.FixedLagSmoother, RobotModel.regressor) stays the
+reference: both give the same results to rounding (tested), and the pipeline falls back to
+it when the extension is missing. bagio.encode_joint_states uses the extension's
+``fill_joint_states`` the same way.
 """
 from __future__ import annotations
 
@@ -31,7 +35,13 @@ def make_step(robot: RobotModel, base_columns: np.ndarray, half_window: int, ord
     ``push(t (N,), x (N, c), theta (b,), measured_velocity)`` with x = [q | tau] (c = 2n) or
     [q | qd | tau] (3n) returns (t_c, q, qd, qdd, tau, rows [Yb | tau] (M, n, b + 1),
     predicted = Yb theta) for the M windows completed; ``reset()`` forgets the buffer;
-    ``regress(q, qd, qdd)`` gives Y (N, n, p) as ``robot.regressor`` does."""
+    ``regress(q, qd, qdd)`` gives Y (N, n, p) as ``robot.regressor`` does.
+    ``set_layout(names, columns)`` registers the message columns (n,) of the robot's joints in
+    JointState messages with ``names``; ``push_cdr(messages, epoch_ns, last_stamp, theta,
+    measured_velocity)`` pushes the samples of a list of JointState CDR messages (stamps in s
+    since epoch_ns, torque = effort) and returns push's tuple and the newest stamp, or None,
+    changing nothing, unless every message is clean: little-endian CDR of a registered layout,
+    lengths right, values finite, stamps increasing after ``last_stamp``."""
     if _kernel is None:
         return None
     m = robot.model

@@ -167,7 +167,6 @@ class IdentificationPipeline:
         # the compiled call takes whole runs of CDR messages when torque is all measured
         self._cdr_step = (self._step if len(self._measured_columns) == robot.dof
                           and not self.converter.needs_currents else None)
-        self.compiled_runs = 0   # processing runs taken by that call
         self._decoder = JointStateDecoder()
         self.frozen = False
         self.reset()
@@ -210,6 +209,7 @@ class IdentificationPipeline:
         self._pending_samples = 0
         self.rejected = dict.fromkeys(REJECT_REASONS, 0)
         self.restarts = 0
+        self.compiled_runs = 0   # processing runs taken by one push_cdr call
         self.excluded_rows = 0
         self.received = 0
         self.used = 0
