@@ -31,6 +31,7 @@
 #include <map>
 #include <stdexcept>
 #include <string>
+#include <string_view>
 #include <vector>
 
 namespace py = pybind11;
@@ -243,7 +244,7 @@ class Step {
   struct Message {
     const char *data = nullptr;
     std::int64_t stamp = 0;
-    std::string names;   // the name sequence's CDR bytes
+    std::string_view names;   // the name sequence's CDR bytes
     size_t name_count = 0;
     std::array<size_t, 3> offsets{}, counts{};
   };
@@ -278,7 +279,7 @@ class Step {
       if (length == 0 || end > n || d[end - 1]) return false;
       p = end;
     }
-    msg->names.assign(d + start, p - start);
+    msg->names = std::string_view(d + start, p - start);
     msg->name_count = names;
     for (int f = 0; f < 3; ++f) {
       p = (p + 3) & ~size_t{3};
@@ -515,7 +516,8 @@ class Step {
   int half_window_, order_;
   double max_gap_;
   std::vector<double> t_, x_;
-  std::map<std::string, std::vector<int>> layouts_;   // names CDR bytes -> columns
+  // names CDR bytes -> columns (std::less<>: looked up by string_view, no copy)
+  std::map<std::string, std::vector<int>, std::less<>> layouts_;
 };
 
 // JointState CDR messages filled in from a template (bagio.encode_joint_states' layout: the
