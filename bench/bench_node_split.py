@@ -69,7 +69,7 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
         return wrapper
 
     def passthrough(self: IdentificationPipeline, flush: bool = False) -> PipelineOutput:
-        records = self._decoded(self._take(self._js_queue))
+        records = self._decoded(self._take(self._js_queue), self._js_decoder)
         self.received += len(records)
         if not records:
             return PipelineOutput.empty(self.robot.dof)

@@ -2,9 +2,9 @@
 
 One plain class, fed by the ROS node (its processing thread copies the queued messages in) and
 by bag replay alike. ``add_joint_state`` / ``add_currents`` queue records (``add_joint_states`` a
-block of joint states of one layout, as bag replay reads them; ``add_joint_state_cdr`` the
-JointState messages of a poll as CDR bytes, as the node takes them); ``process`` does the
-numerical work for everything queued, in batches:
+block of joint states of one layout, as bag replay reads them; ``add_joint_state_cdr`` /
+``add_currents_cdr`` the JointState messages of a poll as CDR bytes, as the node takes them);
+``process`` does the numerical work for everything queued, in batches:
 
 1. validation (runs of messages sharing names and layout stacked into blocks checked at once;
    counted rejections by reason, never an exception or a NaN),
@@ -164,10 +164,12 @@ class IdentificationPipeline:
         self._step = (compiled.make_step(robot, self.base.base_index, self.config.half_window,
                                          self.config.smoother_order, self.config.max_gap)
                       if self.config.compiled else None)
+        self._all_measured = len(self._measured_columns) == robot.dof
         # the compiled call takes whole runs of CDR messages when torque is all measured
-        self._cdr_step = (self._step if len(self._measured_columns) == robot.dof
-                          and not self.converter.needs_currents else None)
-        self._decoder = JointStateDecoder()
+        self._cdr_step = (self._step if self._all_measured and not self.converter.needs_currents
+                          else None)
+        # one decoder per stream (each keeps its stream's last names)
+        self._js_decoder, self._cur_decoder = JointStateDecoder(), JointStateDecoder()
         self.frozen = False
         self.reset()
 
@@ -194,6 +196,11 @@ class IdentificationPipeline:
 
     def add_currents(self, record: JointStateRecord) -> None:
         self._cur_queue.append(record)
+
+    def add_currents_cdr(self, messages: list[bytes]) -> None:
+        """Motor current messages (sensor_msgs/JointState) as CDR bytes, in arrival order;
+        decoded when processed (one that cannot be decoded is counted 'malformed')."""
+        self._cur_queue.append(messages)
 
     @property
     def pending(self) -> int:
@@ -250,8 +257,8 @@ class IdentificationPipeline:
         out = self._process_cdr(js) if self._cdr_step is not None else None
         if out is not None:
             return out
-        js = self._decoded(js)
-        cur = self._take(self._cur_queue)
+        js = self._decoded(js, self._js_decoder)
+        cur = self._decoded(self._take(self._cur_queue), self._cur_decoder)
         if cur:
             self._currents = self._currents.concat(self._convert_currents(cur))
         for block in _blocks(js):
@@ -287,19 +294,19 @@ class IdentificationPipeline:
         self.compiled_runs += 1
         return self._finish(*outputs)
 
-    def _decoded(self, js: list) -> list:
-        """The queued joint states with CDR messages decoded into records (the ones that
-        cannot be decoded counted as received and 'malformed')."""
-        if all(type(m) is not list for m in js):
-            return js
+    def _decoded(self, queued: list, decoder: JointStateDecoder) -> list:
+        """Queued records with the lists of CDR messages among them decoded into records (the
+        messages that cannot be decoded counted as received and 'malformed')."""
+        if all(type(m) is not list for m in queued):
+            return queued
         out = []
-        for item in js:
+        for item in queued:
             if type(item) is not list:
                 out.append(item)
                 continue
             for raw in item:
                 try:
-                    out.append(self._decoder(raw))
+                    out.append(decoder(raw))
                 except IdentificationError:
                     self.add_malformed()
         return out
@@ -516,7 +523,7 @@ class IdentificationPipeline:
         return np.where(np.abs(ref[pick] - t) <= self.config.align_tolerance, pick, -1)
 
     def _with_torque(self, s: _Samples, currents, theta) -> _Samples:
-        if len(self._measured_columns) == self.robot.dof:
+        if self._all_measured:
             s.tau = s.eff   # every joint's torque measured: checked finite on the way in
             return s
         s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)

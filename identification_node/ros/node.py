@@ -36,8 +36,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
-from ..bagio import JointStateDecoder
-from ..errors import IdentificationError
 from ..pipeline import EstimateReport, PipelineOutput
 from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
@@ -100,13 +98,12 @@ class IdentificationNode(Node):
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
 
         overrides = QoSOverridingOptions.with_default_policies()
-        self._decode_cur = JointStateDecoder()
         self._inputs = [PolledSubscription(self, JointState, 'joint_states',
                                            self.pipeline.add_joint_state_cdr, INPUT_QOS,
                                            qos_overriding_options=overrides)]
         if self.pipeline.converter.needs_currents:
             self._inputs.append(PolledSubscription(
-                self, JointState, 'motor_currents', self._on_currents, INPUT_QOS,
+                self, JointState, 'motor_currents', self.pipeline.add_currents_cdr, INPUT_QOS,
                 qos_overriding_options=overrides))
         self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
         self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
@@ -161,19 +158,10 @@ class IdentificationNode(Node):
                         reason=f'{p.name} is an output of the node; it cannot be set')
         return SetParametersResult(successful=True)
 
-    # -- input ------------------------------------------------------------------------------------
-    # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes:
-    # joint states go to the pipeline as they are (it decodes them, compiled when it can),
-    # currents are decoded by the bag reader's JointState decoder. rclpy never turns them
-    # into Python message objects.
-    def _on_currents(self, raws: list[bytes]) -> None:
-        for raw in raws:
-            try:
-                self.pipeline.add_currents(self._decode_cur(raw))
-            except IdentificationError:
-                self.pipeline.add_malformed()
-
     # -- processing and output --------------------------------------------------------------------
+    # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes
+    # and hands them to the pipeline as they are (it decodes them, compiled when it can):
+    # rclpy never turns them into Python message objects.
     def _process(self) -> None:
         with self._lock:
             for source in self._inputs:
