@@ -19,6 +19,7 @@
 // last one) it pushes them, else it changes nothing and the pipeline's Python validation
 // (which counts the rejections) takes the run. And the output side: fill_joint_states
 // serializes JointState messages as bagio.encode_joint_states does (its compiled path).
+// And factor_information, the recursive estimator's Cholesky update with its solution.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -567,6 +568,113 @@ py::list fill_joint_states(py::array_t<std::uint8_t, py::array::c_style> templ, 
   return out;
 }
 
+// The RLS update's factorisation (estimators.RecursiveLeastSquares, information form) in one
+// call: for the augmented information M = old'old + sum_j information_j = [[A, m], [m', s]]
+// (k, k) of a factor old (r, k) and per-joint information (n, k, k), the upper-triangular
+// F = [[R, z], [0, rho]] with F'F = M (estimators._cholesky_augmented), and what the
+// estimator derives from it at full rank (estimators._solve): theta = R^-1 z, R^-1 and the
+// column-scaled condition bound ||R / d||_F ||d R^-1||_F. None when M is not finite, A is not
+// positive definite, or a result is not finite.
+py::object factor_information(Array old_in, Array info_in) {
+  if (old_in.ndim() != 2 || info_in.ndim() != 3 || old_in.shape(1) < 2 ||
+      info_in.shape(1) != old_in.shape(1) || info_in.shape(2) != old_in.shape(1))
+    throw std::invalid_argument("factor_information: old (r, k) and information (n, k, k)");
+  const py::ssize_t k = old_in.shape(1), p = k - 1, rows = old_in.shape(0);
+  const double *O = old_in.data(), *I = info_in.data();
+  for (const Array *a : {&old_in, &info_in})
+    if (!std::all_of(a->data(), a->data() + a->size(), [](double v) { return std::isfinite(v); }))
+      return py::none();
+  // M, lower triangle, row major (row-wise loops below: contiguous inner products)
+  std::vector<double> M(k * k, 0.0);
+  for (py::ssize_t j = 0; j < info_in.shape(0); ++j, I += k * k)
+    for (py::ssize_t r = 0; r < k; ++r)
+      for (py::ssize_t c = 0; c <= r; ++c) M[r * k + c] += I[r * k + c];
+  for (py::ssize_t i = 0; i < rows; ++i, O += k)
+    for (py::ssize_t r = 0; r < k; ++r) {
+      if (O[r] == 0.0) continue;   // old is mostly triangular
+      for (py::ssize_t c = 0; c <= r; ++c) M[r * k + c] += O[r] * O[c];
+    }
+  for (double v : M)   // finite inputs can still overflow
+    if (!std::isfinite(v)) return py::none();
+  // Cholesky A = L L' (R = L'), then L z = m, rho^2 = s - z'z clipped at 0
+  std::vector<double> L(p * p, 0.0), z(p), Y(p * p, 0.0);
+  for (py::ssize_t i = 0; i < p; ++i) {
+    const double *Li = &L[i * p];
+    for (py::ssize_t j = 0; j <= i; ++j) {
+      const double *Lj = &L[j * p];
+      double v = M[i * k + j];
+      for (py::ssize_t c = 0; c < j; ++c) v -= Li[c] * Lj[c];
+      if (j < i) {
+        L[i * p + j] = v / Lj[j];
+      } else {
+        if (!(v > 0.0)) return py::none();
+        L[i * p + i] = std::sqrt(v);
+      }
+    }
+  }
+  double zz = 0.0;
+  for (py::ssize_t i = 0; i < p; ++i) {
+    double v = M[p * k + i];
+    for (py::ssize_t c = 0; c < i; ++c) v -= L[i * p + c] * z[c];
+    z[i] = v / L[i * p + i];
+    zz += z[i] * z[i];
+  }
+  // Y = L^-1 row by row (R^-1 = Y'), theta = R^-1 z = Y'z
+  std::vector<double> theta(p, 0.0);
+  for (py::ssize_t i = 0; i < p; ++i) {
+    double *Yi = &Y[i * p];
+    Yi[i] = 1.0;
+    for (py::ssize_t c = 0; c < i; ++c) {
+      const double l = L[i * p + c];
+      const double *Yc = &Y[c * p];
+      for (py::ssize_t j = 0; j <= c; ++j) Yi[j] -= l * Yc[j];
+    }
+    const double inv = 1.0 / L[i * p + i];
+    for (py::ssize_t j = 0; j <= i; ++j) {
+      Yi[j] *= inv;
+      theta[j] += Yi[j] * z[i];
+    }
+  }
+  // column scale d of R (row norms of L) as estimators._column_scale, then the bound
+  std::vector<double> d(p);
+  double dmax = 0.0;
+  for (py::ssize_t i = 0; i < p; ++i) {
+    double v = 0.0;
+    for (py::ssize_t c = 0; c <= i; ++c) v += L[i * p + c] * L[i * p + c];
+    d[i] = std::sqrt(v);
+    dmax = std::max(dmax, d[i]);
+  }
+  for (py::ssize_t i = 0; i < p; ++i)
+    if (!(d[i] > 1e-12 * dmax)) d[i] = std::max(dmax, 1e-300);
+  double scaled = 0.0, scaled_inv = 0.0;
+  for (py::ssize_t i = 0; i < p; ++i)
+    for (py::ssize_t c = 0; c <= i; ++c) {
+      const double a = L[i * p + c] / d[i], b = Y[i * p + c] * d[c];
+      scaled += a * a;
+      scaled_inv += b * b;
+    }
+  const double bound = std::sqrt(scaled) * std::sqrt(scaled_inv);
+  const double rho = std::sqrt(std::max(M[p * k + p] - zz, 0.0));
+  bool finite = std::isfinite(bound) && std::isfinite(rho);
+  for (py::ssize_t i = 0; i < p && finite; ++i)
+    finite = std::isfinite(theta[i]) && std::isfinite(z[i]);
+  if (!finite) return py::none();
+  Array F_out({k, k}), theta_out(p), inv_out({p, p});
+  double *F = F_out.mutable_data(), *X = inv_out.mutable_data();
+  std::fill(F, F + k * k, 0.0);
+  std::fill(X, X + p * p, 0.0);
+  for (py::ssize_t i = 0; i < p; ++i) {
+    for (py::ssize_t c = 0; c <= i; ++c) {
+      F[c * k + i] = L[i * p + c];
+      X[c * p + i] = Y[i * p + c];
+    }
+    F[i * k + p] = z[i];
+  }
+  F[p * k + p] = rho;
+  std::copy(theta.begin(), theta.end(), theta_out.mutable_data());
+  return py::make_tuple(F_out, theta_out, inv_out, bound);
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_kernel, m) {
@@ -581,4 +689,5 @@ PYBIND11_MODULE(_kernel, m) {
       .def("push_cdr", &Step::push_cdr)
       .def("regress", &Step::regress);
   m.def("fill_joint_states", &fill_joint_states);
+  m.def("factor_information", &factor_information);
 }

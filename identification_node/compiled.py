@@ -10,7 +10,8 @@ a fraction of it (bench/bench_pipeline_runs.py). The Python path (bagio.JointSta
 the pipeline's validation, signals.FixedLagSmoother, RobotModel.regressor) stays the
 reference: both give the same results to rounding (tested), and the pipeline falls back to
 it when the extension is missing. bagio.encode_joint_states uses the extension's
-``fill_joint_states`` the same way.
+``fill_joint_states`` the same way, and estimators.RecursiveLeastSquares its
+``factor_information`` (the Cholesky update of the information and its solution).
 """
 from __future__ import annotations
 

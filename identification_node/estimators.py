@@ -52,6 +52,11 @@ import numpy as np
 
 from .errors import IdentificationError
 
+try:   # factor_information: the Cholesky update below in one compiled call (compiled.py)
+    from ._kernel import factor_information as _factor_compiled
+except ImportError:
+    _factor_compiled = None
+
 _CHUNK = 4096  # samples per QR: bounds the workspace to ~_CHUNK * n * (p + 1) floats
 _DEFAULT_RCOND = 1e-10  # singular-value ratio (column-scaled) below which a direction is unexcited
 # Bound on the column-scaled condition number of the information above which the RLS update
@@ -453,13 +458,14 @@ class RecursiveLeastSquares:
     information of the rows; unused when lam == 1. prior_information / theta0: an optional
     prior theta0 with that information (forgotten like data); with none, theta starts at theta0
     (default 0) and is the minimum-norm (column-scaled) solution until the data excite all
-    directions. ``num_joints`` is taken from the first update when not given.
+    directions. ``num_joints`` is taken from the first update when not given. ``compiled``:
+    the Cholesky update by the compiled extension when it is built (same results to rounding).
     """
 
     def __init__(self, num_params: int, forgetting: float = 1.0,
                  min_information=1e-6, *, num_joints: int | None = None,
                  prior_information=0.0, theta0: np.ndarray | None = None,
-                 rcond: float = _DEFAULT_RCOND):
+                 rcond: float = _DEFAULT_RCOND, compiled: bool = True):
         self.num_params = p = _check_count('num_params', num_params)
         if not (np.isfinite(forgetting) and 0 < forgetting <= 1):
             raise IdentificationError(f'forgetting factor must be in (0, 1], got {forgetting!r}')
@@ -467,6 +473,7 @@ class RecursiveLeastSquares:
             raise IdentificationError(f'rcond must be in (0, 1), got {rcond!r}')
         self.forgetting = float(forgetting)
         self.rcond = float(rcond)
+        self._factor = _factor_compiled if compiled else None
         self._R_min = _information_factor('min_information', min_information, p)
         R0 = _information_factor('prior_information', prior_information, p)
         theta0 = np.zeros(p) if theta0 is None else _as_float('theta0', theta0)
@@ -504,6 +511,20 @@ class RecursiveLeastSquares:
         d = _column_scale(self._R)
         kappa = np.linalg.norm(self._R / d) * np.linalg.norm(d[:, None] * self._G)
         return bool(kappa * kappa <= _INFORMATION_MAX_CONDITION)
+
+    def _factor_compiled(self, old: np.ndarray, information: np.ndarray) -> bool:
+        """The Cholesky update of the information old'old + sum_j information_j and _refresh
+        in one compiled call (what _cholesky_augmented and _solve's full-rank path give, to
+        rounding; the live node's processing runs find these small numpy calls cold). Returns
+        whether it was accurate enough; the state changes only then. False without the
+        extension."""
+        result = None if self._factor is None else self._factor(old, information)
+        if result is None or not result[3] ** 2 <= _INFORMATION_MAX_CONDITION:
+            return False
+        p = self.num_params
+        self._F, self._theta, self._G = result[:3]
+        self._R, self._rank, self._determined = self._F[:p, :p], p, np.ones(p, dtype=bool)
+        return True
 
     def update(self, Y: np.ndarray, tau: np.ndarray, weights: np.ndarray | None = None
                ) -> np.ndarray:
@@ -553,14 +574,15 @@ class RecursiveLeastSquares:
         if information is None or decay is not None:
             information = sum(_information(chunk(a, b)) for a, b in spans)
         # The forgetting regulariser, anchored at the estimate before the batch.
-        old = np.sqrt(f) * self._F
+        old = self._F if f == 1.0 else np.sqrt(f) * self._F
         if f < 1.0:
             anchor = np.sqrt(1.0 - f) * np.column_stack([self._R_min, self._R_min @ self._theta])
             old = np.vstack([old, anchor])
         # Information form (one Cholesky); QR of the old factor and all rows when it fails or
         # is not accurate enough. The decay is relative to the batch end: old is scaled once.
-        candidate = _cholesky_augmented(old.T @ old + information.sum(axis=0))
-        accurate = False
+        accurate = self._factor_compiled(old, information)
+        candidate = None if accurate else _cholesky_augmented(
+            old.T @ old + information.sum(axis=0))
         if candidate is not None:
             self._F = candidate
             accurate = self._refresh()
@@ -569,12 +591,14 @@ class RecursiveLeastSquares:
                 old = _qr_r(np.concatenate([old, *_qr_r(chunk(a, b).transpose(1, 0, 2))]))
             self._F = old
             self._refresh()
-        self._joint_info = f * self._joint_info + information
+        if f < 1.0:
+            self._joint_info *= f
+            self._count *= f
+        self._joint_info += information
         if decay is None:
-            added = np.full(n, float(N)) if used is None else used.sum(axis=0)
+            self._count += N if used is None else used.sum(axis=0)
         else:
-            added = np.full(n, decay.sum()) if used is None else decay @ used
-        self._count = f * self._count + added
+            self._count += decay.sum() if used is None else decay @ used
         self.num_samples += N
 
     # -- results --------------------------------------------------------------------------

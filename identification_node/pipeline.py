@@ -66,7 +66,7 @@ class PipelineConfig:
     converged_ratio: float = 0.1
     max_condition: float = 1e8
     min_samples: int = 1000
-    compiled: bool = True    # the compiled per-run step when built (compiled.py)
+    compiled: bool = True    # the compiled per-run step and RLS update when built
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""
@@ -210,7 +210,8 @@ class IdentificationPipeline:
     def reset(self) -> None:
         """Forget the estimate and all buffered data; counters restart too."""
         n, b = self.robot.dof, self.base.num_base
-        self._rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting)
+        self._rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting,
+                                          compiled=self.config.compiled)
         self._residuals = ResidualStatistics(b, n, self._block)
         self._updates: list[tuple] = []
         self._pending_samples = 0

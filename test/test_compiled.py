@@ -260,3 +260,58 @@ def test_joint_state_filler_equals_numpy_encoder(monkeypatch):
         bagio._kernel.fill_joint_states(*bagio._joint_state_layout(('a',), (1, 0, 0))[::2],
                                         np.zeros(2, dtype=np.int64), np.zeros((3, 1)), None,
                                         None)
+
+
+def test_information_factor_equals_the_python_path():
+    """factor_information against _cholesky_augmented and _solve on the same information: a
+    triangular old factor, one with the forgetting regulariser's rows stacked below, badly
+    scaled columns; None where the Python path finds no Cholesky factor."""
+    from identification_node import estimators as est
+    rng = np.random.default_rng(7)
+    p = 12
+    A = rng.normal(size=(300, p + 1)) * np.logspace(-3, 3, p + 1)
+    info = np.stack([A[k:k + 100].T @ A[k:k + 100] for k in (0, 100)])
+    triangular = np.linalg.qr(A[200:], mode='r')
+    for old in (triangular, np.vstack([triangular, rng.normal(size=(p, p + 1))])):
+        F, theta, R_inv, bound = est._factor_compiled(old, info)
+        F_py = est._cholesky_augmented(old.T @ old + info.sum(axis=0))
+        theta_py, rank, G, determined = est._solve(F_py[:p, :p], F_py[:p, p], 1e-10)
+        assert rank == p and determined.all()
+        close(F, F_py, 1e-13)
+        close(theta, theta_py, 1e-10)
+        close(R_inv, G, 1e-12)
+        d = est._column_scale(F_py[:p, :p])
+        close(bound, np.linalg.norm(F_py[:p, :p] / d) * np.linalg.norm(d[:, None] * G), 1e-12)
+        assert np.all(np.tril(F, -1) == 0)
+    singular = A[:5].T @ A[:5]   # rank 5 < p
+    assert est._cholesky_augmented(singular) is None
+    assert est._factor_compiled(np.zeros((0, p + 1)), singular[None]) is None
+    bad = info.copy()
+    bad[1, 3, 4] = np.nan
+    assert est._factor_compiled(triangular, bad) is None
+
+
+@pytest.mark.parametrize('lam', [1.0, 0.99])
+def test_rls_with_compiled_factor_equals_python(monkeypatch, lam):
+    """A stream of batches through the RLS with the compiled factorisation and without: same
+    estimate, covariance and information (the compiled one used on every excited batch)."""
+    from identification_node import estimators as est
+    rng = np.random.default_rng(8)
+    N, n, p = 3000, 3, 10
+    Y = rng.normal(size=(N, n, p)) * np.logspace(-1, 1, p)
+    tau = Y @ rng.normal(size=p) + 0.1 * rng.normal(size=(N, n))
+    calls = []
+    factor = est._factor_compiled
+    monkeypatch.setattr(est, '_factor_compiled', lambda *a: calls.append(1) or factor(*a))
+    runs = []
+    for use in (True, False):
+        rls = est.RecursiveLeastSquares(p, lam, compiled=use)
+        for k in range(0, N, 50):
+            rls.update(Y[k:k + 50], tau[k:k + 50])
+        runs.append(rls)
+    assert len(calls) == N // 50
+    a, b = runs
+    close(a.theta, b.theta, 1e-11)
+    close(a.covariance, b.covariance, 1e-10)
+    close(a.information, b.information, 1e-12)
+    assert a.rank == b.rank == p
