@@ -144,8 +144,6 @@ class IdentificationPipeline:
         self._channels = {name: (i, k) for name, i, k in self.converter.current_channel_slots()}
         self._measured_columns = np.array([robot.joint_names.index(j)
                                            for j in self.converter.measured_joints], dtype=int)
-        self._channel_index = tuple(np.array(list(self._channels.values()), dtype=int)
-                                    .reshape(-1, 2).T)
         # The torque is smoothed too, so residuals are correlated over the window: the
         # covariance uses their long-run variance, from sums over blocks of 8 windows; until
         # there are enough blocks, white raw noise is assumed (see smoothing_noise_gain).
@@ -436,43 +434,64 @@ class IdentificationPipeline:
             self._currents.stamps < self._last_stamp - self.config.restart_jump)
         self._newest_js = -math.inf
 
+    def _channel_layout(self, names: tuple) -> tuple | str:
+        """For current messages with ``names``: the message columns of the configured channels
+        and their flat slots joint * 3 + phase, the columns of each joint's electrical angle
+        (its last channel) and those joints; or the reason to reject the layout."""
+        layout = self._index_cache.get(('currents',) + names)
+        if layout is None:
+            pos = {name: i for i, name in enumerate(names)}
+            known = [name for name in self._channels if name in pos]
+            if len(pos) != len(names):
+                layout = 'duplicate_names'
+            elif len(known) < len(self._channels):
+                layout = 'unknown_channels' if not known else 'missing_joints'
+            else:
+                cols = np.array([pos[name] for name in self._channels])
+                slots = np.array([3 * i + k for i, k in self._channels.values()])
+                angle = {}
+                for col, (i, _) in sorted(zip(cols, self._channels.values())):
+                    angle[i] = col
+                layout = (cols, slots, np.array(list(angle.values())), np.array(list(angle)))
+            self._index_cache[('currents',) + names] = layout
+        return layout
+
     def _convert_currents(self, records: list) -> _Samples:
-        """Validate current records into (stamps, currents (N, n, 3), electrical angle)."""
+        """Validate current records into stamps, currents (M, n, 3) and electrical angles
+        (M, n) (NaN where not given), by stamp; rejects are counted."""
         n = self.robot.dof
-        rows = []
-        for r in records:
-            k = len(r.names)
-            if not k or not len(r.effort):
-                self._reject('empty')
+        parts = []
+        for b in _blocks(records):
+            M, k = len(b.stamp_ns), len(b.names)
+            eff, pos = b.effort.shape[1], b.position.shape[1]
+            layout = None
+            if not k or not eff:
+                layout = 'empty'
+            elif eff != k or pos not in (0, k):
+                layout = 'length_mismatch'
+            else:
+                layout = self._channel_layout(tuple(b.names))
+            if isinstance(layout, str):
+                self._reject(layout, M)
                 continue
-            if len(r.effort) != k or len(r.position) not in (0, k):
-                self._reject('length_mismatch')
-                continue
-            cur = np.full((n, 3), np.nan)
-            theta = np.full(n, np.nan)
-            known = 0
-            for name, value, angle in zip(r.names, r.effort, r.position if len(r.position)
-                                          else [math.nan] * k):
-                ch = self._channels.get(name)
-                if ch is not None:
-                    known += 1
-                    cur[ch] = value
-                    theta[ch[0]] = angle
-            if known < len(self._channels):
-                self._reject('unknown_channels' if known == 0 else 'missing_joints')
-                continue
-            if not np.isfinite(cur[self._channel_index]).all():
-                self._reject('non_finite')
-                continue
-            rows.append((int(r.stamp_ns), cur, theta))
-        if not rows:
+            cols, slots, angle_cols, angle_joints = layout
+            values = np.asarray(b.effort, dtype=float)[:, cols]
+            finite = np.isfinite(values).all(axis=1)
+            if not finite.all():
+                self._reject('non_finite', np.count_nonzero(~finite))
+            cur = np.full((M, 3 * n), np.nan)
+            cur[:, slots] = values
+            theta = np.full((M, n), np.nan)
+            if pos:
+                theta[:, angle_joints] = np.asarray(b.position, dtype=float)[:, angle_cols]
+            parts.append((self._seconds(b.stamp_ns)[finite], cur.reshape(M, n, 3)[finite],
+                          theta[finite]))
+        if not parts:
             return _Samples.empty(n, with_currents=True)
-        stamps = self._seconds([r[0] for r in rows])
+        stamps, cur, theta = (np.concatenate(a) for a in zip(*parts))
         order = np.argsort(stamps, kind='stable')
-        return _Samples(stamps[order], np.zeros((len(rows), 0)), np.zeros((len(rows), 0)),
-                        np.zeros((len(rows), 0)),
-                        np.array([r[1] for r in rows])[order],
-                        np.array([r[2] for r in rows])[order])
+        z = np.zeros((len(stamps), 0))
+        return _Samples(stamps[order], z, z, z, cur[order], theta[order])
 
     def _decide_ready(self, flush: bool) -> _Samples | None:
         """Joint states whose currents are known (or will never come), with torque attached."""

@@ -184,6 +184,61 @@ def test_currents_with_no_joint_state_and_joint_states_with_no_current():
     assert np.all(np.isfinite(p.estimate().values))
 
 
+def test_current_messages_validated_and_mapped_by_channel_name():
+    """Channels in any order with an unknown one among them, the electrical angle in position:
+    the currents and angles land in their (joint, phase) slots; bad messages are counted by
+    reason and leave the outputs exactly as without them."""
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    sim = simulate(duration=3.0, noise=SensorNoise(current_std=0.01), converter=converter)
+    slots = converter.current_channel_slots()
+    perm = np.random.default_rng(4).permutation(len(slots))
+    names = tuple(slots[i][0] for i in perm) + ('gripper/ia',)
+    angle = sim.theta_e + 0.01    # not what the position gives
+    cur = []
+    for k, ns in enumerate(stamps(sim)):
+        values = [sim.currents[k, slots[i][1], slots[i][2]] for i in perm] + [5.0]
+        angles = [angle[k, slots[i][1]] for i in perm] + [0.0]
+        cur.append(JointStateRecord(int(ns), names, np.array(angles), np.empty(0),
+                                    np.array(values)))
+    r = cur[1500]
+    drop = names.index(slots[0][0])
+    bad = [
+        r._replace(stamp_ns=r.stamp_ns + 1,
+                   effort=np.where(np.arange(len(names)) == 2, np.nan, r.effort)),
+        r._replace(stamp_ns=r.stamp_ns + 2, position=r.position[:3]),
+        r._replace(stamp_ns=r.stamp_ns + 3, effort=r.effort[:-1]),
+        r._replace(stamp_ns=r.stamp_ns + 4, names=(), position=np.empty(0), effort=np.empty(0)),
+        r._replace(stamp_ns=r.stamp_ns + 5, names=('gripper/ia',), position=np.empty(0),
+                   effort=np.array([1.0])),
+        r._replace(stamp_ns=r.stamp_ns + 6, names=names[:drop] + names[drop + 1:],
+                   position=np.delete(r.position, drop), effort=np.delete(r.effort, drop)),
+        r._replace(stamp_ns=r.stamp_ns + 7, names=(names[1],) + names[1:]),
+    ]
+    p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
+    converted = p._convert_currents(cur[:10])
+    np.testing.assert_array_equal(converted.currents, sim.currents[:10])
+    np.testing.assert_array_equal(converted.theta, angle[:10])
+    js = joint_records(sim, effort=False)
+    outputs = []
+    for stream, expected in ((list(cur), {}), (cur[:1501] + bad + cur[1501:], {
+            'non_finite': 1, 'length_mismatch': 2, 'empty': 1, 'unknown_channels': 1,
+            'missing_joints': 1, 'duplicate_names': 1})):
+        p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
+        outs = []
+        for start in range(0, len(js), 50):   # the currents up to the chunk's last stamp
+            for r in js[start:start + 50]:
+                p.add_joint_state(r)
+            while stream and stream[0].stamp_ns <= js[min(start + 49, len(js) - 1)].stamp_ns:
+                p.add_currents(stream.pop(0))
+            outs.append(p.process())
+        outs.append(p.process(flush=True))
+        outputs.append({name: np.concatenate([getattr(o, name) for o in outs])
+                        for name in ('stamps_ns', 'measured', 'predicted')})
+        assert not stream and {k: v for k, v in p.rejected.items() if v} == expected
+    for name in ('stamps_ns', 'measured', 'predicted'):
+        np.testing.assert_array_equal(outputs[0][name], outputs[1][name])
+
+
 def test_stream_stops_and_restarts():
     sim = simulate(duration=6.0)
     js = joint_records(sim)
