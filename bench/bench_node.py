@@ -9,7 +9,10 @@ received. Prints one line per run, the median over ``--repeat`` runs per rate, a
 rate with no sample lost in any run.
 
 ``--listen-measured`` also subscribes to ~/measured_effort (the node publishes an effort
-topic only while it has subscribers).
+topic only while it has subscribers). ``--currents``: every joint's torque from 3-phase motor
+currents instead (CURRENTS below): the publisher sends each sample's motor_currents message
+(``<joint>/ia|ib|ic``, amperes; no electrical angle, the node derives it from the position)
+with the joint state's stamp, right after it, so the node receives twice the messages.
 
     .venv/bin/python bench/bench_node.py [--rates 1000 5000 ...] [--seconds 6] [--repeat 3]
 """
@@ -27,11 +30,14 @@ REPO = Path(__file__).resolve().parents[1]
 PANDA = REPO / 'test' / 'fixtures' / 'panda_like.urdf'
 os.environ.setdefault('ROS_DOMAIN_ID', str(30 + os.getpid() % 60))
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+# --currents: the node's torque source and motor constants (every joint alike)
+CURRENTS = {'source': 'three_phase', 'kt': 0.5, 'gear_ratio': 50.0, 'pole_pairs': 7}
 
 
-def publisher(rate: float, seconds: float, warmup: float) -> None:
-    """Publish joint states at ``rate`` for ``warmup + seconds``; print the count published
-    after the warm-up."""
+def publisher(rate: float, seconds: float, warmup: float, currents: bool) -> None:
+    """Publish joint states (and with ``currents`` the motor currents of the same sample) at
+    ``rate`` for ``warmup + seconds``; print the count of samples published after the
+    warm-up."""
     import numpy as np
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -39,6 +45,7 @@ def publisher(rate: float, seconds: float, warmup: float) -> None:
 
     from identification_node.robot import load_robot
     from identification_node.simulation import SensorNoise, simulate_kinematic
+    from identification_node.torque import TorqueConverter
     from identification_node.trajectories import FourierTrajectory
 
     robot = load_robot(str(PANDA))
@@ -48,10 +55,16 @@ def publisher(rate: float, seconds: float, warmup: float) -> None:
                              np.arange(period) / rate, SensorNoise(torque_std=0.2))
     rows = [(sim.q_meas[k].tolist(), sim.qd_meas[k].tolist(), sim.tau_meas[k].tolist())
             for k in range(period)]
+    if currents:
+        converter = TorqueConverter(robot.joint_names, [CURRENTS] * robot.dof)
+        amps = converter.currents_from_torque(sim.tau_meas, sim.q_meas).reshape(period, -1)
+        channels = [f'{j}/{c}' for j in robot.joint_names for c in ('ia', 'ib', 'ic')]
     rclpy.init()
     node = rclpy.create_node('bench_publisher')
-    pub = node.create_publisher(JointState, 'joint_states', QoSProfile(
-        depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+    pub = node.create_publisher(JointState, 'joint_states', qos)
+    pub_cur = node.create_publisher(JointState, 'motor_currents', qos) if currents else None
+    cur = JointState(name=channels) if currents else None
     deadline = time.monotonic() + 20
     while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -69,6 +82,10 @@ def publisher(rate: float, seconds: float, warmup: float) -> None:
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 1_000_000_000)
         msg.position, msg.velocity, msg.effort = q, qd, tau
         pub.publish(msg)
+        if currents:
+            cur.header.stamp = msg.header.stamp
+            cur.effort = amps[k % period].tolist()
+            pub_cur.publish(cur)
         counted += k >= rate * warmup
     print(counted, flush=True)
     time.sleep(0.5)
@@ -85,7 +102,8 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool) -> dict:
+def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
+             currents: bool) -> dict:
     import numpy as np
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -94,9 +112,11 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool) 
 
     from identification_node.ros.spin import make_executor
 
+    torque = {'torque_source' if k == 'source' else k: f'[{v}]' for k, v in CURRENTS.items()
+              } if currents else {'torque_source': '[measured]'}
     node_proc = subprocess.Popen(
         [sys.executable, '-m', 'identification_node', 'node', '--ros-args',
-         '-p', f'robot:={PANDA}', '-p', 'torque_source:=[measured]',
+         '-p', f'robot:={PANDA}', *[a for k, v in torque.items() for a in ('-p', f'{k}:={v}')],
          '-p', 'publish.diagnostics_rate:=4.0', *NODE_ARGS],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     latencies: list[int] = []
@@ -129,7 +149,8 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool) 
     while not diag and time.monotonic() < end:   # the node is up and publishing
         spin(0.1)
     pub = subprocess.Popen([sys.executable, __file__, '--publish', str(rate), str(seconds),
-                            str(warmup)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+                            str(warmup), str(int(currents))], cwd=REPO,
+                           stdout=subprocess.PIPE, text=True)
     cpu0 = None
     received0 = 0
     t_start = time.monotonic()
@@ -164,7 +185,7 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool) 
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == '--publish':
-        publisher(*map(float, sys.argv[2:5]))
+        publisher(*map(float, sys.argv[2:5]), currents=sys.argv[5] == '1')
         return
     import numpy as np
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -176,6 +197,8 @@ def main() -> None:
     parser.add_argument('--repeat', type=int, default=1, help='runs per rate (median shown)')
     parser.add_argument('--listen-measured', action='store_true',
                         help='also subscribe to ~/measured_effort')
+    parser.add_argument('--currents', action='store_true',
+                        help='torque from 3-phase motor currents (a second input stream)')
     args = parser.parse_args()
     for p in args.node_param:
         NODE_ARGS.extend(['-p', p])
@@ -183,12 +206,14 @@ def main() -> None:
     print(f'7-DOF arm, {args.seconds:.0f} s per run after {args.warmup:.0f} s warm-up; '
           f'{os.cpu_count()} cores; compiled per-run step '
           f'{"built" if compiled.AVAILABLE else "not built"}{"".join(" " + p for p in NODE_ARGS)}'
-          f'{"; ~/measured_effort subscribed too" if args.listen_measured else ""}')
+          f'{"; ~/measured_effort subscribed too" if args.listen_measured else ""}'
+          f'{"; torque from 3-phase motor currents" if args.currents else ""}')
     best = 0.0
     for rate in args.rates:
         runs = []
         for _ in range(args.repeat):
-            runs.append(run_rate(rate, args.seconds, args.warmup, args.listen_measured))
+            runs.append(run_rate(rate, args.seconds, args.warmup, args.listen_measured,
+                                 args.currents))
             print(line(rate, runs[-1], args), flush=True)
         if args.repeat > 1:
             med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
