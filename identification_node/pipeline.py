@@ -11,7 +11,8 @@ block of joint states of one layout, as bag replay reads them; ``add_joint_state
 2. stamp order (out of order or repeated stamps are rejected; a backward jump larger than
    ``restart_jump`` is taken as a restarted stream),
 3. alignment of motor currents to joint states by header stamp (nearest within
-   ``align_tolerance``),
+   ``align_tolerance``; a joint state waits for the first current stamped at or after it, or
+   ``hold_time`` at most),
 4. torque from the configured torque sources,
 5. the fixed-lag smoother on positions (and measured velocities) and on torque alike, giving
    q, qd, qdd and tau for the window centre, ``delay`` seconds behind the newest sample,
@@ -507,7 +508,9 @@ class IdentificationPipeline:
         if flush:
             decided = np.ones(len(s.stamps), dtype=bool)
         else:
-            decided = ((s.stamps + self.config.align_tolerance <= newest_cur)
+            # Currents come in stamp order: once one at or after t is in, the nearest to t is
+            # among those in (the newest before t, the first after), so t is decided.
+            decided = ((s.stamps <= newest_cur)
                        | (s.stamps <= self._newest_js - self.config.hold_time))
         # decided is a prefix: stamps are increasing.
         k = int(np.count_nonzero(decided))

@@ -239,6 +239,30 @@ def test_current_messages_validated_and_mapped_by_channel_name():
         np.testing.assert_array_equal(outputs[0][name], outputs[1][name])
 
 
+@pytest.mark.parametrize('offset_ns', [-300_000, 0, 300_000])
+def test_joint_states_decided_once_their_currents_are_in(offset_ns):
+    """Processing after every message pair gives what the whole stream at once gives (the
+    nearest current, known in full), and holds back only the joint states whose nearest
+    current may still come: none when currents are stamped at or after the joint state."""
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    sim = simulate(duration=1.0, noise=SensorNoise(current_std=0.01), converter=converter)
+    js, cur = joint_records(sim, effort=False), current_records(sim, converter, offset_ns)
+    live = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
+    outs = []
+    for j, c in zip(js, cur):
+        live.add_joint_state(j)
+        live.add_currents(c)
+        outs.append(live.process())
+        assert len(live._pending_js.stamps) == (offset_ns < 0)
+    outs.append(live.process(flush=True))
+    whole = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
+    ref = feed(whole, js, cur, chunk=len(js))
+    for name in ('stamps_ns', 'measured'):
+        np.testing.assert_array_equal(np.concatenate([getattr(o, name) for o in outs]),
+                                      ref[name])
+    assert sum(live.rejected.values()) == sum(whole.rejected.values()) == 0
+
+
 def test_stream_stops_and_restarts():
     sim = simulate(duration=6.0)
     js = joint_records(sim)
