@@ -185,7 +185,7 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == '--publish':
-        publisher(*map(float, sys.argv[2:5]), currents=sys.argv[5] == '1')
+        publisher(*map(float, sys.argv[2:5]), currents=sys.argv[5:6] == ['1'])
         return
     import numpy as np
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -101,6 +101,8 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     end = time.monotonic() + 30
     while node.pipeline.received < rate * warmup and time.monotonic() < end:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
+    if not node.pipeline.received:
+        sys.exit('bench_node_split: the node received nothing from the publisher')
     spent.update(dict.fromkeys(PARTS, 0.0))
     calls.update(dict.fromkeys(PARTS, 0))
     received0 = node.pipeline.received
