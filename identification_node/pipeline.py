@@ -157,6 +157,7 @@ class IdentificationPipeline:
         self._js_queue: collections.deque = collections.deque()
         self._cur_queue: collections.deque = collections.deque()
         self._index_cache: dict[tuple, np.ndarray | slice | str] = {}
+        self._channel_cache: dict[tuple, tuple | str] = {}
         self._work: dict[str, np.ndarray] = {}
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._row_columns = np.append(self.base.base_index, robot.num_params)
@@ -439,7 +440,7 @@ class IdentificationPipeline:
         """For current messages with ``names``: the message columns of the configured channels
         and their flat slots joint * 3 + phase, the columns of each joint's electrical angle
         (its last channel) and those joints; or the reason to reject the layout."""
-        layout = self._index_cache.get(('currents',) + names)
+        layout = self._channel_cache.get(names)
         if layout is None:
             pos = {name: i for i, name in enumerate(names)}
             known = [name for name in self._channels if name in pos]
@@ -454,7 +455,9 @@ class IdentificationPipeline:
                 for col, (i, _) in sorted(zip(cols, self._channels.values())):
                     angle[i] = col
                 layout = (cols, slots, np.array(list(angle.values())), np.array(list(angle)))
-            self._index_cache[('currents',) + names] = layout
+            if len(self._channel_cache) > 256:
+                self._channel_cache.clear()
+            self._channel_cache[names] = layout
         return layout
 
     def _convert_currents(self, records: list) -> _Samples:
@@ -465,7 +468,6 @@ class IdentificationPipeline:
         for b in _blocks(records):
             M, k = len(b.stamp_ns), len(b.names)
             eff, pos = b.effort.shape[1], b.position.shape[1]
-            layout = None
             if not k or not eff:
                 layout = 'empty'
             elif eff != k or pos not in (0, k):
