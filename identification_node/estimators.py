@@ -512,7 +512,7 @@ class RecursiveLeastSquares:
         kappa = np.linalg.norm(self._R / d) * np.linalg.norm(d[:, None] * self._G)
         return bool(kappa * kappa <= _INFORMATION_MAX_CONDITION)
 
-    def _factor_compiled(self, old: np.ndarray, information: np.ndarray) -> bool:
+    def _update_compiled(self, old: np.ndarray, information: np.ndarray) -> bool:
         """The Cholesky update of the information old'old + sum_j information_j and _refresh
         in one compiled call (what _cholesky_augmented and _solve's full-rank path give, to
         rounding; the live node's processing runs find these small numpy calls cold). Returns
@@ -580,7 +580,7 @@ class RecursiveLeastSquares:
             old = np.vstack([old, anchor])
         # Information form (one Cholesky); QR of the old factor and all rows when it fails or
         # is not accurate enough. The decay is relative to the batch end: old is scaled once.
-        accurate = self._factor_compiled(old, information)
+        accurate = self._update_compiled(old, information)
         candidate = None if accurate else _cholesky_augmented(
             old.T @ old + information.sum(axis=0))
         if candidate is not None:

@@ -327,26 +327,32 @@ class IdentificationPipeline:
         self.received += 1
         self._reject('malformed')
 
+    @staticmethod
+    def _layout(cache: dict, names: tuple, build):
+        """``build(pos)`` for messages with ``names`` (pos: name -> message column), or
+        'duplicate_names'; kept in ``cache`` per names (at most 256 layouts)."""
+        layout = cache.get(names)
+        if layout is None:
+            pos = {name: i for i, name in enumerate(names)}
+            layout = 'duplicate_names' if len(pos) != len(names) else build(pos)
+            if len(cache) > 256:
+                cache.clear()
+            cache[names] = layout
+        return layout
+
     def _joint_index(self, names: tuple) -> np.ndarray | slice | str:
         """Message columns in the robot's joint order (a plain slice when the message has
         exactly the robot's joints in its order), or the reason to reject the layout."""
-        idx = self._index_cache.get(names)
-        if idx is None:
-            pos = {name: i for i, name in enumerate(names)}
-            if len(pos) != len(names):
-                idx = 'duplicate_names'
-            elif any(j not in pos for j in self.robot.joint_names):
-                idx = 'missing_joints'
-            else:
-                idx = np.array([pos[j] for j in self.robot.joint_names])
-                if self._cdr_step is not None:
-                    self._cdr_step.set_layout(list(names), idx)
-                if len(names) == len(idx) and (idx == np.arange(len(idx))).all():
-                    idx = slice(None)
-            if len(self._index_cache) > 256:
-                self._index_cache.clear()
-            self._index_cache[names] = idx
-        return idx
+        return self._layout(self._index_cache, names, self._joint_columns)
+
+    def _joint_columns(self, pos: dict) -> np.ndarray | slice | str:
+        if any(j not in pos for j in self.robot.joint_names):
+            return 'missing_joints'
+        idx = np.array([pos[j] for j in self.robot.joint_names])
+        if self._cdr_step is not None:
+            self._cdr_step.set_layout(list(pos), idx)
+        return slice(None) if len(pos) == len(idx) and (idx == np.arange(len(idx))).all() \
+            else idx
 
     def _convert_block(self, b: JointStateRecord) -> _Samples:
         """Validate a block of joint states (rows sharing names and layout, so one check
@@ -440,25 +446,16 @@ class IdentificationPipeline:
         """For current messages with ``names``: the message columns of the configured channels
         and their flat slots joint * 3 + phase, the columns of each joint's electrical angle
         (its last channel) and those joints; or the reason to reject the layout."""
-        layout = self._channel_cache.get(names)
-        if layout is None:
-            pos = {name: i for i, name in enumerate(names)}
-            known = [name for name in self._channels if name in pos]
-            if len(pos) != len(names):
-                layout = 'duplicate_names'
-            elif len(known) < len(self._channels):
-                layout = 'unknown_channels' if not known else 'missing_joints'
-            else:
-                cols = np.array([pos[name] for name in self._channels])
-                slots = np.array([3 * i + k for i, k in self._channels.values()])
-                angle = {}
-                for col, (i, _) in sorted(zip(cols, self._channels.values())):
-                    angle[i] = col
-                layout = (cols, slots, np.array(list(angle.values())), np.array(list(angle)))
-            if len(self._channel_cache) > 256:
-                self._channel_cache.clear()
-            self._channel_cache[names] = layout
-        return layout
+        return self._layout(self._channel_cache, names, self._channel_columns)
+
+    def _channel_columns(self, pos: dict) -> tuple | str:
+        known = sum(name in pos for name in self._channels)
+        if known < len(self._channels):
+            return 'unknown_channels' if not known else 'missing_joints'
+        cols = np.array([pos[name] for name in self._channels])
+        slots = np.array([3 * i + k for i, k in self._channels.values()])
+        angle = {i: col for col, (i, _) in sorted(zip(cols, self._channels.values()))}
+        return cols, slots, np.array(list(angle.values())), np.array(list(angle))
 
     def _convert_currents(self, records: list) -> _Samples:
         """Validate current records into stamps, currents (M, n, 3) and electrical angles
