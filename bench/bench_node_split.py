@@ -8,10 +8,14 @@ the efforts (``publish``), plus the whole process's CPU. ``compiled`` runs ident
 compiled per-run step (compiled.py), ``python`` runs with the Python path; ``passthrough``
 runs replace the pipeline by one that hands the received samples straight back as output: the
 same messages in and out at the same schedule, none of the identification, i.e. the floor of
-the ROS side. Runs of the kinds alternate (this machine's CPU readings drift between runs);
-the medians are printed last.
+the ROS side. ``relay`` is the textbook rclpy node instead of ours: a raw subscription
+callback that republishes each message's bytes on ~/predicted_effort (EventsExecutor; no
+parameters, services or timers): what any rclpy node costs that passes these messages on.
+Runs of the kinds alternate (this machine's CPU readings drift between runs); the medians are
+printed last.
 
     .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
+        [--modes compiled python passthrough relay]
 """
 from __future__ import annotations
 
@@ -27,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_node import PANDA, REPO  # noqa: E402  (also sets a private ROS domain)
 
 PARTS = ('poll', 'pipeline', 'publish')
+MODES = ('compiled', 'python', 'passthrough', 'relay')
 
 
 def listen(seconds: float) -> None:
@@ -84,6 +89,8 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     node_class._publish_efforts = timed('publish', node_class._publish_efforts)
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    if mode == 'relay':
+        return run_relay(rate, seconds, warmup)
     node = node_class(parameter_overrides=[Parameter('robot', value=str(PANDA)),
                                            Parameter('torque_source', value=['measured']),
                                            Parameter('compiled', value=mode != 'python')])
@@ -117,6 +124,47 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     os._exit(0)   # no teardown to wait for
 
 
+def run_relay(rate: float, seconds: float, warmup: float) -> None:
+    """The ``relay`` mode of run_node (rclpy initialised)."""
+    import rclpy
+    from rclpy.task import Future
+    from sensor_msgs.msg import JointState
+
+    from identification_node.ros.node import INPUT_QOS, OUTPUT_QOS
+    from identification_node.ros.spin import make_executor
+
+    node = rclpy.create_node('identification_node')
+    pub = node.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
+    received = [0]
+
+    def relay(raw: bytes) -> None:
+        received[0] += 1
+        pub.publish(raw)
+    node.create_subscription(JointState, 'joint_states', relay, INPUT_QOS, raw=True)
+    executor = make_executor()
+    executor.add_node(node)
+    never = Future()
+    total = seconds + warmup
+    helpers = [subprocess.Popen([sys.executable, __file__, '--listen', str(total + 4)], cwd=REPO)]
+    time.sleep(1.0)
+    helpers.append(subprocess.Popen(
+        [sys.executable, str(REPO / 'bench' / 'bench_node.py'), '--publish', str(rate),
+         str(seconds), str(warmup)], cwd=REPO, stdout=subprocess.DEVNULL))
+    end = time.monotonic() + 30
+    while received[0] < rate * warmup and time.monotonic() < end:
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
+    received0 = received[0]
+    cpu0, t0 = time.process_time(), time.monotonic()
+    while time.monotonic() - t0 < seconds - 1.0:
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
+    result = {'cpu': time.process_time() - cpu0, 'wall': time.monotonic() - t0, 'runs': 0,
+              'messages': received[0] - received0, **dict.fromkeys(PARTS, 0.0)}
+    for helper in helpers:
+        helper.kill()
+    print(json.dumps(result), flush=True)
+    os._exit(0)
+
+
 def measure(mode: str, args: argparse.Namespace) -> dict:
     out = subprocess.run([sys.executable, __file__, '--run', mode, str(args.rate),
                           str(args.seconds), str(args.warmup)], cwd=REPO,
@@ -126,12 +174,14 @@ def measure(mode: str, args: argparse.Namespace) -> dict:
 
 def line(mode: str, r: dict, label: str = '') -> str:
     runs, wall = max(r['runs'], 1), r['wall']
+    label = '  ' + label if label else ''
+    node = (f'{mode:11s}: node {100 * r["cpu"] / wall:5.1f} % of a core '
+            f'({1e6 * r["cpu"] / max(r["messages"], 1):5.1f} us/msg)')
+    if not r['runs']:   # relay: a callback per message, no processing runs
+        return node + label
     parts = '  '.join(f'{p} {1e6 * r[p] / runs:4.0f} us' for p in PARTS)
-    return (f'{mode:11s}: node {100 * r["cpu"] / wall:5.1f} % of a core '
-            f'({1e6 * r["cpu"] / max(r["messages"], 1):5.1f} us/msg); per processing run '
-            f'({r["messages"] / runs:.1f} msgs): {parts}; parts '
-            f'{100 * sum(r[p] for p in PARTS) / wall:4.1f} % of a core'
-            f'{"  " + label if label else ""}')
+    return (f'{node}; per processing run ({r["messages"] / runs:.1f} msgs): {parts}; parts '
+            f'{100 * sum(r[p] for p in PARTS) / wall:4.1f} % of a core{label}')
 
 
 def main() -> None:
@@ -147,10 +197,11 @@ def main() -> None:
     parser.add_argument('--seconds', type=float, default=6.0)
     parser.add_argument('--warmup', type=float, default=2.0)
     parser.add_argument('--repeat', type=int, default=3, help='runs of each kind, alternating')
+    parser.add_argument('--modes', nargs='+', default=list(MODES), choices=MODES)
     args = parser.parse_args()
     print(f'7-DOF arm at {args.rate:.0f} Hz, {args.seconds:.0f} s per run; {os.cpu_count()} '
           'cores; thread CPU per processing run')
-    results: dict[str, list] = {'compiled': [], 'python': [], 'passthrough': []}
+    results: dict[str, list] = {mode: [] for mode in args.modes}
     for _ in range(args.repeat):
         for mode, runs in results.items():
             runs.append(measure(mode, args))
