@@ -176,6 +176,13 @@ class TorqueConverter:
         self._poles = np.array([c.pole_pairs for c in self.configs], dtype=float)
         self._offset = np.array([c.angle_offset for c in self.configs])
         self._perm = np.array([_PERM[c.phase_order] for c in self.configs])  # (n, 3)
+        # for torque(): the three-phase joints, their phase columns and angle factors
+        self._used = np.zeros((len(names), 3), dtype=bool)   # current channels read
+        self._used[self._single, 0] = True
+        self._used[self._three, :] = True
+        self._three_joints = np.flatnonzero(self._three)
+        self._three_perm = self._perm[self._three]
+        self._three_factor = (self._poles * self._gear)[self._three]   # theta_e per rad of q
 
     @property
     def dof(self) -> int:
@@ -278,21 +285,18 @@ class TorqueConverter:
                     f'motor currents needed for joints {self.current_joints} '
                     f'(channels {self.current_channel_names()})')
             cur = self._array(currents, 'currents', shape + (3,))
-            used = np.zeros((self.dof, 3), dtype=bool)
-            used[self._single, 0] = True
-            used[self._three, :] = True
-            self._need_finite(np.where(used, cur, 0.0), 'current')
+            self._need_finite(np.where(self._used, cur, 0.0), 'current')
             s = self._single
             tau[:, s] = self._gear[s] * self._kt[s] * cur[:, s, 0]
             t = self._three
-            if t.any():
-                th = np.zeros(shape)
-                th[:, t] = self.theta_e(q)[:, t]
+            if len(self._three_joints):
+                th = np.zeros(shape)   # theta_e (electrical_angle) of the three-phase joints
+                th[:, t] = self._three_factor * q[:, t] + self._offset[t]
                 if theta_e is not None:
                     given = self._array(theta_e, 'theta_e', shape)
                     th = np.where(np.isnan(given), th, given)
                 self._need_finite(np.where(t, th, 0.0), 'electrical angle (theta_e or q)')
-                phys = np.take_along_axis(cur[:, t], self._perm[t][None], axis=2)
+                phys = cur[:, self._three_joints[:, None], self._three_perm]   # physical order
                 tau[:, t] = self._gear[t] * three_phase_torque(
                     phys[..., 0], phys[..., 1], phys[..., 2], th[:, t], self._kt[t])
         return tau
