@@ -17,7 +17,8 @@
 // layout the pipeline registered, stamps in seconds since its epoch; when every message is
 // clean (decodable, known layout, lengths right, values finite, stamps increasing after the
 // last one) it pushes them, else it changes nothing and the pipeline's Python validation
-// (which counts the rejections) takes the run. And the output side: fill_joint_states
+// (which counts the rejections) takes the run. decode_joint_states decodes runs of such
+// messages that share a layout into arrays at once. And the output side: fill_joint_states
 // serializes JointState messages as bagio.encode_joint_states does (its compiled path).
 // And factor_information, the recursive estimator's Cholesky update with its solution.
 #include <pybind11/numpy.h>
@@ -83,6 +84,64 @@ struct Joint {
   V3 p0, s;        // its translation; unit axis in the joint frame
   std::vector<int> chain;   // ancestors-or-self, root first
 };
+
+// A sensor_msgs/JointState CDR message's header stamp (ns), name sequence and arrays.
+struct Message {
+  const char *data = nullptr;
+  std::int64_t stamp = 0;
+  std::string_view names;   // the name sequence's CDR bytes
+  size_t name_count = 0;
+  std::array<size_t, 3> offsets{}, counts{};
+};
+
+std::uint32_t u32(const char *p) {
+  std::uint32_t v;
+  std::memcpy(&v, p, 4);
+  return v;
+}
+
+// Little-endian JointState CDR (bagio.JointStateDecoder._fast's offsets: alignment relative
+// to the body at offset 4; a float64 sequence is 8-aligned only when not empty).
+bool parse(const char *d, size_t n, Message *msg) {
+  if (n < 16 || d[0] != 0 || d[1] != 1) return false;
+  std::int32_t sec;
+  std::memcpy(&sec, d + 4, 4);
+  msg->stamp = static_cast<std::int64_t>(sec) * 1000000000LL + u32(d + 8);
+  const size_t flen = u32(d + 12);
+  size_t p = 16 + flen;
+  if (flen == 0 || p > n || d[p - 1]) return false;
+  p = (p + 3) & ~size_t{3};
+  const size_t start = p;
+  if (p + 4 > n) return false;
+  const size_t names = u32(d + p);
+  p += 4;
+  if (5 * names > n - p) return false;
+  for (size_t k = 0; k < names; ++k) {
+    p = (p + 3) & ~size_t{3};
+    if (p + 4 > n) return false;
+    const size_t length = u32(d + p);
+    const size_t end = p + 4 + length;
+    if (length == 0 || end > n || d[end - 1]) return false;
+    p = end;
+  }
+  msg->names = std::string_view(d + start, p - start);
+  msg->name_count = names;
+  for (int f = 0; f < 3; ++f) {
+    p = (p + 3) & ~size_t{3};
+    if (p + 4 > n) return false;
+    const size_t c = u32(d + p);
+    p += 4;
+    if (c) {
+      p = ((p + 3) & ~size_t{7}) + 4;
+      if (p > n || c > (n - p) / 8) return false;
+    }
+    msg->offsets[f] = p;
+    msg->counts[f] = c;
+    p += 8 * c;
+  }
+  msg->data = d;
+  return true;
+}
 
 class Step {
  public:
@@ -242,63 +301,6 @@ class Step {
   }
 
  private:
-  struct Message {
-    const char *data = nullptr;
-    std::int64_t stamp = 0;
-    std::string_view names;   // the name sequence's CDR bytes
-    size_t name_count = 0;
-    std::array<size_t, 3> offsets{}, counts{};
-  };
-
-  static std::uint32_t u32(const char *p) {
-    std::uint32_t v;
-    std::memcpy(&v, p, 4);
-    return v;
-  }
-
-  // Little-endian JointState CDR (bagio.JointStateDecoder._fast's offsets: alignment relative
-  // to the body at offset 4; a float64 sequence is 8-aligned only when not empty).
-  static bool parse(const char *d, size_t n, Message *msg) {
-    if (n < 16 || d[0] != 0 || d[1] != 1) return false;
-    std::int32_t sec;
-    std::memcpy(&sec, d + 4, 4);
-    msg->stamp = static_cast<std::int64_t>(sec) * 1000000000LL + u32(d + 8);
-    const size_t flen = u32(d + 12);
-    size_t p = 16 + flen;
-    if (flen == 0 || p > n || d[p - 1]) return false;
-    p = (p + 3) & ~size_t{3};
-    const size_t start = p;
-    if (p + 4 > n) return false;
-    const size_t names = u32(d + p);
-    p += 4;
-    if (5 * names > n - p) return false;
-    for (size_t k = 0; k < names; ++k) {
-      p = (p + 3) & ~size_t{3};
-      if (p + 4 > n) return false;
-      const size_t length = u32(d + p);
-      const size_t end = p + 4 + length;
-      if (length == 0 || end > n || d[end - 1]) return false;
-      p = end;
-    }
-    msg->names = std::string_view(d + start, p - start);
-    msg->name_count = names;
-    for (int f = 0; f < 3; ++f) {
-      p = (p + 3) & ~size_t{3};
-      if (p + 4 > n) return false;
-      const size_t c = u32(d + p);
-      p += 4;
-      if (c) {
-        p = ((p + 3) & ~size_t{7}) + 4;
-        if (p > n || c > (n - p) / 8) return false;
-      }
-      msg->offsets[f] = p;
-      msg->counts[f] = c;
-      p += 8 * c;
-    }
-    msg->data = d;
-    return true;
-  }
-
   void check(const Array &theta, int c) {
     if (theta.ndim() != 1 || theta.shape(0) != static_cast<py::ssize_t>(base_.size()))
       throw std::invalid_argument("push: theta must have one value per base parameter");
@@ -521,6 +523,40 @@ class Step {
   std::map<std::string, std::vector<int>, std::less<>> layouts_;
 };
 
+// JointState CDR messages sharing one name sequence and array lengths, decoded at once:
+// (stamps (M,) int64 ns, the name sequence's CDR bytes, position, velocity, effort (M, k)),
+// or None when there are none, or one is not bytes, not little-endian CDR (parse) or differs
+// from the first in names or lengths (the caller decodes such runs message by message).
+py::object decode_joint_states(const py::list &messages) {
+  const std::uint16_t one = 1;
+  const size_t M = messages.size();
+  if (*reinterpret_cast<const unsigned char *>(&one) != 1 || M == 0) return py::none();
+  std::vector<Message> parsed(M);
+  for (size_t k = 0; k < M; ++k) {
+    PyObject *item = PyList_GET_ITEM(messages.ptr(), k);
+    if (!PyBytes_Check(item) ||
+        !parse(PyBytes_AS_STRING(item), static_cast<size_t>(PyBytes_GET_SIZE(item)),
+               &parsed[k]) ||
+        parsed[k].names != parsed[0].names || parsed[k].counts != parsed[0].counts)
+      return py::none();
+  }
+  const auto rows = static_cast<py::ssize_t>(M);
+  py::array_t<long long> stamps(rows);
+  long long *S = stamps.mutable_data();
+  for (size_t k = 0; k < M; ++k) S[k] = parsed[k].stamp;
+  std::array<py::array_t<double>, 3> fields;
+  for (int f = 0; f < 3; ++f) {
+    const size_t c = parsed[0].counts[f];
+    fields[f] = py::array_t<double>({rows, static_cast<py::ssize_t>(c)});
+    double *out = fields[f].mutable_data();
+    for (size_t k = 0; k < M; ++k)
+      std::memcpy(out + k * c, parsed[k].data + parsed[k].offsets[f], 8 * c);
+  }
+  const std::string_view names = parsed[0].names;
+  return py::make_tuple(stamps, py::bytes(names.data(), names.size()), fields[0], fields[1],
+                        fields[2]);
+}
+
 // JointState CDR messages filled in from a template (bagio.encode_joint_states' layout: the
 // CDR of a message with the same names and array lengths, zero stamp and values): one message
 // per stamp (N,) int64 ns, with the rows of position, velocity, effort (N, k) or None at the
@@ -689,5 +725,6 @@ PYBIND11_MODULE(_kernel, m) {
       .def("push_cdr", &Step::push_cdr)
       .def("regress", &Step::regress);
   m.def("fill_joint_states", &fill_joint_states);
+  m.def("decode_joint_states", &decode_joint_states);
   m.def("factor_information", &factor_information);
 }

@@ -36,7 +36,7 @@ from rosbags.typesys.store import Typestore
 from identification_node.errors import IdentificationError
 from identification_node.records import JointStateRecord
 
-try:   # the compiled JointState filler (setup.py builds it when it can; else numpy below)
+try:   # the compiled JointState filler and block decoder (setup.py builds it when it can)
     from identification_node import _kernel
 except ImportError:
     _kernel = None
@@ -142,6 +142,21 @@ class JointStateDecoder:
             except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
                 pass
         return decode_joint_state_reference(raw)
+
+    def block(self, messages: list[bytes]) -> JointStateRecord | None:
+        """Messages sharing names and array lengths decoded into one block (stamp_ns (M,)
+        int64, arrays (M, k)), what decoding them one by one gives, stacked; None when they
+        do not share a layout, one is not fast-path CDR, or the extension is not built."""
+        decoded = None if _kernel is None else _kernel.decode_joint_states(messages)
+        if decoded is None:
+            return None
+        stamps, blob, position, velocity, effort = decoded
+        if blob != self._names[0]:
+            try:   # new names: decoded (and checked) once, by the Python path
+                self._fast(messages[0])
+            except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
+                return None
+        return JointStateRecord(stamps, self._names[1], position, velocity, effort)
 
     def _fast(self, data: bytes, spans: list | None = None) -> JointStateRecord:
         """Decode; ``spans`` (if given) gets the (byte offset, count) of the three arrays."""

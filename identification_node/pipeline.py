@@ -67,7 +67,7 @@ class PipelineConfig:
     converged_ratio: float = 0.1
     max_condition: float = 1e8
     min_samples: int = 1000
-    compiled: bool = True    # the compiled per-run step and RLS update when built
+    compiled: bool = True    # the compiled per-run step, RLS update and decoding when built
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""
@@ -296,14 +296,19 @@ class IdentificationPipeline:
         return self._finish(*outputs)
 
     def _decoded(self, queued: list, decoder: JointStateDecoder) -> list:
-        """Queued records with the lists of CDR messages among them decoded into records (the
-        messages that cannot be decoded counted as received and 'malformed')."""
+        """Queued records with the lists of CDR messages among them decoded into records, or
+        into one block when they share a layout (compiled decoder; the messages that cannot
+        be decoded counted as received and 'malformed')."""
         if all(type(m) is not list for m in queued):
             return queued
         out = []
         for item in queued:
             if type(item) is not list:
                 out.append(item)
+                continue
+            block = decoder.block(item) if self.config.compiled else None
+            if block is not None:
+                out.append(block)
                 continue
             for raw in item:
                 try:
@@ -513,9 +518,12 @@ class IdentificationPipeline:
                        | (s.stamps <= self._newest_js - self.config.hold_time))
         # decided is a prefix: stamps are increasing.
         k = int(np.count_nonzero(decided))
-        ready, self._pending_js = s.head(k), s.tail(k)
         if k == 0:
             return None
+        if k == len(s.stamps):
+            ready, self._pending_js = s, _Samples.empty(self.robot.dof)
+        else:
+            ready, self._pending_js = s.head(k), s.tail(k)
         match = self._nearest(cur.stamps, ready.stamps)
         ok = match >= 0
         self._reject('no_current', np.count_nonzero(~ok))
@@ -529,10 +537,10 @@ class IdentificationPipeline:
         done = cur.stamps < horizon
         self._reject('unmatched_current', np.count_nonzero(done & ~used & ~cur.used))
         cur.used |= used
-        self._currents = cur.select(~done)
-        ready = ready.select(ok)
-        m = match[ok]
-        return self._with_torque(ready, cur.currents[m], cur.theta[m])
+        self._currents = cur.select(~done) if done.any() else cur
+        if not ok.all():
+            ready, match = ready.select(ok), match[ok]
+        return self._with_torque(ready, cur.currents[match], cur.theta[match])
 
     def _nearest(self, ref: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Index of the nearest ``ref`` stamp within tolerance for each ``t``, else -1."""
@@ -819,7 +827,7 @@ class _Samples:
             return self
         merged = _Samples(*[None if a is None else np.concatenate([a, b])
                             for a, b in zip(self._arrays(), other._arrays())])
-        if self.currents is not None:
+        if self.currents is not None and other.stamps[0] < self.stamps[-1]:
             # Current messages may interleave: keep the buffer sorted by stamp.
             return merged.select(np.argsort(merged.stamps, kind='stable'))
         return merged

@@ -14,6 +14,7 @@ from identification_node.records import JointStateRecord
 from identification_node.robot import load_robot
 from identification_node.signals import FixedLagSmoother
 from identification_node.simulation import SensorNoise, simulate_kinematic
+from identification_node.torque import JointTorqueConfig, TorqueConverter
 from identification_node.trajectories import FourierTrajectory
 
 FIXTURES = Path(__file__).parent / 'fixtures'
@@ -260,6 +261,142 @@ def test_joint_state_filler_equals_numpy_encoder(monkeypatch):
         bagio._kernel.fill_joint_states(*bagio._joint_state_layout(('a',), (1, 0, 0))[::2],
                                         np.zeros(2, dtype=np.int64), np.zeros((3, 1)), None,
                                         None)
+
+
+def test_block_decoder_equals_decoding_message_by_message():
+    """JointStateDecoder.block (the compiled decoder): runs of one layout (frame ids shifting
+    the alignment, NaN/inf/-0 values, negative stamps, empty arrays) decode to the stacked
+    records of decoding them one by one, names from the cache or decoded afresh; None for
+    anything the fast path does not take alike, which the caller then decodes one by one."""
+    rng = np.random.default_rng(11)
+    dec = bagio.JointStateDecoder()
+    for k in range(60):
+        names = [f'j{i}' + 'x' * int(rng.integers(0, 5)) for i in range(int(rng.integers(1, 8)))]
+        if k % 3 == 0:
+            names = ['shoulder', 'elbow']   # the same names again: from the cache
+        M, n = int(rng.integers(1, 6)), len(names)
+        widths = [n if rng.random() < 0.7 else 0 for _ in range(3)]
+        values = [rng.standard_normal((M, w)) for w in widths]
+        if widths[0]:
+            values[0][0, 0], values[0][-1, -1] = np.inf, -0.0
+        stamps = rng.integers(-3 * 10**9, 2 * 10**18, M)
+        messages = [bagio.encode_joint_state(0.0, names, *(v[m] for v in values),
+                                             frame_id='f' * int(rng.integers(0, 8)))
+                    for m in range(M)]
+        messages = [raw[:4] + struct.pack('<iI', *divmod(int(t), 10**9)) + raw[12:]
+                    for raw, t in zip(messages, stamps)]
+        block = dec.block(messages)
+        assert block.names == tuple(names) and block.stamp_ns.dtype == np.int64
+        one_by_one = [bagio.decode_joint_state_reference(raw) for raw in messages]
+        np.testing.assert_array_equal(block.stamp_ns, [r.stamp_ns for r in one_by_one])
+        for f in range(2, 5):
+            assert block[f].shape == (M, widths[f - 2])
+            np.testing.assert_array_equal(block[f], np.stack([r[f] for r in one_by_one]))
+            assert np.array_equal(np.signbit(block[f]), np.signbit(np.stack(
+                [r[f] for r in one_by_one])))
+    good = bagio.encode_joint_states(np.arange(3) * 10**6, ARM3, *[np.ones((3, 3))] * 3)
+    other_names = bagio.encode_joint_state(0.0, ('a', 'b', 'c'), *[[1.0, 2.0, 3.0]] * 3)
+    no_velocity = bagio.encode_joint_state(0.0, ARM3, [1.0, 2.0, 3.0], [], [1.0, 2.0, 3.0])
+    msg = bagio.make_joint_state(0.0, ARM3, [1.0, 2.0, 3.0], [], [])
+    big_endian = bytes(bagio.jazzy_typestore().serialize_cdr(msg, bagio.JOINT_STATE,
+                                                             little_endian=False))
+    bad_name = good[0].replace(b'elbow', b'elb\xffw')
+    for odd in ([], [other_names], [no_velocity], [good[0][:-9]], [big_endian],
+                [bytearray(good[0])], [bad_name]):
+        assert dec.block(good + odd if odd else odd) is None
+    assert dec.block(good).names == ARM3
+
+
+ARM3 = ('shoulder', 'elbow', 'wrist')
+
+
+def test_pipeline_on_current_messages_compiled_equals_python(monkeypatch):
+    """Joint states and 3-phase motor currents as CDR messages in runs of 1-5, as the node
+    takes them (reordered channels, a NaN current, a garbage message, unknown channels, a NaN
+    position among them): with the compiled decoding and step, with the Python path, and
+    decoded beforehand record by record, the same outputs, counters and estimate; the
+    compiled pipeline decodes runs of one layout as blocks."""
+    robot = load_robot('mit_dd_arm')
+    motor = {'source': 'three_phase', 'kt': 0.5, 'gear_ratio': 50.0, 'pole_pairs': 7}
+    converter = TorqueConverter(robot.joint_names, [motor] * robot.dof)
+    N = 3000
+    t = np.arange(N) / 1000.0
+    traj = FourierTrajectory.random(robot, harmonics=4, period=5.0, seed=3)
+    sim = simulate_kinematic(robot, None, traj, t, SensorNoise(torque_std=0.3), seed=3)
+    stamps = 10**18 + np.round(t * 1e9).astype(np.int64)
+    slots = converter.current_channel_slots()
+    amps = converter.currents_from_torque(sim.tau_meas, sim.q_meas)
+    values = amps[:, [s[1] for s in slots], [s[2] for s in slots]]
+    channels = [s[0] for s in slots]
+    js = bagio.encode_joint_states(stamps, robot.joint_names, sim.q_meas, sim.qd_meas, None)
+    cur = bagio.encode_joint_states(stamps + 20_000, channels, None, None, values)
+
+    def current(k, names, v):
+        return bagio.encode_joint_states(stamps[k:k + 1] + 20_000, names, None, None, v)[0]
+    for k in range(500, N, 700):
+        cur[k] = current(k, channels[::-1], values[k:k + 1, ::-1])   # reordered, valid
+    cur[1001] = current(1001, channels, np.where(np.arange(len(channels)) == 4, np.nan,
+                                                 values[1001:1002]))
+    cur[1502] = b'\x00\x01garbage'
+    cur[2003] = current(2003, [f'x{i}/ia' for i in range(len(channels))], values[2003:2004])
+    js[2504] = bagio.encode_joint_states(stamps[2504:2505], robot.joint_names,
+                                         np.full((1, robot.dof), np.nan),
+                                         sim.qd_meas[2504:2505], None)[0]
+    blocks = [0]
+    original = bagio.JointStateDecoder.block
+
+    def counted(self, messages):
+        out = original(self, messages)
+        blocks[0] += out is not None
+        return out
+    monkeypatch.setattr(bagio.JointStateDecoder, 'block', counted)
+    torque = {j: JointTorqueConfig(**motor) for j in robot.joint_names}
+    pipes = [IdentificationPipeline(robot, PipelineConfig(torque=torque, compiled=flag))
+             for flag in (True, False, False)]
+    outs, used = [[], [], []], []
+    rng = np.random.default_rng(2)
+    k = 0
+    while k < N:
+        m = int(rng.integers(1, 6))
+        for i, (p, out) in enumerate(zip(pipes, outs)):
+            if i == 2:   # decoded beforehand, record by record
+                for raw, add in [(r, p.add_joint_state) for r in js[k:k + m]] + [
+                        (r, p.add_currents) for r in cur[k:k + m]]:
+                    try:
+                        add(bagio.decode_joint_state(raw))
+                    except Exception:   # noqa: BLE001 (the garbage message)
+                        p.add_malformed()
+            else:
+                before = blocks[0]
+                p.add_joint_state_cdr(js[k:k + m])
+                p.add_currents_cdr(cur[k:k + m])
+                out.append(p.process())
+                used.append((i, blocks[0] - before))
+                continue
+            out.append(p.process())
+        k += m
+    for p, out in zip(pipes, outs):
+        out.append(p.process(flush=True))
+    fields = ('stamps_ns', 'q', 'qd', 'qdd', 'measured', 'predicted')
+    got, python, ref = ({f: np.concatenate([getattr(o, f) for o in out]) for f in fields}
+                        for out in outs)
+    assert len(got['stamps_ns']) > N - 100
+    for f in fields:
+        np.testing.assert_array_equal(python[f], ref[f])
+    assert np.array_equal(got['stamps_ns'], python['stamps_ns'])
+    for f in fields[1:-1]:
+        close(got[f], python[f], 1e-9)
+    close(got['predicted'], python['predicted'], 1e-8)   # the first estimates: ill-conditioned
+    # a joint state whose current was rejected takes its neighbour's (within align_tolerance)
+    expected = {'non_finite': 2, 'malformed': 1, 'unknown_channels': 1, 'unmatched_current': 1}
+    for p in pipes:
+        assert {r: c for r, c in p.rejected.items() if c} == expected
+    assert sum(b for i, b in used if i == 1) == 0            # compiled: false decodes alone
+    assert sum(b for i, b in used if i == 0) > 1.5 * len(used) / 2   # both streams, mostly
+    a, b, c = (p.estimate() for p in pipes)
+    assert a.num_samples == b.num_samples == c.num_samples > N - 100
+    close(a.values, b.values, 1e-8)
+    np.testing.assert_array_equal(b.values, c.values)
 
 
 def test_information_factor_equals_the_python_path():
