@@ -56,7 +56,7 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     from rclpy.signals import SignalHandlerOptions
     from rclpy.task import Future
 
-    from identification_node.pipeline import IdentificationPipeline, PipelineOutput
+    from identification_node.pipeline import IdentificationPipeline, PipelineOutput, _blocks
     from identification_node.ros import conversions, node as node_module
     from identification_node.ros.spin import make_executor
 
@@ -74,12 +74,12 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
         return wrapper
 
     def passthrough(self: IdentificationPipeline, flush: bool = False) -> PipelineOutput:
-        records = self._decoded(self._take(self._js_queue), self._js_decoder)
-        self.received += len(records)
-        if not records:
+        blocks = list(_blocks(self._decoded(self._take(self._js_queue), self._js_decoder)))
+        if not blocks:
             return PipelineOutput.empty(self.robot.dof)
-        stamps = np.array([r.stamp_ns for r in records], dtype=np.int64)
-        q = np.array([r.position for r in records])
+        stamps = np.concatenate([b.stamp_ns for b in blocks])
+        q = np.vstack([b.position for b in blocks])
+        self.received += len(stamps)
         return PipelineOutput(stamps, q, q, q, q, q)
 
     process = passthrough if mode == 'passthrough' else IdentificationPipeline.process
