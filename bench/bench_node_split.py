@@ -54,11 +54,9 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     import rclpy
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
-    from rclpy.task import Future
 
     from identification_node.pipeline import IdentificationPipeline, PipelineOutput, _blocks
     from identification_node.ros import conversions, node as node_module
-    from identification_node.ros.spin import make_executor
 
     spent = dict.fromkeys(PARTS, 0.0)
     calls = dict.fromkeys(PARTS, 0)
@@ -96,42 +94,21 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
                                            Parameter('compiled', value=mode != 'python')])
     if mode == 'compiled' and not node.pipeline.compiled:
         sys.exit('the compiled per-run step is not built')
-    executor = make_executor()
-    executor.add_node(node)
-    never = Future()
-    total = seconds + warmup
-    helpers = [subprocess.Popen([sys.executable, __file__, '--listen', str(total + 4)], cwd=REPO)]
-    time.sleep(1.0)
-    helpers.append(subprocess.Popen(
-        [sys.executable, str(REPO / 'bench' / 'bench_node.py'), '--publish', str(rate),
-         str(seconds), str(warmup)], cwd=REPO, stdout=subprocess.DEVNULL))
-    end = time.monotonic() + 30
-    while node.pipeline.received < rate * warmup and time.monotonic() < end:
-        executor.spin_until_future_complete(never, timeout_sec=0.05)
-    if not node.pipeline.received:
-        sys.exit('bench_node_split: the node received nothing from the publisher')
-    spent.update(dict.fromkeys(PARTS, 0.0))
-    calls.update(dict.fromkeys(PARTS, 0))
-    received0 = node.pipeline.received
-    cpu0, t0 = time.process_time(), time.monotonic()
-    while time.monotonic() - t0 < seconds - 1.0:
-        executor.spin_until_future_complete(never, timeout_sec=0.05)
-    result = {'cpu': time.process_time() - cpu0, 'wall': time.monotonic() - t0,
-              'runs': calls['pipeline'], 'messages': node.pipeline.received - received0, **spent}
-    for helper in helpers:
-        helper.kill()
-    print(json.dumps(result), flush=True)
+
+    def reset() -> None:
+        spent.update(dict.fromkeys(PARTS, 0.0))
+        calls.update(dict.fromkeys(PARTS, 0))
+    result = drive(node, lambda: node.pipeline.received, rate, seconds, warmup, reset)
+    print(json.dumps({**result, 'runs': calls['pipeline'], **spent}), flush=True)
     os._exit(0)   # no teardown to wait for
 
 
 def run_relay(rate: float, seconds: float, warmup: float) -> None:
     """The ``relay`` mode of run_node (rclpy initialised)."""
     import rclpy
-    from rclpy.task import Future
     from sensor_msgs.msg import JointState
 
     from identification_node.ros.node import INPUT_QOS, OUTPUT_QOS
-    from identification_node.ros.spin import make_executor
 
     node = rclpy.create_node('identification_node')
     pub = node.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
@@ -141,6 +118,20 @@ def run_relay(rate: float, seconds: float, warmup: float) -> None:
         received[0] += 1
         pub.publish(raw)
     node.create_subscription(JointState, 'joint_states', relay, INPUT_QOS, raw=True)
+    result = drive(node, lambda: received[0], rate, seconds, warmup)
+    print(json.dumps({**result, 'runs': 0, **dict.fromkeys(PARTS, 0.0)}), flush=True)
+    os._exit(0)
+
+
+def drive(node, received, rate: float, seconds: float, warmup: float,
+          reset=lambda: None) -> dict:
+    """Spin ``node`` with the listener and the publisher (other processes) running; after
+    ``warmup`` s of messages, ``reset()`` and measure: the process CPU (s), the wall time and
+    the messages ``received()`` over ``seconds`` - 1 s."""
+    from rclpy.task import Future
+
+    from identification_node.ros.spin import make_executor
+
     executor = make_executor()
     executor.add_node(node)
     never = Future()
@@ -151,18 +142,20 @@ def run_relay(rate: float, seconds: float, warmup: float) -> None:
         [sys.executable, str(REPO / 'bench' / 'bench_node.py'), '--publish', str(rate),
          str(seconds), str(warmup)], cwd=REPO, stdout=subprocess.DEVNULL))
     end = time.monotonic() + 30
-    while received[0] < rate * warmup and time.monotonic() < end:
+    while received() < rate * warmup and time.monotonic() < end:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    received0 = received[0]
+    if not received():
+        sys.exit('bench_node_split: the node received nothing from the publisher')
+    reset()
+    received0 = received()
     cpu0, t0 = time.process_time(), time.monotonic()
     while time.monotonic() - t0 < seconds - 1.0:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    result = {'cpu': time.process_time() - cpu0, 'wall': time.monotonic() - t0, 'runs': 0,
-              'messages': received[0] - received0, **dict.fromkeys(PARTS, 0.0)}
+    result = {'cpu': time.process_time() - cpu0, 'wall': time.monotonic() - t0,
+              'messages': received() - received0}
     for helper in helpers:
         helper.kill()
-    print(json.dumps(result), flush=True)
-    os._exit(0)
+    return result
 
 
 def measure(mode: str, args: argparse.Namespace) -> dict:
