@@ -481,22 +481,26 @@ class IdentificationPipeline:
                 continue
             cols, slots, angle_cols, angle_joints = layout
             values = np.asarray(b.effort, dtype=float)[:, cols]
-            finite = np.isfinite(values).all(axis=1)
-            if not finite.all():
-                self._reject('non_finite', np.count_nonzero(~finite))
             cur = np.full((M, 3 * n), np.nan)
             cur[:, slots] = values
             theta = np.full((M, n), np.nan)
             if pos:
                 theta[:, angle_joints] = np.asarray(b.position, dtype=float)[:, angle_cols]
-            parts.append((self._seconds(b.stamp_ns)[finite], cur.reshape(M, n, 3)[finite],
-                          theta[finite]))
+            part = (self._seconds(b.stamp_ns), cur.reshape(M, n, 3), theta)
+            finite = np.isfinite(values).all(axis=1)
+            if not finite.all():
+                self._reject('non_finite', np.count_nonzero(~finite))
+                part = tuple(a[finite] for a in part)
+            parts.append(part)
         if not parts:
             return _Samples.empty(n, with_currents=True)
-        stamps, cur, theta = (np.concatenate(a) for a in zip(*parts))
-        order = np.argsort(stamps, kind='stable')
+        stamps, cur, theta = parts[0] if len(parts) == 1 else (
+            np.concatenate(a) for a in zip(*parts))
+        if (stamps[1:] < stamps[:-1]).any():
+            order = np.argsort(stamps, kind='stable')
+            stamps, cur, theta = stamps[order], cur[order], theta[order]
         z = np.zeros((len(stamps), 0))
-        return _Samples(stamps[order], z, z, z, cur[order], theta[order])
+        return _Samples(stamps, z, z, z, cur, theta)
 
     def _decide_ready(self, flush: bool) -> _Samples | None:
         """Joint states whose currents are known (or will never come), with torque attached."""
@@ -546,8 +550,8 @@ class IdentificationPipeline:
         """Index of the nearest ``ref`` stamp within tolerance for each ``t``, else -1."""
         if len(ref) == 0:
             return np.full(len(t), -1)
-        hi = np.clip(np.searchsorted(ref, t), 1, len(ref) - 1) if len(ref) > 1 else \
-            np.zeros(len(t), dtype=int)
+        hi = np.minimum(np.maximum(np.searchsorted(ref, t), 1), len(ref) - 1) if len(ref) > 1 \
+            else np.zeros(len(t), dtype=int)
         lo = np.maximum(hi - 1, 0)
         pick = np.where(np.abs(ref[lo] - t) <= np.abs(ref[hi] - t), lo, hi)
         return np.where(np.abs(ref[pick] - t) <= self.config.align_tolerance, pick, -1)
