@@ -176,13 +176,12 @@ class TorqueConverter:
         self._poles = np.array([c.pole_pairs for c in self.configs], dtype=float)
         self._offset = np.array([c.angle_offset for c in self.configs])
         self._perm = np.array([_PERM[c.phase_order] for c in self.configs])  # (n, 3)
-        # for torque(): the three-phase joints, their phase columns and angle factors
+        # for torque(): the channels it reads, the three-phase joints and their phase columns
         self._used = np.zeros((len(names), 3), dtype=bool)   # current channels read
         self._used[self._single, 0] = True
         self._used[self._three, :] = True
         self._three_joints = np.flatnonzero(self._three)
         self._three_perm = self._perm[self._three]
-        self._three_factor = (self._poles * self._gear)[self._three]   # theta_e per rad of q
 
     @property
     def dof(self) -> int:
@@ -290,8 +289,9 @@ class TorqueConverter:
             tau[:, s] = self._gear[s] * self._kt[s] * cur[:, s, 0]
             t = self._three
             if len(self._three_joints):
-                th = np.zeros(shape)   # theta_e (electrical_angle) of the three-phase joints
-                th[:, t] = self._three_factor * q[:, t] + self._offset[t]
+                th = np.zeros(shape)
+                th[:, t] = electrical_angle(q[:, t], self._poles[t], self._gear[t],
+                                            self._offset[t])
                 if theta_e is not None:
                     given = self._array(theta_e, 'theta_e', shape)
                     th = np.where(np.isnan(given), th, given)
