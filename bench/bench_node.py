@@ -58,7 +58,7 @@ def publisher(rate: float, seconds: float, warmup: float, currents: bool) -> Non
     if currents:
         converter = TorqueConverter(robot.joint_names, [CURRENTS] * robot.dof)
         amps = converter.currents_from_torque(sim.tau_meas, sim.q_meas).reshape(period, -1)
-        channels = [f'{j}/{c}' for j in robot.joint_names for c in ('ia', 'ib', 'ic')]
+        channels = converter.current_channel_names()   # joint-major ia, ib, ic: amps' order
     rclpy.init()
     node = rclpy.create_node('bench_publisher')
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)

@@ -100,6 +100,12 @@ std::uint32_t u32(const char *p) {
   return v;
 }
 
+// parse reads values in the host's byte order: the decoders decline on big-endian hosts.
+bool little_endian_host() {
+  const std::uint16_t one = 1;
+  return *reinterpret_cast<const unsigned char *>(&one) == 1;
+}
+
 // Little-endian JointState CDR (bagio.JointStateDecoder._fast's offsets: alignment relative
 // to the body at offset 4; a float64 sequence is 8-aligned only when not empty).
 bool parse(const char *d, size_t n, Message *msg) {
@@ -258,8 +264,7 @@ class Step {
                       Array theta, bool measured_velocity) {
     const int c = (measured_velocity ? 3 : 2) * n_;
     check(theta, c);
-    const std::uint16_t one = 1;
-    if (*reinterpret_cast<const unsigned char *>(&one) != 1) return py::none();  // big-endian
+    if (!little_endian_host()) return py::none();
     const size_t count = messages.size(), old_t = t_.size(), old_x = x_.size();
     auto undo = [&]() {
       t_.resize(old_t);
@@ -528,9 +533,8 @@ class Step {
 // or None when there are none, or one is not bytes, not little-endian CDR (parse) or differs
 // from the first in names or lengths (the caller decodes such runs message by message).
 py::object decode_joint_states(const py::list &messages) {
-  const std::uint16_t one = 1;
   const size_t M = messages.size();
-  if (*reinterpret_cast<const unsigned char *>(&one) != 1 || M == 0) return py::none();
+  if (!little_endian_host() || M == 0) return py::none();
   std::vector<Message> parsed(M);
   for (size_t k = 0; k < M; ++k) {
     PyObject *item = PyList_GET_ITEM(messages.ptr(), k);

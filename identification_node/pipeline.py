@@ -832,6 +832,7 @@ class _Samples:
         merged = _Samples(*[None if a is None else np.concatenate([a, b])
                             for a, b in zip(self._arrays(), other._arrays())])
         if self.currents is not None and other.stamps[0] < self.stamps[-1]:
-            # Current messages may interleave: keep the buffer sorted by stamp.
+            # Current messages may interleave: keep the buffer sorted by stamp (both parts are
+            # sorted, so only when they overlap).
             return merged.select(np.argsort(merged.stamps, kind='stable'))
         return merged
