@@ -4,7 +4,6 @@ and both match the bag's true parameters."""
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ from std_srvs.srv import Trigger
 
 from identification_node.replay import identify_bag
 from identification_node.settings import Settings, read_parameter_file
-from ros_helpers import RosHarness, domain_id
+from ros_helpers import RosHarness, domain_id, wait_for
 from test_bags import BAGS
 from test_node import reliable, remaps, start_node_process, stop_process
 
@@ -31,28 +30,34 @@ def ros():
 @pytest.mark.parametrize('bag', sorted(BAGS))
 def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
     config = read_parameter_file(REPO / 'config' / BAGS[bag])
+    settings = Settings.from_dict(config)
+    offline = identify_bag(REPO / 'bags' / bag, settings, settings.load_robot())
+    est = offline.pipeline.estimate()
     name = f'play_{bag}'
     params = dict(config, process_period=0.01, output_directory=str(tmp_path / 'out'),
                   **reliable(name))
     node = start_node_process(ros, name, params, tmp_path, remaps(name))
+
+    def live_estimate():
+        return json.loads(ros.call(Trigger, f'/{name}/get_estimate', Trigger.Request()).message)
     try:
+        # The player exits only once the node acknowledged every message: a reliable
+        # writer's unacknowledged tail dies with its process.
         play = subprocess.run(
             [sys.executable, '-m', 'identification_node', 'play', str(REPO / 'bags' / bag),
              '--rate', '2', '--topics', '/joint_states', '/motor_currents',
-             '--wait-for-subscribers', '30', '--ros-args',
+             '--wait-for-subscribers', '30', '--wait-for-all-acked', '30', '--ros-args',
              *sum((['-r', r] for r in remaps(name)), [])],
             cwd=REPO, env=ros.env(), capture_output=True, text=True, timeout=120)
         assert play.returncode == 0, play.stderr
-        time.sleep(1.0)   # the node works through what is queued
-        live = json.loads(ros.call(Trigger, f'/{name}/get_estimate', Trigger.Request()).message)
+        assert 'did not acknowledge' not in play.stderr, play.stderr
+        # At the end of a live stream the node still holds the samples its smoother and the
+        # current alignment wait for; offline replay flushes them.
+        live = wait_for(lambda: (e := live_estimate())['num_samples'] >= est.num_samples - 5
+                        and e, 20) or live_estimate()
     finally:
         stop_process(node)
-    settings = Settings.from_dict(config)
-    offline = identify_bag(REPO / 'bags' / bag, settings, settings.load_robot())
-    est = offline.pipeline.estimate()
     assert live['names'] == est.names
-    # At the end of a live stream the node still holds the samples its smoother and the
-    # current alignment wait for; offline replay flushes them.
     assert 0 <= est.num_samples - live['num_samples'] <= 5
     values, stddev = np.array(live['values']), np.array(live['stddev'])
     # Those few samples aside, both saw the same data through the same pipeline.
