@@ -21,6 +21,7 @@ from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type re
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_event_handler import ParameterEventHandler
+from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
@@ -34,7 +35,7 @@ from identification_node.records import JointStateRecord
 from identification_node.robot import load_robot
 from identification_node.bagio import encode_joint_states
 from identification_node.ros.conversions import PolledSubscription
-from identification_node.ros.node import IdentificationNode
+from identification_node.ros.node import INPUT_QOS, IdentificationNode
 from identification_node.ros.sim_node import SampleSource, SimSetup
 from identification_node.settings import Settings
 from identification_node.simulation import SensorNoise, simulate_kinematic
@@ -583,6 +584,19 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
     assert all(v is not None and math.isfinite(v) for v in est['values'] + est['stddev'])
     assert est['num_samples'] > N - 200
     stop_process(proc)
+
+
+def test_qos_overrides_apply_to_their_own_subscription_only(ros):
+    """An override of one input's reliability changes neither the other input nor the
+    default profile that later nodes of the process start from."""
+    node = start_node(ros, 'qos_one', {
+        'robot': 'mit_dd_arm', 'torque_source': ['three_phase'], 'kt': [1.0],
+        'qos_overrides./qos_one/joint_states.subscription.reliability': 'reliable'}, 'qos_one')
+    js, cur = (source.subscription.qos_profile.reliability for source in node._inputs)
+    assert (js, cur) == (ReliabilityPolicy.RELIABLE, ReliabilityPolicy.BEST_EFFORT)
+    assert INPUT_QOS.reliability == ReliabilityPolicy.BEST_EFFORT
+    ros.remove(node)
+    node.destroy_node()
 
 
 def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):

@@ -17,6 +17,7 @@ and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import sys
@@ -97,14 +98,16 @@ class IdentificationNode(Node):
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
 
+        # A copy of INPUT_QOS each: the override parameters are applied to the profile in place.
         overrides = QoSOverridingOptions.with_default_policies()
         self._inputs = [PolledSubscription(self, JointState, 'joint_states',
-                                           self.pipeline.add_joint_state_cdr, INPUT_QOS,
+                                           self.pipeline.add_joint_state_cdr,
+                                           copy.copy(INPUT_QOS),
                                            qos_overriding_options=overrides)]
         if self.pipeline.converter.needs_currents:
             self._inputs.append(PolledSubscription(
-                self, JointState, 'motor_currents', self.pipeline.add_currents_cdr, INPUT_QOS,
-                qos_overriding_options=overrides))
+                self, JointState, 'motor_currents', self.pipeline.add_currents_cdr,
+                copy.copy(INPUT_QOS), qos_overriding_options=overrides))
         self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
         self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
