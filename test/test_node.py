@@ -21,7 +21,7 @@ from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type re
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_event_handler import ParameterEventHandler
-from rclpy.qos import ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
@@ -584,6 +584,41 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
     assert all(v is not None and math.isfinite(v) for v in est['values'] + est['stddev'])
     assert est['num_samples'] > N - 200
     stop_process(proc)
+
+
+def test_messages_lost_before_the_node_takes_them_are_counted(ros, diag, tmp_path):
+    """The node process is stopped (SIGSTOP) while 5000 joint states go out through a
+    publisher that keeps only 10: the middleware reports what never arrived, and received
+    plus lost is every message sent. A reset clears the count."""
+    proc = start_node_process(ros, 'lossy', {
+        'robot': 'mit_dd_arm', 'torque_source': ['measured'], 'process_period': 0.01,
+        'publish.diagnostics_rate': 5.0}, tmp_path, remaps('lossy'))
+    pub = ros.client.create_publisher(JointState, '/lossy/joint_states', QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    assert wait_for(lambda: pub.get_subscription_count(), 10)
+    N, rng = 7000, np.random.default_rng(4)
+    sent = encode_joint_states(10**9 + np.arange(N) * 10**6, ['joint1', 'joint2', 'joint3'],
+                               *rng.random((3, N, 3)))
+    for k, raw in enumerate(sent):
+        if k in (1000, 6000):
+            os.kill(proc.pid, signal.SIGSTOP if k == 1000 else signal.SIGCONT)
+        pub.publish(raw)
+        if k % 10 == 0:
+            time.sleep(0.005)
+
+    def counts():
+        values = last_status(diag, 'lossy') or {}
+        return (int(values.get('samples_received', 0)),
+                int(values.get('lost_messages.joint_states', 0)))
+    assert wait_for(lambda: sum(counts()) == N, 15), counts()
+    received, lost = counts()
+    assert lost > 0 and received > 1000, (received, lost)
+    assert ros.call(Trigger, '/lossy/reset', Trigger.Request()).success
+    assert wait_for(lambda: counts() == (0, 0), 5), counts()
+    ros.client.destroy_publisher(pub)
+    stop_process(proc)
+    assert re.search(r'messages on /lossy/joint_states lost before the node took them',
+                     proc.stderr.read())
 
 
 def test_qos_overrides_apply_to_their_own_subscription_only(ros):
