@@ -182,8 +182,10 @@ class Stream:
     def wait_done(self):
         assert self.proc.wait(DURATION + 60) == 0, self.proc.stderr.read()
         self.sim_log = self.proc.stderr.read()
-        # Let the nodes work through what is queued, and report it.
-        time.sleep(1.0)
+        # The arm left once the nodes had every sample; wait until they report them taken.
+        total = SimSetup.from_parameters(self.sim_params).num_samples
+        wait_for(lambda: all(int((last_status(self.diag, n) or {}).get('samples_received', 0))
+                             >= total for n in self.names), 20)
 
     def stop(self):
         for proc in self.procs.values():
@@ -619,6 +621,35 @@ def test_messages_lost_before_the_node_takes_them_are_counted(ros, diag, tmp_pat
     stop_process(proc)
     assert re.search(r'messages on /lossy/joint_states lost before the node took them',
                      proc.stderr.read())
+
+
+def test_simulated_arm_waits_for_a_stalled_reliable_subscriber(ros, diag, tmp_path):
+    """The node, a reliable subscriber, is stopped during the simulated arm's run: the arm
+    stays up until the node has acknowledged (or been told it lost) every sample, then exits
+    0; nothing goes missing uncounted."""
+    proc = start_node_process(ros, 'stall', dict(
+        robot='mit_dd_arm', torque_source=['measured'], process_period=0.01,
+        **{'publish.diagnostics_rate': 5.0}, **reliable('stall')), tmp_path, remaps('stall'))
+    duration = 1.5
+    sim_params = {'robot': 'mit_dd_arm', 'trajectory': 'fourier', 'rate': 1000.0,
+                  'duration': duration, 'wait_for_subscribers': 1}
+    sim = ros.start('sim', sim_params, tmp_path, 'simulated_arm', extra=('-r', '__ns:=/stall'))
+
+    def counts():
+        values = last_status(diag, 'stall') or {}
+        return (int(values.get('samples_received', 0)),
+                int(values.get('lost_messages.joint_states', 0)))
+    assert wait_for(lambda: counts()[0] > 0, 30), sim.stderr.read() if sim.poll() else ''
+    os.kill(proc.pid, signal.SIGSTOP)
+    time.sleep(duration + 1.0)
+    alive = sim.poll() is None
+    os.kill(proc.pid, signal.SIGCONT)
+    assert alive, 'the simulated arm left while its reliable subscriber had not acknowledged'
+    assert sim.wait(30) == 0
+    N = SimSetup.from_parameters(sim_params).num_samples
+    assert wait_for(lambda: sum(counts()) == N, 15), counts()
+    assert 'did not acknowledge' not in sim.stderr.read()
+    stop_process(proc)
 
 
 def test_qos_overrides_apply_to_their_own_subscription_only(ros):

@@ -1,12 +1,16 @@
 """Conversions between ROS messages and the core's plain arrays: stamps, JointState output, and
-JointState input taken from a subscription's queue in batches."""
+JointState input taken from a subscription's queue in batches; the acknowledgement wait of
+publishers about to go."""
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+import time
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
 from ..bagio import encode_joint_states
@@ -15,6 +19,18 @@ from ..bagio import encode_joint_states
 def time_msg(ns: int) -> Time:
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def wait_for_all_acked(publishers: Iterable[Publisher], timeout: float) -> bool:
+    """Wait up to ``timeout`` s in all until the reliable subscribers of ``publishers`` have
+    acknowledged everything published; False if some did not. Call before destroying them:
+    a reliable writer's unacknowledged messages die with it."""
+    deadline = time.monotonic() + timeout
+    ok = True
+    for pub in publishers:
+        left = max(deadline - time.monotonic(), 0.0)
+        ok &= bool(pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))))
+    return ok
 
 
 def publish_joint_states(publisher, stamps_ns: np.ndarray, names: Sequence[str], position=None,

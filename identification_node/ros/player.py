@@ -19,13 +19,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosReliability
 
 from ..bagio import CLOCK, BagReader, open_bag
 from ..errors import IdentificationError
+from .conversions import wait_for_all_acked
 
 DEFAULT_CLOCK_HZ = 40.0
 BATCH = 2e-4  # [s] messages due this close to now are published without sleeping
@@ -276,12 +276,7 @@ class BagPlayer:
     def wait_for_acks(self, timeout: float = 5.0) -> bool:
         """Wait until reliable subscribers acknowledged everything published (before the
         process exits, so the tail of the bag is not lost)."""
-        deadline = time.monotonic() + timeout
-        ok = True
-        for pub in self._pubs.values():
-            left = max(deadline - time.monotonic(), 0.0)
-            ok &= bool(pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))))
-        return ok
+        return wait_for_all_acked(self._pubs.values(), timeout)
 
     def close(self) -> None:
         """Destroy the publishers and close the bag (idempotent)."""

@@ -20,7 +20,9 @@ published. A dedicated thread schedules sample k at start + k / rate on time.mon
 publishes what is due, catching up in batches of at most ``MAX_BATCH`` samples. Header stamps
 are the simulated sample times plus ``stamp_offset``, never wall time. With
 ``wait_for_subscribers`` the first sample waits for that many subscriptions; as the noise is
-drawn sample by sample from ``seed``, such a run is reproducible (:class:`SampleSource`).
+drawn sample by sample from ``seed``, such a run is reproducible (:class:`SampleSource`). After
+the last sample of a run with a ``duration`` the node waits (at most ``ACK_TIMEOUT``) until
+its reliable subscribers have acknowledged every sample, then exits.
 
 The reported torque (and the currents) at sample k is the actuator torque at t_k, consistent
 with the motion at t_k (the simulator's torque is continuous over the sample period).
@@ -50,12 +52,13 @@ from ..simulation import ArmSimulator, SensorNoise, SimResult
 from ..torque import TorqueConverter
 from ..trajectories import Trajectory, load_trajectory
 from ..urdf_export import consistency_problems
-from .conversions import publish_joint_states, time_msg
+from .conversions import publish_joint_states, time_msg, wait_for_all_acked
 from .node import declare_settings, warn_unknown_parameters
 from .spin import run_node
 
 MAX_BATCH = 20      # samples per catch-up batch
 LINGER = 0.5        # s the process stays up after the last sample, for reliable subscribers
+ACK_TIMEOUT = 10.0  # s the last samples wait for reliable subscribers' acknowledgements
 ROBOT_KEYS = ('robot', 'robot_description', 'joints', 'extras', 'coulomb_velocity')
 
 SIM_PARAMETERS: dict[str, tuple[Any, str]] = {k: PARAMETERS[k] for k in ROBOT_KEYS + PER_JOINT}
@@ -239,6 +242,7 @@ class SimulatedArmNode(Node):
                          if v['publish_currents'] else None)
         self._pub_clock = (self.create_publisher(Clock, '/clock', SENSOR_QOS)
                            if v['publish_clock'] else None)
+        self._sample_pubs = [p for p in (self._pub_js, self._pub_cur) if p is not None]
         self._pub_urdf = self.create_publisher(String, 'robot_description', LATCHED_QOS)
         self._pub_urdf.publish(String(data=self.setup.robot.description))
         self.stats = RealTimeStats()
@@ -270,6 +274,10 @@ class SimulatedArmNode(Node):
     def _run(self) -> None:
         try:
             self._loop()
+            if not self._stop.is_set() and not wait_for_all_acked(self._sample_pubs,
+                                                                  ACK_TIMEOUT):
+                self.get_logger().warning(
+                    f'reliable subscribers did not acknowledge every sample in {ACK_TIMEOUT} s')
             st = self.stats
             if self.context.ok():
                 self.get_logger().info(
@@ -315,7 +323,7 @@ class SimulatedArmNode(Node):
     def _wait_for_subscribers(self) -> bool:
         """Wait for ``wait_for_subscribers`` subscriptions; False when stopped first."""
         want = self.setup.values['wait_for_subscribers']
-        pubs = [p for p in (self._pub_js, self._pub_cur) if p is not None]
+        pubs = self._sample_pubs
         if want and sum(p.get_subscription_count() for p in pubs) < want:
             self.get_logger().info(f'waiting for {want} subscriptions')
             while sum(p.get_subscription_count() for p in pubs) < want:
