@@ -35,6 +35,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from identification_node import bagio  # noqa: E402
 from identification_node.errors import IdentificationError  # noqa: E402
+from identification_node.ros.conversions import wait_for_all_acked  # noqa: E402
 from identification_node.ros.player import BagPlayer, offered_qos  # noqa: E402
 from identification_node.ros.recorder import BagRecorder  # noqa: E402
 
@@ -339,6 +340,7 @@ def _record_subprocess(ros, tmp_path, storage, sig):
             p.get_subscription_count() for p in (*pubs, latched)), 30), 'recorder not seen'
         assert proc.poll() is None, proc.communicate()
         sent, texts = _publish_mix(node, executor, pubs)
+        assert wait_for_all_acked(pubs[:1], 10), 'the recorder did not acknowledge'
         time.sleep(0.3)  # the best-effort tail
         assert not out.exists()  # the bag appears only when recording ends
         proc.send_signal(sig)
