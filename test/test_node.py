@@ -20,6 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type registration)
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.event_handler import UnsupportedEventTypeError
 from rclpy.parameter_event_handler import ParameterEventHandler
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -650,6 +651,30 @@ def test_simulated_arm_waits_for_a_stalled_reliable_subscriber(ros, diag, tmp_pa
     assert wait_for(lambda: sum(counts()) == N, 15), counts()
     assert 'did not acknowledge' not in sim.stderr.read()
     stop_process(proc)
+
+
+def test_a_middleware_without_message_lost_events_is_said_so(ros, diag, monkeypatch):
+    """Where the rmw cannot report lost messages the node still subscribes (with the QoS
+    overrides) and its diagnostics say the count is not reported, instead of a zero."""
+    from identification_node.ros import node as node_module
+
+    class Unsupported:      # raises where rclpy does: after the QoS override parameters
+        def create_event_handlers(self, *args):
+            raise UnsupportedEventTypeError('message lost')
+
+    def without_lost_events(*args, event_callbacks=None, **kwargs):
+        return PolledSubscription(*args, **kwargs, **(
+            {} if event_callbacks is None else {'event_callbacks': Unsupported()}))
+    monkeypatch.setattr(node_module, 'PolledSubscription', without_lost_events)
+    node = start_node(ros, 'no_lost', {
+        'robot': 'mit_dd_arm', 'torque_source': ['measured'], 'publish.diagnostics_rate': 5.0,
+        'qos_overrides./no_lost/joint_states.subscription.reliability': 'reliable'}, 'no_lost')
+    assert node._inputs[0].subscription.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+    assert wait_for(lambda: last_status(diag, 'no_lost'), 5)
+    assert last_status(diag, 'no_lost')['lost_messages.joint_states'] == \
+        'not reported by this middleware'
+    ros.remove(node)
+    node.destroy_node()
 
 
 def test_qos_overrides_apply_to_their_own_subscription_only(ros):
