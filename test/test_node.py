@@ -138,6 +138,13 @@ def last_status(diag, name):
     return diagnostic_values(found[-1]) if found else None
 
 
+def received_and_lost(diag, name):
+    """(samples received, joint-state messages lost) in node ``name``'s newest diagnostics."""
+    values = last_status(diag, name) or {}
+    return (int(values.get('samples_received', 0)),
+            int(values.get('lost_messages.joint_states', 0)))
+
+
 class Stream:
     """One simulated-arm run and two identification node processes listening to it:
     ``<prefix>_measured`` (joint torque from JointState.effort) and ``<prefix>_currents``
@@ -590,8 +597,8 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
 
 
 def test_messages_lost_before_the_node_takes_them_are_counted(ros, diag, tmp_path):
-    """The node process is stopped (SIGSTOP) while 5000 joint states go out through a
-    publisher that keeps only 10: the middleware reports what never arrived, and received
+    """The node process is stopped (SIGSTOP) while 5000 of 7000 joint states go out through
+    a publisher that keeps only 10: the middleware reports what never arrived, and received
     plus lost is every message sent. A reset clears the count."""
     proc = start_node_process(ros, 'lossy', {
         'robot': 'mit_dd_arm', 'torque_source': ['measured'], 'process_period': 0.01,
@@ -610,9 +617,7 @@ def test_messages_lost_before_the_node_takes_them_are_counted(ros, diag, tmp_pat
             time.sleep(0.005)
 
     def counts():
-        values = last_status(diag, 'lossy') or {}
-        return (int(values.get('samples_received', 0)),
-                int(values.get('lost_messages.joint_states', 0)))
+        return received_and_lost(diag, 'lossy')
     assert wait_for(lambda: sum(counts()) == N, 15), counts()
     received, lost = counts()
     assert lost > 0 and received > 1000, (received, lost)
@@ -637,9 +642,7 @@ def test_simulated_arm_waits_for_a_stalled_reliable_subscriber(ros, diag, tmp_pa
     sim = ros.start('sim', sim_params, tmp_path, 'simulated_arm', extra=('-r', '__ns:=/stall'))
 
     def counts():
-        values = last_status(diag, 'stall') or {}
-        return (int(values.get('samples_received', 0)),
-                int(values.get('lost_messages.joint_states', 0)))
+        return received_and_lost(diag, 'stall')
     assert wait_for(lambda: counts()[0] > 0, 30), sim.stderr.read() if sim.poll() else ''
     os.kill(proc.pid, signal.SIGSTOP)
     time.sleep(duration + 1.0)
