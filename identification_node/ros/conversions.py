@@ -4,11 +4,14 @@ publishers about to go."""
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
+from rclpy.event_handler import (QoSMessageLostInfo, SubscriptionEventCallbacks,
+                                 UnsupportedEventTypeError)
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
@@ -54,30 +57,88 @@ class PolledSubscription:
     subscriptions, which is what executors dispatch. If this rclpy has no such list the
     subscription stays dispatched (``handle`` gets each message in a list of its own) and
     ``poll`` finds nothing to take: the same messages, at the usual cost.
+
+    ``lost`` counts the messages that never reached ``handle``. While the topic has one
+    publisher: the gaps in the publication sequence numbers of the messages taken, which
+    include what this subscription's own KEEP_LAST queue dropped between two polls (no
+    middleware event reports that). With several publishers (their numbers interleave) or a
+    middleware without sequence numbers: the messages the middleware reports lost (the
+    message_lost event: transport and writer-side losses). None if it can do neither.
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str,
                  handle: Callable[[list[bytes]], None], qos: Any, **kwargs: Any) -> None:
-        self.handle = handle
-        self.subscription: Subscription = node.create_subscription(
-            msg_type, topic, lambda raw: handle([raw]), qos, raw=True, **kwargs)
+        self.handle, self.node, self.topic = handle, node, topic
+        self.sequence_numbers: bool | None = None    # known from the first message taken
+        self._last_seq: int | None = None
+        self._gaps = self._reported = 0     # written by poll's / the executor's thread
+        create = partial(node.create_subscription, msg_type, topic,
+                         lambda raw: handle([raw]), qos, raw=True, **kwargs)
+        try:
+            self.subscription: Subscription = create(event_callbacks=SubscriptionEventCallbacks(
+                message_lost=self._on_message_lost))
+            self.events = True
+        except UnsupportedEventTypeError:
+            self.subscription = create()   # the QoS override parameters are declared once
+            self.events = False
         subscriptions = getattr(node, '_subscriptions', None)
         self.polled = isinstance(subscriptions, list) and self.subscription in subscriptions
         if self.polled:
             subscriptions.remove(self.subscription)
 
+    @property
+    def lost(self) -> int | None:
+        """Messages lost so far (see the class doc); None if this middleware cannot tell."""
+        if self.sequence_numbers is False and not self.events:
+            return None
+        return self._gaps + self._reported
+
+    def reset_lost(self) -> None:
+        self._gaps = self._reported = 0
+
     def poll(self) -> int:
         """Hand every queued message to ``handle``; returns how many there were."""
         if not self.polled:
             return 0
-        sub, messages = self.subscription, []
+        sub, messages, numbers = self.subscription, [], []
         with sub.handle:
             take = sub.handle.take_message
             while (taken := take(sub.msg_type, True)) is not None:
                 messages.append(taken[0])
+                numbers.append(taken[1]['publication_sequence_number'])
         if messages:
+            self._count_gaps(numbers)
             self.handle(messages)
         return len(messages)
+
+    def _count_gaps(self, numbers: list[int | None]) -> None:
+        self.sequence_numbers = numbers[0] is not None
+        if not self.sequence_numbers:
+            return
+        if self._last_seq is not None:
+            numbers = [self._last_seq] + numbers
+        self._last_seq = numbers[-1]
+        if numbers[-1] - numbers[0] == len(numbers) - 1:
+            return      # consecutive (the usual case, without numpy)
+        step = np.diff(np.array(numbers, dtype=np.int64))
+        jumps = step[step > 1]      # a step back: another publisher, or a restarted one
+        if len(jumps) and self._one_publisher():
+            self._add_lost('_gaps', int(jumps.sum()) - len(jumps))
+
+    def _on_message_lost(self, info: QoSMessageLostInfo) -> None:
+        if self.sequence_numbers is not False and self._one_publisher():
+            return      # the gap in the sequence numbers counts them
+        self._add_lost('_reported', int(info.total_count_change))
+
+    def _one_publisher(self) -> bool:
+        return self.node.count_publishers(self.subscription.topic_name) == 1
+
+    def _add_lost(self, counter: str, count: int) -> None:
+        setattr(self, counter, getattr(self, counter) + count)
+        self.node.get_logger().warning(
+            f'{self.lost} messages on {self.subscription.topic_name} lost before the node '
+            'took them (queue depth, processing stalls or network; see the qos_overrides.* '
+            'parameters)', throttle_duration_sec=5.0)
 
     def destroy(self) -> None:
         """Destroy the subscription (the node no longer knows it)."""

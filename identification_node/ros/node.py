@@ -10,8 +10,8 @@ subscribers):
 - ``~/predicted_effort``, ``~/measured_effort`` (JointState, stamped with the sample's stamp),
 - ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations),
 - ``~/robot_description`` (String, transient local: URDF with identified inertials),
-- ``/diagnostics`` (counters, with ``lost_messages.<topic>``: input messages the middleware
-  reports lost before the node took them, e.g. a full queue or dropped packets);
+- ``/diagnostics`` (counters, with ``lost_messages.<topic>``: input messages lost before the
+  node took them, e.g. its queue overflowing while processing stalled, or dropped packets);
 
 exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` parameters (read-only from outside)
 and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``.
@@ -25,14 +25,11 @@ import sys
 import threading
 import time
 import traceback
-from functools import partial
 from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.event_handler import (QoSMessageLostInfo, SubscriptionEventCallbacks,
-                                 UnsupportedEventTypeError)
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -102,7 +99,6 @@ class IdentificationNode(Node):
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
 
-        self._lost: dict[str, int | None] = {}
         self._inputs = [self._subscribe('joint_states', self.pipeline.add_joint_state_cdr)]
         if self.pipeline.converter.needs_currents:
             self._inputs.append(self._subscribe('motor_currents', self.pipeline.add_currents_cdr))
@@ -140,28 +136,10 @@ class IdentificationNode(Node):
             f'{"compiled" if self.pipeline.compiled else "Python"} per-run step')
 
     def _subscribe(self, topic: str, handle: Callable[[list[bytes]], None]) -> PolledSubscription:
-        """An input subscription (INPUT_QOS with the usual QoS override parameters) whose
-        messages the middleware reports lost are counted in ``self._lost[topic]`` (None when
-        this middleware does not report them)."""
+        # A copy each: the QoS override parameters are applied to the profile in place.
         overrides = QoSOverridingOptions.with_default_policies()
-        events = SubscriptionEventCallbacks(message_lost=partial(self._on_message_lost, topic))
-        # A copy each: the override parameters are applied to the profile in place.
-        try:
-            sub = PolledSubscription(self, JointState, topic, handle, copy.copy(INPUT_QOS),
-                                     qos_overriding_options=overrides, event_callbacks=events)
-            self._lost[topic] = 0
-        except UnsupportedEventTypeError:
-            sub = PolledSubscription(self, JointState, topic, handle, copy.copy(INPUT_QOS),
-                                     qos_overriding_options=overrides)
-            self._lost[topic] = None
-        return sub
-
-    def _on_message_lost(self, topic: str, info: QoSMessageLostInfo) -> None:
-        self._lost[topic] = (self._lost[topic] or 0) + int(info.total_count_change)
-        self.get_logger().warning(
-            f'{self._lost[topic]} messages on {self.resolve_topic_name(topic)} lost before '
-            'the node took them (queue depth or network; see the qos_overrides.* parameters)',
-            throttle_duration_sec=5.0)
+        return PolledSubscription(self, JointState, topic, handle, copy.copy(INPUT_QOS),
+                                  qos_overriding_options=overrides)
 
     # -- parameters -------------------------------------------------------------------------------
     def _declare_estimate_parameters(self, names: list[str]) -> None:
@@ -285,8 +263,8 @@ class IdentificationNode(Node):
             'compiled_runs': compiled_runs,
             'physically_consistent': not self._consistency,
         }
-        values.update({f'lost_messages.{t}': 'not reported by this middleware' if n is None
-                       else n for t, n in self._lost.items()})
+        values.update({f'lost_messages.{s.topic}': 'not known with this middleware'
+                       if s.lost is None else s.lost for s in self._inputs})
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
         values.update({f'residual_rms.{j}': f'{r:.6g}'
                        for j, r in zip(self.robot.joint_names, est.residual_rms)})
@@ -301,7 +279,8 @@ class IdentificationNode(Node):
     def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         with self._lock:
             self.pipeline.reset()
-        self._lost = {t: None if n is None else 0 for t, n in self._lost.items()}
+            for source in self._inputs:
+                source.reset_lost()
         self.refresh_estimate()
         res.success, res.message = True, 'estimate reset'
         return res
