@@ -121,20 +121,21 @@ class PolledSubscription:
         if numbers[-1] - numbers[0] == len(numbers) - 1:
             return      # consecutive (the usual case, without numpy)
         step = np.diff(np.array(numbers, dtype=np.int64))
-        jumps = step[step > 1]      # a step back: another publisher, or a restarted one
+        jumps = step[step > 1]   # a step back (another publisher, a restart) loses nothing
         if len(jumps) and self._one_publisher():
-            self._add_lost('_gaps', int(jumps.sum()) - len(jumps))
+            self._gaps += int(jumps.sum()) - len(jumps)
+            self._warn_lost()
 
     def _on_message_lost(self, info: QoSMessageLostInfo) -> None:
         if self.sequence_numbers is not False and self._one_publisher():
             return      # the gap in the sequence numbers counts them
-        self._add_lost('_reported', int(info.total_count_change))
+        self._reported += int(info.total_count_change)
+        self._warn_lost()
 
     def _one_publisher(self) -> bool:
         return self.node.count_publishers(self.subscription.topic_name) == 1
 
-    def _add_lost(self, counter: str, count: int) -> None:
-        setattr(self, counter, getattr(self, counter) + count)
+    def _warn_lost(self) -> None:
         self.node.get_logger().warning(
             f'{self.lost} messages on {self.subscription.topic_name} lost before the node '
             'took them (queue depth, processing stalls or network; see the qos_overrides.* '
