@@ -11,6 +11,7 @@ import re
 import signal
 import time
 import xml.etree.ElementTree as ET
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -193,8 +194,8 @@ class Stream:
         self.sim_log = self.proc.stderr.read()
         # The arm left once the nodes had every sample; wait until they report them taken.
         total = SimSetup.from_parameters(self.sim_params).num_samples
-        wait_for(lambda: all(int((last_status(self.diag, n) or {}).get('samples_received', 0))
-                             >= total for n in self.names), 20)
+        wait_for(lambda: all(received_and_lost(self.diag, n)[0] >= total
+                             for n in self.names), 20)
 
     def stop(self):
         for proc in self.procs.values():
@@ -670,8 +671,7 @@ def test_messages_lost_before_the_node_takes_them_are_counted(ros, diag, tmp_pat
     sent = encode_joint_states(10**9 + np.arange(N) * 10**6, ['joint1', 'joint2', 'joint3'],
                                *rng.random((3, N, 3)))
 
-    def counts():
-        return received_and_lost(diag, 'lossy')
+    counts = partial(received_and_lost, diag, 'lossy')
     # The node's side of the match may lag ours: what it never subscribed to is not lost.
     first = 0
     while not wait_for(lambda: counts()[0], 0.5):
@@ -708,8 +708,7 @@ def test_simulated_arm_waits_for_a_stalled_reliable_subscriber(ros, diag, tmp_pa
                   'duration': duration, 'wait_for_subscribers': 1}
     sim = ros.start('sim', sim_params, tmp_path, 'simulated_arm', extra=('-r', '__ns:=/stall'))
 
-    def counts():
-        return received_and_lost(diag, 'stall')
+    counts = partial(received_and_lost, diag, 'stall')
     assert wait_for(lambda: counts()[0] > 0, 30), sim.stderr.read() if sim.poll() else ''
     os.kill(proc.pid, signal.SIGSTOP)
     time.sleep(duration + 1.0)

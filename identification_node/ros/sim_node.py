@@ -57,7 +57,7 @@ from .node import declare_settings, warn_unknown_parameters
 from .spin import run_node
 
 MAX_BATCH = 20      # samples per catch-up batch
-LINGER = 0.5        # s the process stays up after the last sample, for reliable subscribers
+LINGER = 0.5        # s the process stays up after the acks, for best-effort samples in flight
 ACK_TIMEOUT = 10.0  # s the last samples wait for reliable subscribers' acknowledgements
 ROBOT_KEYS = ('robot', 'robot_description', 'joints', 'extras', 'coulomb_velocity')
 
