@@ -51,6 +51,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import IdentificationError
+from .normal_equations import NormalEquations
 
 try:   # factor_information: the Cholesky update below in one compiled call (compiled.py)
     from ._kernel import factor_information as _factor_compiled
@@ -627,6 +628,11 @@ class RecursiveLeastSquares:
         p = self.num_params
         return self._joint_info[:, :p, :p].sum(axis=0)
 
+    def normal_equations(self) -> NormalEquations:
+        """The forgotten, weighted data alone (no prior, no forgetting regulariser), per
+        joint: what the physically consistent solve and the payload fit read."""
+        return NormalEquations(self._joint_info.copy(), self._count.copy())
+
     def _information_eigenvalues(self) -> np.ndarray:
         return np.linalg.svd(self._R, compute_uv=False) ** 2
 
@@ -744,6 +750,10 @@ class ResidualStatistics:
     def _ss(gram, cross, sq, theta):
         return np.maximum(sq - 2 * cross @ theta + np.einsum('p,npq,q->n', theta, gram, theta),
                           0.0)
+
+    def normal_equations(self) -> NormalEquations:
+        """The samples' per-joint normal equations (sample sums, not block sums)."""
+        return NormalEquations(self._info.copy(), np.full(self.n, float(self.count)))
 
     def rss(self, theta: np.ndarray) -> np.ndarray:
         """Per-joint residual sum of squares of the samples."""
