@@ -202,10 +202,8 @@ def main() -> None:
     args = parser.parse_args()
     for p in args.node_param:
         NODE_ARGS.extend(['-p', p])
-    from identification_node import compiled
     print(f'7-DOF arm, {args.seconds:.0f} s per run after {args.warmup:.0f} s warm-up; '
-          f'{os.cpu_count()} cores; compiled per-run step '
-          f'{"built" if compiled.AVAILABLE else "not built"}{"".join(" " + p for p in NODE_ARGS)}'
+          f'{os.cpu_count()} cores{"".join(" " + p for p in NODE_ARGS)}'
           f'{"; ~/measured_effort subscribed too" if args.listen_measured else ""}'
           f'{"; torque from 3-phase motor currents" if args.currents else ""}')
     best = 0.0

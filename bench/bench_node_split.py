@@ -4,9 +4,9 @@ Runs the identification node in a child process on the 7-DOF arm of bench_node.p
 publisher, ~/predicted_effort subscribed by a listener process so it is published), and
 measures the thread CPU time of the three parts of each processing run: taking and decoding
 the queued messages (``poll``), the pipeline (``pipeline``), and serializing and publishing
-the efforts (``publish``), plus the whole process's CPU. ``compiled`` runs identify with the
-compiled per-run step (compiled.py), ``python`` runs with the Python path; ``passthrough``
-runs replace the pipeline by one that hands the received samples straight back as output: the
+the efforts (``publish``), plus the whole process's CPU. ``node`` runs identify as the node
+does with its defaults (``--node-param`` overrides them); ``passthrough`` runs replace the
+pipeline by one that hands the received samples straight back as output: the
 same messages in and out at the same schedule, none of the identification, i.e. the floor of
 the ROS side. ``relay`` is the textbook rclpy node instead of ours: a raw subscription
 callback that republishes each message's bytes on ~/predicted_effort (EventsExecutor; no
@@ -15,7 +15,7 @@ Runs of the kinds alternate (this machine's CPU readings drift between runs); th
 printed last.
 
     .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
-        [--modes compiled python passthrough relay]
+        [--modes node passthrough relay] [--node-param process_period:=0.01]
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_node import PANDA, REPO  # noqa: E402  (also sets a private ROS domain)
 
 PARTS = ('poll', 'pipeline', 'publish')
-MODES = ('compiled', 'python', 'passthrough', 'relay')
+MODES = ('node', 'passthrough', 'relay')
 
 
 def listen(seconds: float) -> None:
@@ -48,10 +48,13 @@ def listen(seconds: float) -> None:
     rclpy.shutdown()
 
 
-def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
-    """The node in this process with timed parts; returns per-part CPU (s), runs, messages."""
+def run_node(mode: str, rate: float, seconds: float, warmup: float,
+             overrides: list[str]) -> dict:
+    """The node in this process with timed parts; returns per-part CPU (s), runs, messages.
+    ``overrides``: node parameters as NAME:=VALUE (VALUE in YAML)."""
     import numpy as np
     import rclpy
+    import yaml
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
 
@@ -89,11 +92,11 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float) -> dict:
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     if mode == 'relay':
         return run_relay(rate, seconds, warmup)
+    node_params = [Parameter(name, value=yaml.safe_load(value))
+                   for name, value in (o.split(':=', 1) for o in overrides)]
     node = node_class(parameter_overrides=[Parameter('robot', value=str(PANDA)),
                                            Parameter('torque_source', value=['measured']),
-                                           Parameter('compiled', value=mode != 'python')])
-    if mode == 'compiled' and not node.pipeline.compiled:
-        sys.exit('the compiled per-run step is not built')
+                                           *node_params])
 
     def reset() -> None:
         spent.update(dict.fromkeys(PARTS, 0.0))
@@ -160,7 +163,7 @@ def drive(node, received, rate: float, seconds: float, warmup: float,
 
 def measure(mode: str, args: argparse.Namespace) -> dict:
     out = subprocess.run([sys.executable, __file__, '--run', mode, str(args.rate),
-                          str(args.seconds), str(args.warmup)], cwd=REPO,
+                          str(args.seconds), str(args.warmup), *args.node_param], cwd=REPO,
                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -182,7 +185,7 @@ def main() -> None:
         listen(float(sys.argv[2]))
         return
     if sys.argv[1:2] == ['--run']:
-        run_node(sys.argv[2], *map(float, sys.argv[3:6]))
+        run_node(sys.argv[2], *map(float, sys.argv[3:6]), sys.argv[6:])
         return
     import numpy as np
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -191,9 +194,11 @@ def main() -> None:
     parser.add_argument('--warmup', type=float, default=2.0)
     parser.add_argument('--repeat', type=int, default=3, help='runs of each kind, alternating')
     parser.add_argument('--modes', nargs='+', default=list(MODES), choices=MODES)
+    parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='node parameter override (node and passthrough modes)')
     args = parser.parse_args()
     print(f'7-DOF arm at {args.rate:.0f} Hz, {args.seconds:.0f} s per run; {os.cpu_count()} '
-          'cores; thread CPU per processing run')
+          f'cores; thread CPU per processing run{"".join(" " + p for p in args.node_param)}')
     results: dict[str, list] = {mode: [] for mode in args.modes}
     for _ in range(args.repeat):
         for mode, runs in results.items():

@@ -1,9 +1,9 @@
 """What one processing run of the pipeline costs, back to back and at the node's schedule.
 
 No ROS: the 7-DOF arm of bench_node.py at 1 kHz, its JointState messages encoded as CDR, and
-runs of 2 or 3 messages (2.5 on average, as the node at 1 kHz with ``process_period`` 2.5 ms)
+runs of ``--period`` times 1000 messages (as the node at 1 kHz with that ``process_period``)
 added as the node adds them (``add_joint_state_cdr``) and processed by an
-IdentificationPipeline with the compiled or the Python per-run step. Each run's thread CPU time
+IdentificationPipeline. Each run's thread CPU time
 is measured two ways: runs back to back (hot caches), and runs ``--period`` apart with the
 thread asleep in between, as the node's processing thread runs them (what the node pays). A
 fixed reference workload (a Python loop and a few small numpy operations) and ``time.sleep``
@@ -51,7 +51,7 @@ def per_run(work, runs: int, period: float) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--runs', type=int, default=4000)
-    parser.add_argument('--period', type=float, default=0.0025, help='s between paced runs')
+    parser.add_argument('--period', type=float, default=0.01, help='s between paced runs')
     parser.add_argument('--repeat', type=int, default=3)
     args = parser.parse_args()
 
@@ -64,19 +64,17 @@ def main() -> None:
 
     robot = load_robot(str(PANDA))
     warm = 400
-    N = int(2.5 * (args.runs + warm)) + 3
+    per = 1000 * args.period     # messages per run, on average
+    N = int(per * (args.runs + warm)) + 3
     sim = simulate_kinematic(robot, None, FourierTrajectory.random(robot, seed=1),
                              np.arange(N) * 1e-3, SensorNoise(torque_std=0.2))
     messages = encode_joint_states(10**18 + np.arange(N) * 10**6, robot.joint_names,
                                    sim.q_meas, sim.qd_meas, sim.tau_meas)
-    starts = np.concatenate([[0], np.cumsum(2 + np.arange(args.runs + warm) % 2)])
+    starts = np.round(per * np.arange(args.runs + warm + 1)).astype(int)
     torque = {j: JointTorqueConfig(source='measured') for j in robot.joint_names}
 
-    def pipeline_work(compiled: bool):
-        pipeline = IdentificationPipeline(robot, PipelineConfig(torque=torque,
-                                                                compiled=compiled))
-        if compiled and not pipeline.compiled:
-            sys.exit('the compiled per-run step is not built')
+    def pipeline_work():
+        pipeline = IdentificationPipeline(robot, PipelineConfig(torque=torque))
 
         def work(k: int) -> None:
             pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
@@ -84,11 +82,10 @@ def main() -> None:
         work.pipeline = pipeline
         return work
 
-    kinds = {'compiled pipeline': lambda: pipeline_work(True),
-             'Python pipeline': lambda: pipeline_work(False),
+    kinds = {'pipeline': pipeline_work,
              'reference workload': lambda: lambda k: reference_work(),
              'sleep alone': None}
-    print(f'7-DOF arm, 1 kHz, runs of 2.5 messages; thread CPU per run (us), back to back and '
+    print(f'7-DOF arm, 1 kHz, runs of {per:g} messages; thread CPU per run (us), back to back and '
           f'{1e3 * args.period:g} ms apart; {args.runs} runs, median of {args.repeat}')
     results: dict[str, list] = {kind: [] for kind in kinds}
     for _ in range(args.repeat):

@@ -36,11 +36,6 @@ from rosbags.typesys.store import Typestore
 from identification_node.errors import IdentificationError
 from identification_node.records import JointStateRecord
 
-try:   # the compiled JointState filler and block decoder (setup.py builds it when it can)
-    from identification_node import _kernel
-except ImportError:
-    _kernel = None
-
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 STRING = 'std_msgs/msg/String'
 CLOCK = 'rosgraph_msgs/msg/Clock'
@@ -56,7 +51,8 @@ __all__ = [
     'BagReader', 'BagWriter', 'JointStateDecoder', 'open_bag',
     'iter_joint_states', 'iter_joint_state_blocks', 'iter_messages', 'iter_raw',
     'read_string_topic',
-    'decode_joint_state', 'decode_joint_state_reference', 'deserialize_cdr',
+    'decode_joint_state', 'decode_joint_state_reference', 'decode_joint_states',
+    'decode_rows', 'deserialize_cdr',
     'encode_joint_state', 'encode_joint_states', 'jazzy_typestore', 'make_time',
     'make_duration', 'make_header',
     'make_joint_state', 'make_string', 'make_clock', 'make_float64_multi_array',
@@ -142,21 +138,6 @@ class JointStateDecoder:
             except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
                 pass
         return decode_joint_state_reference(raw)
-
-    def block(self, messages: list[bytes]) -> JointStateRecord | None:
-        """Messages sharing names and array lengths decoded into one block (stamp_ns (M,)
-        int64, arrays (M, k)), what decoding them one by one gives, stacked; None when they
-        do not share a layout, one is not fast-path CDR, or the extension is not built."""
-        decoded = None if _kernel is None else _kernel.decode_joint_states(messages)
-        if decoded is None:
-            return None
-        stamps, blob, position, velocity, effort = decoded
-        if blob != self._names[0]:
-            try:   # new names: decoded (and checked) once, by the Python path
-                self._fast(messages[0])
-            except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
-                return None
-        return JointStateRecord(stamps, self._names[1], position, velocity, effort)
 
     def _fast(self, data: bytes, spans: list | None = None) -> JointStateRecord:
         """Decode; ``spans`` (if given) gets the (byte offset, count) of the three arrays."""
@@ -620,8 +601,22 @@ def _chunk_blocks(buf: bytes, body: np.ndarray, length: np.ndarray, ids: set[int
 
 def _same_layout_blocks(rows: np.ndarray, log: np.ndarray, decoder: JointStateDecoder,
                         topic: str) -> Iterator[tuple[np.ndarray, JointStateRecord]]:
-    """Messages of equal length (M, L) bytes: runs whose bytes agree everywhere but in the
-    stamp and the array values share the first one's layout and are decoded at once."""
+    """The decoded blocks of rows (M, L) of a bag's topic; a message that cannot be decoded
+    raises IdentificationError naming the topic and its log time."""
+    for start, stop, record in decode_rows(rows, decoder):
+        if isinstance(record, IdentificationError):
+            raise IdentificationError(
+                f'topic {topic!r} at log time {int(log[start])} ns: {record}') from None
+        yield log[start:stop], record
+
+
+def decode_rows(rows: np.ndarray, decoder: JointStateDecoder
+                ) -> Iterator[tuple[int, int, JointStateRecord | IdentificationError]]:
+    """JointState messages of equal length, rows (M, L) uint8, as (start, stop, record):
+    runs of rows whose bytes agree everywhere but in the stamp and the array values share the
+    first one's layout and come as one block record (stamp_ns (M,) int64, (M, k) arrays);
+    other rows one by one (a plain record), or the IdentificationError that says why a row
+    cannot be decoded."""
     k = 0
     while k < len(rows):
         raw = rows[k].tobytes()
@@ -634,9 +629,8 @@ def _same_layout_blocks(rows: np.ndarray, log: np.ndarray, decoder: JointStateDe
             try:
                 record = decoder(raw)
             except IdentificationError as err:
-                raise IdentificationError(
-                    f'topic {topic!r} at log time {int(log[k])} ns: {err}') from None
-            yield log[k:k + 1], record
+                record = err
+            yield k, k + 1, record
             k += 1
             continue
         layout = np.ones(rows.shape[1], dtype=bool)
@@ -647,15 +641,38 @@ def _same_layout_blocks(rows: np.ndarray, log: np.ndarray, decoder: JointStateDe
         same = (ahead[:, layout] == rows[k, layout]).all(axis=1)
         m = 1 + (len(same) if same.all() else int(np.argmin(same)))
         if m == 1:
-            yield log[k:k + 1], record
+            yield k, k + 1, record
         else:
             block = np.ascontiguousarray(rows[k:k + m])
             stamps = (block[:, 4:8].copy().view('<i4')[:, 0].astype(np.int64) * 1_000_000_000
                       + block[:, 8:12].copy().view('<u4')[:, 0])
             arrays = [block[:, o:o + 8 * c].copy().view('<f8') if c else np.empty((m, 0))
                       for o, c in spans]
-            yield log[k:k + m], JointStateRecord(stamps, record.names, *arrays)
+            yield k, k + m, JointStateRecord(stamps, record.names, *arrays)
         k += m
+
+
+def decode_joint_states(messages: Sequence[bytes], decoder: JointStateDecoder
+                        ) -> Iterator[JointStateRecord | IdentificationError]:
+    """JointState CDR messages in order (a subscription's poll), decoded: runs of one layout
+    as block records (decode_rows), the others one by one, or the IdentificationError of a
+    message that cannot be decoded. The same decoder as bag reading."""
+    i = 0
+    while i < len(messages):
+        size = len(messages[i])
+        j = i + 1
+        while j < len(messages) and len(messages[j]) == size:
+            j += 1
+        if j - i == 1:
+            try:
+                yield decoder(messages[i])
+            except IdentificationError as err:
+                yield err
+        else:
+            rows = np.frombuffer(b''.join(messages[i:j]), np.uint8).reshape(j - i, size)
+            for _, _, record in decode_rows(rows, decoder):
+                yield record
+        i = j
 
 
 def read_string_topic(reader: BagReader, topic: str = '/robot_description') -> str | None:
@@ -827,13 +844,13 @@ def encode_joint_state(stamp: float, names: Sequence[str], position: Iterable[fl
 
 @functools.lru_cache(maxsize=64)
 def _joint_state_layout(names: tuple[str, ...], counts: tuple[int, int, int]
-                        ) -> tuple[np.ndarray, list, np.ndarray]:
-    """CDR of a JointState with zero stamp and arrays of ``counts`` zeros, as uint8, the
-    (byte offset, count) of its three arrays, and the offsets alone (int64)."""
+                        ) -> tuple[np.ndarray, list]:
+    """CDR of a JointState with zero stamp and arrays of ``counts`` zeros, as uint8, and the
+    (byte offset, count) of its three arrays."""
     template = encode_joint_state(0.0, names, *(np.zeros(c) for c in counts))
     spans: list = []
     JointStateDecoder()._fast(template, spans)
-    return np.frombuffer(template, np.uint8), spans, np.array([o for o, _ in spans])
+    return np.frombuffer(template, np.uint8), spans
 
 
 def encode_joint_states(stamps_ns: np.ndarray, names: Sequence[str],
@@ -841,8 +858,7 @@ def encode_joint_states(stamps_ns: np.ndarray, names: Sequence[str],
                         effort: np.ndarray | None = None) -> list[bytes]:
     """encode_joint_state for N messages at once: stamps_ns (N,) integer ns, arrays (N, n) or
     None (an empty field). All messages share one layout, so they are filled in from one
-    template (by the compiled filler when built, else as rows of one numpy byte array); the
-    same bytes as encoding them one by one."""
+    template, as rows of one numpy byte array; the same bytes as encoding them one by one."""
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     N = len(stamps)
     arrays = [None if a is None else np.ascontiguousarray(a, dtype=_F8)
@@ -850,10 +866,8 @@ def encode_joint_states(stamps_ns: np.ndarray, names: Sequence[str],
     if any(a is not None and (a.ndim != 2 or len(a) != N) for a in arrays):
         raise IdentificationError(f'arrays {[None if a is None else a.shape for a in arrays]} '
                                   f'do not have one row for each of the {N} stamps')
-    template, spans, offsets = _joint_state_layout(
+    template, spans = _joint_state_layout(
         tuple(names), tuple(0 if a is None else a.shape[1] for a in arrays))
-    if _kernel is not None:
-        return _kernel.fill_joint_states(template, offsets, stamps, *arrays)
     rows = np.empty((N, len(template)), dtype=np.uint8)
     rows[:] = template
     head = rows[:, 4:12].view('<u4')

@@ -53,11 +53,6 @@ import numpy as np
 from .errors import IdentificationError
 from .normal_equations import NormalEquations
 
-try:   # factor_information: the Cholesky update below in one compiled call (compiled.py)
-    from ._kernel import factor_information as _factor_compiled
-except ImportError:
-    _factor_compiled = None
-
 _CHUNK = 4096  # samples per QR: bounds the workspace to ~_CHUNK * n * (p + 1) floats
 _DEFAULT_RCOND = 1e-10  # singular-value ratio (column-scaled) below which a direction is unexcited
 # Bound on the column-scaled condition number of the information above which the RLS update
@@ -459,14 +454,13 @@ class RecursiveLeastSquares:
     information of the rows; unused when lam == 1. prior_information / theta0: an optional
     prior theta0 with that information (forgotten like data); with none, theta starts at theta0
     (default 0) and is the minimum-norm (column-scaled) solution until the data excite all
-    directions. ``num_joints`` is taken from the first update when not given. ``compiled``:
-    the Cholesky update by the compiled extension when it is built (same results to rounding).
+    directions. ``num_joints`` is taken from the first update when not given.
     """
 
     def __init__(self, num_params: int, forgetting: float = 1.0,
                  min_information=1e-6, *, num_joints: int | None = None,
                  prior_information=0.0, theta0: np.ndarray | None = None,
-                 rcond: float = _DEFAULT_RCOND, compiled: bool = True):
+                 rcond: float = _DEFAULT_RCOND):
         self.num_params = p = _check_count('num_params', num_params)
         if not (np.isfinite(forgetting) and 0 < forgetting <= 1):
             raise IdentificationError(f'forgetting factor must be in (0, 1], got {forgetting!r}')
@@ -474,7 +468,6 @@ class RecursiveLeastSquares:
             raise IdentificationError(f'rcond must be in (0, 1), got {rcond!r}')
         self.forgetting = float(forgetting)
         self.rcond = float(rcond)
-        self._factor = _factor_compiled if compiled else None
         self._R_min = _information_factor('min_information', min_information, p)
         R0 = _information_factor('prior_information', prior_information, p)
         theta0 = np.zeros(p) if theta0 is None else _as_float('theta0', theta0)
@@ -512,20 +505,6 @@ class RecursiveLeastSquares:
         d = _column_scale(self._R)
         kappa = np.linalg.norm(self._R / d) * np.linalg.norm(d[:, None] * self._G)
         return bool(kappa * kappa <= _INFORMATION_MAX_CONDITION)
-
-    def _update_compiled(self, old: np.ndarray, information: np.ndarray) -> bool:
-        """The Cholesky update of the information old'old + sum_j information_j and _refresh
-        in one compiled call (what _cholesky_augmented and _solve's full-rank path give, to
-        rounding; the live node's processing runs find these small numpy calls cold). Returns
-        whether it was accurate enough; the state changes only then. False without the
-        extension."""
-        result = None if self._factor is None else self._factor(old, information)
-        if result is None or not result[3] ** 2 <= _INFORMATION_MAX_CONDITION:
-            return False
-        p = self.num_params
-        self._F, self._theta, self._G = result[:3]
-        self._R, self._rank, self._determined = self._F[:p, :p], p, np.ones(p, dtype=bool)
-        return True
 
     def update(self, Y: np.ndarray, tau: np.ndarray, weights: np.ndarray | None = None
                ) -> np.ndarray:
@@ -581,9 +560,8 @@ class RecursiveLeastSquares:
             old = np.vstack([old, anchor])
         # Information form (one Cholesky); QR of the old factor and all rows when it fails or
         # is not accurate enough. The decay is relative to the batch end: old is scaled once.
-        accurate = self._update_compiled(old, information)
-        candidate = None if accurate else _cholesky_augmented(
-            old.T @ old + information.sum(axis=0))
+        candidate = _cholesky_augmented(old.T @ old + information.sum(axis=0))
+        accurate = False
         if candidate is not None:
             self._F = candidate
             accurate = self._refresh()

@@ -18,10 +18,6 @@ block of joint states of one layout, as bag replay reads them; ``add_joint_state
    q, qd, qdd and tau for the window centre, ``delay`` seconds behind the newest sample,
 6. regressor, base regressor, recursive least squares (unless frozen), predicted torque.
 
-With the compiled step, a run of CDR messages with every joint's torque measured takes one
-compiled call for 1-6 (``compiled.make_step``'s ``push_cdr``) when all of them are clean; any
-message that is not (or currents) sends the run through the Python validation, which counts
-the rejections. Both give the same results (tested).
 """
 from __future__ import annotations
 
@@ -32,8 +28,7 @@ from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 
-from . import compiled
-from .bagio import JointStateDecoder
+from .bagio import JointStateDecoder, decode_joint_states
 from .errors import IdentificationError
 from .estimators import RecursiveLeastSquares, ResidualStatistics, _information
 from .identifiability import BaseParameters
@@ -67,7 +62,6 @@ class PipelineConfig:
     converged_ratio: float = 0.1
     max_condition: float = 1e8
     min_samples: int = 1000
-    compiled: bool = True    # the compiled per-run step, RLS update and decoding when built
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""
@@ -161,13 +155,7 @@ class IdentificationPipeline:
         self._work: dict[str, np.ndarray] = {}
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._row_columns = np.append(self.base.base_index, robot.num_params)
-        self._step = (compiled.make_step(robot, self.base.base_index, self.config.half_window,
-                                         self.config.smoother_order, self.config.max_gap)
-                      if self.config.compiled else None)
         self._all_measured = len(self._measured_columns) == robot.dof
-        # the compiled call takes whole runs of CDR messages when torque is all measured
-        self._cdr_step = (self._step if self._all_measured and not self.converter.needs_currents
-                          else None)
         # one decoder per stream (each keeps its stream's last names)
         self._js_decoder, self._cur_decoder = JointStateDecoder(), JointStateDecoder()
         self.frozen = False
@@ -210,14 +198,12 @@ class IdentificationPipeline:
     def reset(self) -> None:
         """Forget the estimate and all buffered data; counters restart too."""
         n, b = self.robot.dof, self.base.num_base
-        self._rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting,
-                                          compiled=self.config.compiled)
+        self._rls = RecursiveLeastSquares(b, forgetting=self.config.forgetting)
         self._residuals = ResidualStatistics(b, n, self._block)
         self._updates: list[tuple] = []
         self._pending_samples = 0
         self.rejected = dict.fromkeys(REJECT_REASONS, 0)
         self.restarts = 0
-        self.compiled_runs = 0   # processing runs taken by one push_cdr call
         self.excluded_rows = 0
         self.received = 0
         self.used = 0
@@ -234,15 +220,8 @@ class IdentificationPipeline:
             q.clear()
 
     def _restart_smoother(self) -> None:
-        """Forget the smoother's window (a new stream): the Python one is made on first use."""
+        """Forget the smoother's window (a new stream): it is made on first use."""
         self._smoother: FixedLagSmoother | None = None
-        if self._step is not None:
-            self._step.reset()
-
-    @property
-    def compiled(self) -> bool:
-        """Whether the compiled per-run step does the smoothing and regressor (compiled.py)."""
-        return self._step is not None
 
     @property
     def delay(self) -> float:
@@ -254,11 +233,7 @@ class IdentificationPipeline:
         """Work through everything queued. ``flush`` decides joint states still waiting for
         currents (end of a bag) instead of holding them for ``hold_time``."""
         n = self.robot.dof
-        js = self._take(self._js_queue)
-        out = self._process_cdr(js) if self._cdr_step is not None else None
-        if out is not None:
-            return out
-        js = self._decoded(js, self._js_decoder)
+        js = self._decoded(self._take(self._js_queue), self._js_decoder)
         cur = self._decoded(self._take(self._cur_queue), self._cur_decoder)
         if cur:
             self._currents = self._currents.concat(self._convert_currents(cur))
@@ -278,27 +253,10 @@ class IdentificationPipeline:
             out.append(queue.popleft())
         return out
 
-    def _process_cdr(self, js: list) -> PipelineOutput | None:
-        """The run in one compiled call when it is CDR messages only, all clean, and the stream
-        is under way (epoch and velocity mode known, nothing pending); else None."""
-        if (not js or self._epoch_ns is None or self._velocity_mode is None or self._cur_queue
-                or len(self._pending_js.stamps) or not all(type(m) is list for m in js)):
-            return None
-        messages = js[0] if len(js) == 1 else [raw for m in js for raw in m]
-        result = self._cdr_step.push_cdr(messages, self._epoch_ns, self._last_stamp,
-                                         self._rls.theta, self._velocity_mode == 'measured')
-        if result is None:
-            return None
-        *outputs, last = result
-        self.received += len(messages)
-        self._last_stamp = self._newest_js = last
-        self.compiled_runs += 1
-        return self._finish(*outputs)
-
     def _decoded(self, queued: list, decoder: JointStateDecoder) -> list:
         """Queued records with the lists of CDR messages among them decoded into records, or
-        into one block when they share a layout (compiled decoder; the messages that cannot
-        be decoded counted as received and 'malformed')."""
+        into blocks where they share a layout (bagio.decode_joint_states; the messages that
+        cannot be decoded counted as received and 'malformed')."""
         if all(type(m) is not list for m in queued):
             return queued
         out = []
@@ -306,15 +264,11 @@ class IdentificationPipeline:
             if type(item) is not list:
                 out.append(item)
                 continue
-            block = decoder.block(item) if self.config.compiled else None
-            if block is not None:
-                out.append(block)
-                continue
-            for raw in item:
-                try:
-                    out.append(decoder(raw))
-                except IdentificationError:
+            for record in decode_joint_states(item, decoder):
+                if isinstance(record, IdentificationError):
                     self.add_malformed()
+                else:
+                    out.append(record)
         return out
 
     def _seconds(self, stamps_ns: list[int]) -> np.ndarray:
@@ -354,8 +308,6 @@ class IdentificationPipeline:
         if any(j not in pos for j in self.robot.joint_names):
             return 'missing_joints'
         idx = np.array([pos[j] for j in self.robot.joint_names])
-        if self._cdr_step is not None:
-            self._cdr_step.set_layout(list(pos), idx)
         return slice(None) if len(pos) == len(idx) and (idx == np.arange(len(idx))).all() \
             else idx
 
@@ -570,13 +522,8 @@ class IdentificationPipeline:
     def _estimate(self, s: _Samples) -> PipelineOutput:
         measured_velocity = self._velocity_mode == 'measured'
         channels = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
-        if self._step is not None:
-            # stamps increasing and values finite: checked on the way in
-            t, q, qd, qdd, tau, rows, predicted = self._step.push(
-                s.stamps, channels, self._rls.theta, measured_velocity)
-        else:
-            t, q, qd, qdd, tau, rows, predicted = self._smooth_and_regress(
-                s.stamps, channels, measured_velocity)
+        t, q, qd, qdd, tau, rows, predicted = self._smooth_and_regress(
+            s.stamps, channels, measured_velocity)
         return self._finish(t, q, qd, qdd, tau, rows, predicted)
 
     def _finish(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
@@ -595,8 +542,8 @@ class IdentificationPipeline:
 
     def _smooth_and_regress(self, t: np.ndarray, x: np.ndarray, measured_velocity: bool
                             ) -> tuple[np.ndarray, ...]:
-        """The Python path of compiled.make_step's ``push``: smoother outputs t_c, q, qd,
-        qdd, tau, the rows [Yb | tau] (N, n, b + 1) and the predicted torque Yb theta."""
+        """Smoother outputs t_c, q, qd, qdd, tau, the rows [Yb | tau] (N, n, b + 1) and the
+        predicted torque Yb theta."""
         n = self.robot.dof
         if self._smoother is None:
             self._smoother = FixedLagSmoother(

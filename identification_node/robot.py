@@ -17,7 +17,6 @@ Conventions used everywhere in this package (README, "Conventions"):
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import sys
 import tempfile
@@ -28,7 +27,6 @@ import numpy as np
 import pinocchio as pin
 
 from .errors import IdentificationError
-from .regressor_batch import BatchRegressor
 
 LINK_PARAMS = ('m', 'mx', 'my', 'mz', 'Ixx', 'Ixy', 'Ixz', 'Iyy', 'Iyz', 'Izz')
 JOINT_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
@@ -303,47 +301,25 @@ class RobotModel:
         return V
 
     # -- dynamics ---------------------------------------------------------------------------------
-    #: How ``regressor`` computes Y: 'batch' (numpy Newton-Euler over all samples at once, see
-    #: regressor_batch; falls back to 'pinocchio' for joints it does not handle) or 'pinocchio'
-    #: (one computeJointTorqueRegressor call per sample). Both agree to rounding.
-    regressor_method = 'batch'
-    batch_threshold = 64   # samples from which regressor() uses regressor_method
-
-    @functools.cached_property
-    def _batch(self) -> BatchRegressor | None:
-        try:
-            return BatchRegressor(self.model, self.joint_ids)
-        except ValueError:  # a joint kind the batched path does not handle
-            return None
-
     def regressor(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-                  out: np.ndarray | None = None, method: str | None = None, *,
-                  checked: bool = False) -> np.ndarray:
-        """Regressor Y (N, n, p) with tau = Y @ phi, for N samples of (q, qd, qdd).
-        ``method`` overrides ``regressor_method`` for this call; ``checked``: the samples are
-        (N, n) finite float arrays already (the pipeline's), so they are not checked again."""
-        if method not in (None, 'batch', 'pinocchio'):
-            raise IdentificationError(f"regressor method {method!r}: use 'batch' or 'pinocchio'")
+                  out: np.ndarray | None = None, *, checked: bool = False) -> np.ndarray:
+        """Regressor Y (N, n, p) with tau = Y @ phi, for N samples of (q, qd, qdd): pinocchio's
+        ``computeJointTorqueRegressor`` per sample, mapped to this package's parameter order,
+        plus the friction and rotor columns. ``checked``: the samples are (N, n) finite float
+        arrays already (the pipeline's), so they are not checked again."""
         if not checked:
             q, qd, qdd = self.check_samples(q, qd, qdd)
         N = q.shape[0]
-        if method is None:
-            # The batched path costs a few hundred microseconds per call: small batches (the
-            # live node's) are faster sample by sample.
-            method = self.regressor_method if N >= self.batch_threshold else 'pinocchio'
         shape = (N, self.dof, self.num_params)
         if out is None:
             out = np.empty(shape)
         elif out.shape != shape:
             raise IdentificationError(f'out has shape {out.shape}, expected {shape}')
         ni = self.n_inertial
-        if method == 'batch' and self._batch is not None:
-            self._batch(q, qd, qdd, out)
-        else:
-            Q, V, A = self.configuration(q), self._tangent(qd), self._tangent(qdd)
-            for k in range(N):  # one pinocchio call per sample
-                Ypin = pin.computeJointTorqueRegressor(self.model, self.data, Q[k], V[k], A[k])
-                out[k, :, :ni] = Ypin.take(self._flat)
+        Q, V, A = self.configuration(q), self._tangent(qd), self._tangent(qdd)
+        for k in range(N):  # one pinocchio call per sample
+            Ypin = pin.computeJointTorqueRegressor(self.model, self.data, Q[k], V[k], A[k])
+            out[k, :, :ni] = Ypin.take(self._flat)
         if self.extras:
             out[:, :, ni:] = 0.0
             ne = len(self.extras)

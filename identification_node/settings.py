@@ -48,8 +48,6 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
     'max_condition': (1e8, 'largest information condition number counted as excited'),
     'min_samples': (1000, 'samples needed before convergence is declared'),
-    'compiled': (True, 'use the compiled per-run step, RLS update and message decoding when '
-                 'built (false: the Python path; diagnostics tell which runs)'),
     'process_period': (0.0025, 's (wall clock) between batch processing runs (latency vs CPU)'),
     'publish.effort_rate': (0.0, 'Hz for predicted/measured effort; 0 = every sample'),
     'publish.estimate_rate': (1.0, 'Hz for base_parameters, estimate.* and robot_description'),
@@ -172,7 +170,7 @@ class Settings:
             joint_noise_std=v['joint_noise_std'],
             coulomb_exclusion_speed=v['coulomb_exclusion_speed'],
             converged_ratio=v['converged_ratio'], max_condition=v['max_condition'],
-            min_samples=v['min_samples'], compiled=v['compiled'])
+            min_samples=v['min_samples'])
 
     def build(self, robot: RobotModel | None = None) -> IdentificationPipeline:
         """The pipeline these settings describe (loading the robot unless given)."""

@@ -28,7 +28,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from identification_node import compiled
 from identification_node.controller_client import IdentifiedModel
 from identification_node.errors import IdentificationError
 from identification_node.identifiability import BaseParameters
@@ -172,10 +171,9 @@ class Stream:
                       **reliable(prefix))
         self.names = (f'{prefix}_measured', f'{prefix}_currents')
         # The torque noise from the currents differs per joint (kt, gear ratio): the estimate
-        # needs the ratios, or its covariance (one pooled noise variance) is wrong. The
-        # currents node runs the Python per-run step, the other the compiled one.
+        # needs the ratios, or its covariance (one pooled noise variance) is wrong.
         self.node_params = dict(zip(self.names, (common, dict(
-            common, joint_noise_std=current_noise(spec).tolist(), compiled=False, **torque))))
+            common, joint_noise_std=current_noise(spec).tolist(), **torque))))
         self.prefix = prefix
         self.procs = {n: start_node_process(ros, n, self.node_params[n], tmp, remaps(prefix))
                       for n in self.names}
@@ -500,9 +498,6 @@ def check_convergence(stream):
         status = last_status(stream.diag, name)
         rejected = {r: int(status[f'rejected.{r}']) for r in REJECT_REASONS}
         assert int(status['samples_received']) == len(sim.t), (name, status)
-        assert status['compiled_step'] == str(name == stream.names[0] and compiled.AVAILABLE)
-        # the measured-torque node's clean runs take one compiled call each
-        assert (int(status['compiled_runs']) > 1000) == (status['compiled_step'] == 'True')
         assert sum(rejected.values()) == 0, rejected
         offline = offline_estimate(stream.sim_params, stream.node_params[name], sim)
         assert est['num_samples'] == offline.num_samples

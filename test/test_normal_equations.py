@@ -35,7 +35,7 @@ def test_estimators_expose_their_data_sums():
     rng = np.random.default_rng(1)
     Y, tau = data(rng)
     ref = NormalEquations.from_rows(Y, tau)
-    rls = RecursiveLeastSquares(5, compiled=False)
+    rls = RecursiveLeastSquares(5)
     rls.update(Y, tau)
     stats = ResidualStatistics(5, 3, block=10)
     stats.add(Y, tau)
@@ -43,7 +43,7 @@ def test_estimators_expose_their_data_sums():
         np.testing.assert_allclose(ne.augmented, ref.augmented, rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(ne.count, ref.count)
     lam = 0.99
-    rls = RecursiveLeastSquares(5, forgetting=lam, compiled=False)
+    rls = RecursiveLeastSquares(5, forgetting=lam)
     rls.update(Y, tau)
     decay = lam ** np.arange(len(Y) - 1, -1, -1)
     forgotten = NormalEquations.from_rows(Y * np.sqrt(decay)[:, None, None],

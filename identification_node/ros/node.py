@@ -132,8 +132,7 @@ class IdentificationNode(Node):
         self.get_logger().info(
             f'identifying {base.num_base} base parameters of {self.robot.name} '
             f'(joints {", ".join(self.robot.joint_names)}); smoother delay '
-            f'{self.pipeline.delay:.0f} samples; '
-            f'{"compiled" if self.pipeline.compiled else "Python"} per-run step')
+            f'{self.pipeline.delay:.0f} samples')
 
     def _subscribe(self, topic: str, handle: Callable[[list[bytes]], None]) -> PolledSubscription:
         # A copy each: the QoS override parameters are applied to the profile in place.
@@ -163,7 +162,7 @@ class IdentificationNode(Node):
 
     # -- processing and output --------------------------------------------------------------------
     # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes
-    # and hands them to the pipeline as they are (it decodes them, compiled when it can):
+    # and hands them to the pipeline as they are (it decodes them in blocks):
     # rclpy never turns them into Python message objects.
     def _process(self) -> None:
         with self._lock:
@@ -239,7 +238,6 @@ class IdentificationNode(Node):
         with self._lock:
             est = p.estimate()
             received, used, restarts, rejected = p.received, p.used, p.restarts, dict(p.rejected)
-            compiled_runs = p.compiled_runs
         now = self.get_clock().now()
         dt = (now - self._last_diag_time).nanoseconds * 1e-9
         rate = (received - self._received_at_last_diag) / dt if dt > 0 else 0.0
@@ -259,8 +257,7 @@ class IdentificationNode(Node):
             'condition_number': f'{est.condition_number:.6g}',
             'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
             'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
-            'smoother_delay_samples': int(p.delay), 'compiled_step': p.compiled,
-            'compiled_runs': compiled_runs,
+            'smoother_delay_samples': int(p.delay),
             'physically_consistent': not self._consistency,
         }
         values.update({f'lost_messages.{s.topic}': 'not known with this middleware'
