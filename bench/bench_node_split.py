@@ -58,7 +58,8 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float,
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
 
-    from identification_node.pipeline import IdentificationPipeline, PipelineOutput, _blocks
+    from identification_node.pipeline import IdentificationPipeline, PipelineOutput
+    from identification_node.pipeline.samples import stack_records
     from identification_node.ros import conversions, node as node_module
 
     spent = dict.fromkeys(PARTS, 0.0)
@@ -75,12 +76,12 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float,
         return wrapper
 
     def passthrough(self: IdentificationPipeline, flush: bool = False) -> PipelineOutput:
-        blocks = list(_blocks(self._decoded(self._take(self._js_queue), self._js_decoder)))
+        blocks = list(stack_records(self.samples.joint_states.take()))
         if not blocks:
             return PipelineOutput.empty(self.robot.dof)
         stamps = np.concatenate([b.stamp_ns for b in blocks])
         q = np.vstack([b.position for b in blocks])
-        self.received += len(stamps)
+        self.samples.counters.received += len(stamps)
         return PipelineOutput(stamps, q, q, q, q, q)
 
     process = passthrough if mode == 'passthrough' else IdentificationPipeline.process

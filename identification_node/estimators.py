@@ -161,7 +161,7 @@ def _sample_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
     return rows
 
 
-def _information(rows: np.ndarray) -> np.ndarray:
+def row_information(rows: np.ndarray) -> np.ndarray:
     """Per-joint information sum_k rows[k, j]' rows[k, j] (n, k, k) of rows (N, n, k) (BLAS
     gemm on strided views: einsum would not use BLAS)."""
     return rows.transpose(1, 2, 0) @ rows.transpose(1, 0, 2)
@@ -530,14 +530,22 @@ class RecursiveLeastSquares:
             N, n, None if root is None else root > 0)
         return self.theta
 
+    def update_rows(self, rows: np.ndarray, used: np.ndarray | None = None,
+                    information: np.ndarray | None = None) -> None:
+        """``update`` on trusted data (finite, shapes right: not checked): rows (N, n, p+1)
+        = [Y_j | tau_j] of each sample and joint, already scaled by the square roots of their
+        weights; used (N, n) bool: the rows of weight > 0 (None: all); information: their
+        row_information when known (used only without forgetting)."""
+        N, n = rows.shape[:2]
+        if N:
+            self._update_rows(lambda a, b: rows[a:b], N, n, used, information)
+
     def _update_rows(self, rows: Callable[[int, int], np.ndarray], N: int, n: int,
                      used: np.ndarray | None = None, information: np.ndarray | None = None
                      ) -> None:
-        """``update`` on trusted data (the pipeline's internal path, no checks). rows(a, b):
-        the rows [Y_j | tau_j] of samples a:b (b - a, n, p+1) (see _sample_rows), already
-        scaled by the square roots of the weights (not by the forgetting); used (N, n) bool:
-        the rows of weight > 0 (None: all); information: _information of all N samples' rows,
-        when known (it is used only without forgetting)."""
+        """``update_rows`` with the rows [Y_j | tau_j] of samples a:b (b - a, n, p+1) given by
+        rows(a, b) (see _sample_rows), already scaled by the square roots of the weights (not
+        by the forgetting)."""
         if self._num_joints is None:
             self._num_joints = n
             self.reset()
@@ -552,7 +560,7 @@ class RecursiveLeastSquares:
 
         spans = [(a, min(a + _CHUNK, N)) for a in range(0, N, _CHUNK)]
         if information is None or decay is not None:
-            information = sum(_information(chunk(a, b)) for a, b in spans)
+            information = sum(row_information(chunk(a, b)) for a, b in spans)
         # The forgetting regulariser, anchored at the estimate before the batch.
         old = self._F if f == 1.0 else np.sqrt(f) * self._F
         if f < 1.0:
@@ -702,13 +710,14 @@ class ResidualStatistics:
         """Samples Y (N, n, p), tau (N, n), in time order."""
         Y, tau = _check_data(Y, tau, self.p, self.n)
         for start in range(0, len(tau), _CHUNK):
-            self._add_rows(_sample_rows(Y[start:start + _CHUNK], tau[start:start + _CHUNK]))
+            self.add_rows(_sample_rows(Y[start:start + _CHUNK], tau[start:start + _CHUNK]))
 
-    def _add_rows(self, rows: np.ndarray, information: np.ndarray | None = None) -> None:
-        """``add`` on trusted data: rows (N, n, p+1) = [Y_j | tau_j] of each sample and joint
-        in time order (_sample_rows), ``information`` their _information when known."""
+    def add_rows(self, rows: np.ndarray, information: np.ndarray | None = None) -> None:
+        """``add`` on trusted data (finite, shapes right: not checked): rows (N, n, p+1) =
+        [Y_j | tau_j] of each sample and joint in time order (_sample_rows), ``information``
+        their row_information when known."""
         N = len(rows)
-        self._info += _information(rows) if information is None else information
+        self._info += row_information(rows) if information is None else information
         self.count += N
         # Complete the open block, then whole blocks at once, then open the remainder.
         k = min(self.block - self._fill, N)
@@ -719,7 +728,7 @@ class ResidualStatistics:
         whole = (N - k) // self.block
         rest = k + whole * self.block
         sums = rows[k:rest].reshape(whole, self.block, self.n, self.p + 1).sum(axis=1)
-        self._binfo += _information(np.concatenate([self._open[None], sums]))
+        self._binfo += row_information(np.concatenate([self._open[None], sums]))
         self.blocks += whole + 1
         self._open = rows[rest:].sum(axis=0)
         self._fill = N - rest

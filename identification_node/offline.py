@@ -1,7 +1,7 @@
 """Offline (batch) identification of a whole bag, and held-out validation.
 
-The bag's messages go through the pipeline's own validation, stamp ordering, current alignment
-and torque conversion (IdentificationPipeline with its smoother and RLS left out), then:
+The bag's messages go through the pipeline's own input stages (pipeline.TorqueSamples:
+validation, stamp ordering, current alignment and torque conversion), then:
 
 - periodic data (``period`` given, e.g. from a Fourier trajectory file): positions, measured
   velocities and torques are averaged over the whole periods (Radkhah, Kulic, Croft, section
@@ -41,7 +41,8 @@ from .bagio import iter_joint_states, open_bag, read_string_topic
 from .errors import IdentificationError
 from .estimators import ResidualStatistics
 from .identifiability import BaseParameters, sample_motion
-from .pipeline import IdentificationPipeline, PipelineOutput
+from .pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput, TorqueSamples,
+                       converged)
 from .replay import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION, Checkpoint, ReplayResult,
                      check_usable, identify_bag)
 from .robot import RobotModel, load_robot
@@ -93,21 +94,6 @@ class BagSamples:
         return int(self.streams[-1].stamps_ns[-1])
 
 
-class _Collector(IdentificationPipeline):
-    """The pipeline's validation, ordering, alignment and torque conversion; the samples are
-    collected instead of smoothed and estimated."""
-
-    def reset(self) -> None:
-        super().reset()
-        self.parts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-
-    def _estimate(self, s) -> PipelineOutput:
-        stamps_ns = self._epoch_ns + np.round(s.stamps * 1e9).astype(np.int64)
-        self.parts.append((self.restarts, stamps_ns, s.q, s.qd, s.tau))
-        self.used += len(s.stamps)
-        return PipelineOutput.empty(self.robot.dof)
-
-
 def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                  base: BaseParameters | None = None, batch: int = 1000) -> BagSamples:
@@ -115,11 +101,19 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     ordered, aligned and converted to joint torque exactly as the pipeline does."""
     config = settings.build(robot).config if base is None else \
         settings.pipeline_config(robot.joint_names)
-    collector = _Collector(robot, config, base)
+    stages = TorqueSamples(robot, config)
+    counters = stages.counters
     topics = [joint_states]
-    if collector.converter.needs_currents:
+    if stages.converter.needs_currents:
         topics.append(motor_currents)
-    add = {joint_states: collector.add_joint_state, motor_currents: collector.add_currents}
+    add = {joint_states: stages.add_joint_state, motor_currents: stages.add_currents}
+    parts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def collect(flush: bool = False) -> None:
+        s = stages.process(flush)
+        if len(s):   # all of the newest stream
+            parts.append((counters.restarts, counters.stamps_ns(s.stamps), s.q, s.qd, s.tau))
+
     messages = 0
     with open_bag(bag) as reader:
         counts = reader.topic_counts
@@ -127,16 +121,16 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             add[topic](record)
             messages += 1
             if messages % batch == 0:
-                collector.process()
-    collector.process(flush=True)
-    check_usable(collector, bag, topics, counts)
+                collect()
+    collect(flush=True)
+    check_usable(sum(len(p[1]) for p in parts), counters.rejected, bag, topics, counts)
     streams = []
-    for sid in sorted({p[0] for p in collector.parts}):
-        parts = [p[1:] for p in collector.parts if p[0] == sid]
-        streams.append(Stream(*(np.concatenate(a) for a in zip(*parts))))
+    for sid in sorted({p[0] for p in parts}):
+        stream = [p[1:] for p in parts if p[0] == sid]
+        streams.append(Stream(*(np.concatenate(a) for a in zip(*stream))))
     return BagSamples(str(bag), streams, messages,
-                      {k: v for k, v in collector.rejected.items() if v},
-                      collector._velocity_mode == 'measured')
+                      {k: v for k, v in counters.rejected.items() if v},
+                      stages.velocity_measured)
 
 
 # -- rows for the estimators --------------------------------------------------------------------
@@ -559,18 +553,13 @@ class _Accumulator:
 
 
 # -- batch identification -----------------------------------------------------------------------
-def _batch_converged(settings: Settings, residuals: ResidualStatistics, cov: np.ndarray,
+def _batch_converged(config: PipelineConfig, residuals: ResidualStatistics, cov: np.ndarray,
                      noise: np.ndarray, cond: float, raw_samples: int, rows: int) -> bool:
-    """The pipeline's criterion: excited, enough samples, and the parameter uncertainty adds
-    less than ``converged_ratio`` of the noise to every joint's predicted torque. The noise of
-    a row (filtered or averaged) is that of raw_samples / rows raw samples: compared per raw
-    sample, as the pipeline does."""
-    if raw_samples < settings['min_samples'] or not cond <= settings['max_condition']:
-        return False
-    var = np.einsum('pq,nqp->n', cov, residuals.gram) / max(residuals.count, 1)
-    raw_noise = noise * raw_samples / max(rows, 1)
-    return bool(np.all(np.sqrt(np.maximum(var, 0))
-                       <= settings['converged_ratio'] * np.sqrt(raw_noise)))
+    """The pipeline's criterion (pipeline.converged). The noise of a row (filtered or
+    averaged) is that of raw_samples / rows raw samples: compared per raw sample, as the
+    pipeline does."""
+    return converged(cov, residuals.gram, residuals.count, noise * raw_samples / max(rows, 1),
+                     raw_samples, cond, config)
 
 
 def _condition(residuals: ResidualStatistics) -> float:
@@ -673,7 +662,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
     return Identification(
         samples.bag, 'batch', info['processing'], robot, base, fit.theta, fit.covariance,
         samples.num_samples, samples.messages, samples.rejected, cond, acc.plain, noise,
-        _batch_converged(settings, acc.plain, fit.covariance, noise, cond,
+        _batch_converged(settings.pipeline_config(robot.joint_names), acc.plain,
+                         fit.covariance, noise, cond,
                          samples.num_samples, info['rows']),
         history, TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
                               samples.first_ns), info)
@@ -736,7 +726,7 @@ def _series(sampler: SeriesSampler, pipeline: IdentificationPipeline) -> TorqueS
     if not a:
         return None
     Yb = pipeline.base.base_regressor(pipeline.robot.regressor(a['q'], a['qd'], a['qdd']))
-    return TorqueSeries(a['stamps_ns'], a['measured'], Yb, pipeline._epoch_ns)
+    return TorqueSeries(a['stamps_ns'], a['measured'], Yb, pipeline.epoch_ns)
 
 
 def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Identification:

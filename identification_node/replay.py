@@ -82,16 +82,17 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     out = pipeline.process(flush=True)
     if on_output is not None:
         on_output(out)
-    check_usable(pipeline, bag, topics, counts)
+    check_usable(pipeline.used, pipeline.rejected, bag, topics, counts)
     result.history.append(_checkpoint(pipeline))
     return result
 
 
-def check_usable(pipeline: IdentificationPipeline, bag, topics: list[str],
+def check_usable(used: int, rejected: dict[str, int], bag, topics: list[str],
                  counts: dict[str, int]) -> None:
-    """IdentificationError saying why, when no sample of the bag could be used."""
-    if pipeline.used == 0:
-        rejected = {k: v for k, v in pipeline.rejected.items() if v}
+    """IdentificationError saying why, when no sample of the bag could be used (``used``
+    samples, ``rejected`` messages per reason)."""
+    if used == 0:
+        rejected = {k: v for k, v in rejected.items() if v}
         raise IdentificationError(
             f'no usable samples in {bag} (messages on {", ".join(topics)}: '
             f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}); check '

@@ -10,14 +10,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import yaml
 
 from .errors import IdentificationError
-from .pipeline import IdentificationPipeline, PipelineConfig
 from .robot import RobotModel, load_robot
 from .torque import JointTorqueConfig
+
+if TYPE_CHECKING:   # the pipeline's defaults come from PARAMETERS below: imported when used
+    from .pipeline import IdentificationPipeline, PipelineConfig
 
 # name: (default, description). Per-joint lists hold one value for every joint, or one per
 # identified joint in the order of `joints`.
@@ -160,6 +162,7 @@ class Settings:
         return out
 
     def pipeline_config(self, joints: list[str]) -> PipelineConfig:
+        from .pipeline import PipelineConfig
         v = self.values
         return PipelineConfig(
             torque=self.torque_configs(joints), forgetting=v['forgetting_factor'],
@@ -174,6 +177,7 @@ class Settings:
 
     def build(self, robot: RobotModel | None = None) -> IdentificationPipeline:
         """The pipeline these settings describe (loading the robot unless given)."""
+        from .pipeline import IdentificationPipeline
         robot = robot or self.load_robot()
         try:
             return IdentificationPipeline(robot, self.pipeline_config(robot.joint_names))

@@ -6,6 +6,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimators import RecursiveLeastSquares, ResidualStatistics
 from identification_node.identifiability import BaseParameters
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+from identification_node.pipeline.estimate import OnlineEstimate
 from identification_node.records import JointStateRecord
 from identification_node.robot import load_robot
 from identification_node.simulation import SensorNoise, simulate_kinematic
@@ -123,7 +124,7 @@ def test_differentiated_positions_without_velocity():
     sim = simulate(noise=SensorNoise(torque_std=0.5, encoder_counts=2 ** 20))
     p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
     feed(p, joint_records(sim, velocity=False))
-    assert p._velocity_mode == 'differentiate'
+    assert not p.velocity_measured and p.estimate().num_samples > 0
     assert_within_3_sigma(p.estimate())
 
 
@@ -215,7 +216,7 @@ def test_current_messages_validated_and_mapped_by_channel_name():
         r._replace(stamp_ns=r.stamp_ns + 7, names=(names[1],) + names[1:]),
     ]
     p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
-    converted = p._convert_currents(cur[:10])
+    converted = p.samples.validate_currents(cur[:10])
     np.testing.assert_array_equal(converted.currents, sim.currents[:10])
     np.testing.assert_array_equal(converted.theta, angle[:10])
     js = joint_records(sim, effort=False)
@@ -274,7 +275,7 @@ def test_joint_states_decided_once_their_currents_are_in(offset_ns):
         live.add_joint_state(j)
         live.add_currents(c)
         outs.append(live.process())
-        assert len(live._pending_js.stamps) == (offset_ns < 0)
+        assert len(live.samples.alignment.pending) == (offset_ns < 0)
     outs.append(live.process(flush=True))
     whole = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
     ref = feed(whole, js, cur, chunk=len(js))
@@ -399,22 +400,27 @@ def test_bad_block_shapes_are_refused():
     assert p.received == 0
 
 
-class _Checked(IdentificationPipeline):
-    """The pipeline, also feeding a reference RLS and residual sums by their public, checked
-    methods with the base regressor rows."""
+class _CheckedEstimate(OnlineEstimate):
+    """The pipeline's estimate stage, also feeding a reference RLS and residual sums by their
+    public, checked methods with the base regressor rows and the weights it gives them."""
 
     def reset(self):
         super().reset()
-        self.ref_rls = RecursiveLeastSquares(self.base.num_base, self.config.forgetting)
-        self.ref_res = ResidualStatistics(self.base.num_base, self.robot.dof, self._block)
+        self.ref_rls = RecursiveLeastSquares(self.num_base, self.config.forgetting)
+        self.ref_res = ResidualStatistics(self.num_base, self.dof, self._block)
 
-    def _gather(self, rows, w):
+    def _row_weights(self, t, qd, qdd):
+        self.weights = super()._row_weights(t, qd, qdd)
+        return self.weights
+
+    def add(self, rows, t, qd, qdd):
         assert len(rows) >= self.config.update_batch  # (applied at once: same batches)
         Yb, tau = rows[:, :, :-1].copy(), rows[:, :, -1].copy()
+        super().add(rows, t, qd, qdd)
+        w = self.weights
         self.ref_rls.update(Yb, tau, w)
         root = np.sqrt(np.broadcast_to(np.ones(tau.shape) if w is None else w, tau.shape))
         self.ref_res.add(Yb * root[..., None], tau * root)
-        super()._gather(rows, w)
 
 
 @pytest.mark.parametrize('forgetting, extras', [(1.0, ()), (0.998, ('fv', 'fc'))])
@@ -422,9 +428,11 @@ def test_shared_information_equals_the_checked_estimator_calls(forgetting, extra
     robot = load_robot('mit_dd_arm', extras=extras)
     base = BaseParameters.from_robot(robot)
     sim = simulate(duration=3.0)
-    p = _Checked(robot, PipelineConfig(forgetting=forgetting, joint_noise_std=[0.5, 1.0, 2.0]),
-                 base)
+    config = PipelineConfig(forgetting=forgetting, joint_noise_std=[0.5, 1.0, 2.0])
+    p = IdentificationPipeline(robot, config, base)
+    p.estimator = checked = _CheckedEstimate(base.num_base, robot.dof, config, bool(extras))
     feed(p, joint_records(sim), chunk=400)
+    p.ref_rls, p.ref_res = checked.ref_rls, checked.ref_res
     assert p.excluded_rows > 0 or not extras  # zero weights (Coulomb exclusion) were there
     np.testing.assert_allclose(p.rls.theta, p.ref_rls.theta, rtol=1e-9,
                                atol=1e-9 * np.abs(p.ref_rls.theta).max())
@@ -453,6 +461,5 @@ def test_non_finite_rows_raise_through_the_checked_path():
     p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
     rows = np.ones((60, ROBOT.dof, BASE.num_base + 1))
     rows[7, 1, 2] = np.nan
-    p._updates, p._pending_samples = [(rows, None)], 60
     with pytest.raises(IdentificationError, match='NaN or inf'):
-        p._apply_updates()
+        p.estimator.add(rows, np.arange(60) * 1e-3, np.ones((60, 3)), np.zeros((60, 3)))

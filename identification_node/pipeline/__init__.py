@@ -1,0 +1,26 @@
+"""The identification pipeline: stamped joint states and currents in, base-parameter estimate
+out. The node (its processing thread copies the polled messages in as CDR bytes) and bag
+replay feed the same IdentificationPipeline; ``process`` does the numerical work for
+everything queued, in batches, one stage per module:
+
+1. ``intake``: the queued inputs, JointState CDR decoded in blocks (bagio.decode_joint_states),
+2. ``validate``: names, lengths and values checked, mapped to the robot's joints; every
+   rejection counted by reason (``REJECT_REASONS``), never an exception or a NaN,
+3. ``order``: out-of-order and repeated stamps rejected, a large backward jump a restart,
+4. ``align``: motor currents matched to joint states by header stamp, and the joint torque,
+5. ``rows``: the fixed-lag smoother on positions (and measured velocities) and torque alike,
+   pinocchio's regressor, the base rows,
+6. ``estimate``: recursive least squares (unless frozen), residual statistics, uncertainty
+   and convergence; ``core`` composes them and predicts the torque.
+
+Stages 1-4 together are ``TorqueSamples``, which batch identification (offline) runs too.
+"""
+from .config import PipelineConfig
+from .core import IdentificationPipeline, PipelineOutput
+from .estimate import EstimateReport, converged
+from .samples import Samples
+from .torque_samples import TorqueSamples
+from .validate import REJECT_REASONS
+
+__all__ = ['IdentificationPipeline', 'PipelineConfig', 'PipelineOutput', 'EstimateReport',
+           'REJECT_REASONS', 'Samples', 'TorqueSamples', 'converged']

@@ -1,0 +1,118 @@
+"""Stage 4, current alignment and torque: joint states paired with the motor currents
+nearest in header stamp, and the joint torque of every sample.
+
+A joint state is matched to the nearest current within ``align_tolerance``; it waits until a
+current stamped at or after it is in (then its nearest is known), or ``hold_time`` at most,
+and is counted 'no_current' when none is near. Currents no joint state took are counted
+'unmatched_current'. With every joint's torque measured there is nothing to wait for: the
+torque is the effort (checked finite on the way in).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..torque import TorqueConverter
+from .samples import Samples
+from .validate import Counters
+
+
+class CurrentAlignment:
+    """Pending joint states and buffered currents; ``ready`` gives the samples decided, with
+    torque."""
+
+    def __init__(self, converter: TorqueConverter, dof: int, align_tolerance: float,
+                 hold_time: float, counters: Counters):
+        self.converter, self.dof, self.counters = converter, dof, counters
+        self.align_tolerance, self.hold_time = float(align_tolerance), float(hold_time)
+        self._all_measured = len(converter.measured_joints) == dof
+        self.reset()
+
+    def reset(self) -> None:
+        self.pending = Samples.empty(self.dof)
+        self.currents = Samples.empty(self.dof, with_currents=True)
+        self._newest_js = -math.inf
+
+    def add_joint_states(self, s: Samples) -> None:
+        self.pending = self.pending.concat(s)
+
+    def add_currents(self, s: Samples) -> None:
+        if len(s):
+            self.currents = self.currents.concat(s)
+
+    def restart(self, old_newest: float, restart_jump: float) -> int:
+        """A restarted stream: drop the pending joint states (returns how many) and the
+        currents stamped within ``restart_jump`` of the old stream's newest stamp; older
+        ones already belong to the new stream (they may come in the same batch)."""
+        dropped = len(self.pending)
+        self.pending = Samples.empty(self.dof)
+        self.currents = self.currents.select(self.currents.stamps < old_newest - restart_jump)
+        self._newest_js = -math.inf
+        return dropped
+
+    def ready(self, flush: bool = False) -> Samples:
+        """Joint states whose currents are known (or will never come), with torque; ``flush``
+        decides all of them (end of a bag)."""
+        s = self.pending
+        if len(s) == 0:
+            return s
+        self._newest_js = max(self._newest_js, float(s.stamps[-1]))
+        if not self.converter.needs_currents:
+            self.pending = Samples.empty(self.dof)
+            return self._with_torque(s, None, None)
+        cur = self.currents
+        newest_cur = cur.stamps[-1] if len(cur) else -math.inf
+        if flush:
+            decided = np.ones(len(s), dtype=bool)
+        else:
+            # Currents come in stamp order: once one at or after t is in, the nearest to t is
+            # among those in (the newest before t, the first after), so t is decided.
+            decided = ((s.stamps <= newest_cur)
+                       | (s.stamps <= self._newest_js - self.hold_time))
+        # decided is a prefix: stamps are increasing.
+        k = int(np.count_nonzero(decided))
+        if k == 0:
+            return Samples.empty(self.dof)
+        if k == len(s):
+            ready, self.pending = s, Samples.empty(self.dof)
+        else:
+            ready, self.pending = s.head(k), s.tail(k)
+        match = self._nearest(cur.stamps, ready.stamps)
+        ok = match >= 0
+        self.counters.reject('no_current', np.count_nonzero(~ok))
+        used = np.zeros(len(cur), dtype=bool)
+        used[match[ok]] = True
+        # Currents older than what the next joint state could still match are done with.
+        horizon = (self.pending.stamps[0] if len(self.pending)
+                   else ready.stamps[-1]) - self.align_tolerance
+        if flush:
+            horizon = math.inf
+        done = cur.stamps < horizon
+        self.counters.reject('unmatched_current', np.count_nonzero(done & ~used & ~cur.used))
+        cur.used |= used
+        self.currents = cur.select(~done) if done.any() else cur
+        if not ok.all():
+            ready, match = ready.select(ok), match[ok]
+        return self._with_torque(ready, cur.currents[match], cur.theta[match])
+
+    def _nearest(self, ref: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Index of the nearest ``ref`` stamp within tolerance for each ``t``, else -1."""
+        if len(ref) == 0:
+            return np.full(len(t), -1)
+        hi = np.minimum(np.maximum(np.searchsorted(ref, t), 1), len(ref) - 1) if len(ref) > 1 \
+            else np.zeros(len(t), dtype=int)
+        lo = np.maximum(hi - 1, 0)
+        pick = np.where(np.abs(ref[lo] - t) <= np.abs(ref[hi] - t), lo, hi)
+        return np.where(np.abs(ref[pick] - t) <= self.align_tolerance, pick, -1)
+
+    def _with_torque(self, s: Samples, currents, theta) -> Samples:
+        if self._all_measured:
+            s.tau = s.eff   # every joint's torque measured: checked finite on the way in
+            return s
+        s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)
+        ok = np.isfinite(s.tau).all(axis=1)
+        if ok.all():
+            return s
+        self.counters.reject('non_finite', np.count_nonzero(~ok))
+        return s.select(ok)

@@ -1,0 +1,63 @@
+"""The pipeline's settings; their defaults are the node parameters' (settings.PARAMETERS)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+from ..errors import IdentificationError
+from ..settings import CONFIG_FIELD_PARAMETERS, PARAMETERS
+from ..torque import JointTorqueConfig
+
+
+def _default(name: str):
+    """The default of the node parameter behind PipelineConfig field ``name``."""
+    value = PARAMETERS[CONFIG_FIELD_PARAMETERS.get(name, name)][0]
+    return tuple(value) if isinstance(value, list) else value
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of the pipeline (the node's ROS parameters map onto these fields, see
+    settings.CONFIG_FIELD_PARAMETERS for those named otherwise)."""
+    torque: Mapping[str, JointTorqueConfig] = field(default_factory=dict)
+    forgetting: float = _default('forgetting')
+    half_window: int = _default('half_window')
+    smoother_order: int = _default('smoother_order')
+    max_gap: float = _default('max_gap')
+    velocity: str = _default('velocity')
+    align_tolerance: float = _default('align_tolerance')
+    hold_time: float = _default('hold_time')
+    restart_jump: float = _default('restart_jump')
+    update_batch: int = _default('update_batch')
+    joint_noise_std: Sequence[float] = _default('joint_noise_std')
+    coulomb_exclusion_speed: float = _default('coulomb_exclusion_speed')
+    converged_ratio: float = _default('converged_ratio')
+    max_condition: float = _default('max_condition')
+    min_samples: int = _default('min_samples')
+
+    def validate(self, dof: int) -> None:
+        """Raise IdentificationError naming the first bad field."""
+        checks = [
+            ('forgetting', 0.9 <= self.forgetting <= 1.0, 'in [0.9, 1.0]'),
+            ('half_window', int(self.half_window) >= 1, '>= 1'),
+            ('smoother_order', 2 <= int(self.smoother_order) <= min(4, 2 * self.half_window),
+             'in [2, min(4, 2 * half_window)]'),
+            ('max_gap', self.max_gap > 0, '> 0'),
+            ('velocity', self.velocity in ('auto', 'measured', 'differentiate'),
+             "'auto', 'measured' or 'differentiate'"),
+            ('align_tolerance', self.align_tolerance > 0, '> 0'),
+            ('hold_time', self.hold_time > 0, '> 0'),
+            ('restart_jump', self.restart_jump > 0, '> 0'),
+            ('update_batch', int(self.update_batch) >= 1, '>= 1'),
+            ('joint_noise_std', len(self.joint_noise_std) in (0, dof)
+             and all(s > 0 for s in self.joint_noise_std), f'empty or {dof} values > 0'),
+            ('coulomb_exclusion_speed', self.coulomb_exclusion_speed >= 0, '>= 0'),
+            ('converged_ratio', self.converged_ratio > 0, '> 0'),
+            ('max_condition', self.max_condition > 1, '> 1'),
+            ('min_samples', int(self.min_samples) >= 0, '>= 0'),
+        ]
+        for name, ok, expected in checks:
+            value = getattr(self, name)
+            if not ok or (isinstance(value, float) and not math.isfinite(value)):
+                raise IdentificationError(f'parameter {name} = {value!r} must be {expected}')

@@ -1,0 +1,200 @@
+"""The identification pipeline: stamped joint states and currents in, base-parameter estimate
+out, one stage per module (see the package doc)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import IdentificationError
+from ..estimators import RecursiveLeastSquares, ResidualStatistics
+from ..identifiability import BaseParameters
+from ..records import JointStateRecord
+from ..robot import RobotModel
+from .config import PipelineConfig
+from .estimate import EstimateReport, OnlineEstimate
+from .rows import RowBuilder
+from .torque_samples import TorqueSamples
+
+
+@dataclass
+class PipelineOutput:
+    """Samples processed by one ``process`` call, stamped with their own header stamps
+    (``stamps_ns``, int64 ns): smoothed q, qd, qdd, the smoothed measured torque and the
+    torque predicted by the estimate before the call's update (each (N, n))."""
+    stamps_ns: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    measured: np.ndarray
+    predicted: np.ndarray
+
+    @classmethod
+    def empty(cls, dof: int) -> PipelineOutput:
+        z = np.empty((0, dof))
+        return cls(np.empty(0, dtype=np.int64), z, z, z, z, z)
+
+
+class IdentificationPipeline:
+    """Identification of ``robot``'s base parameters from streamed samples: the input stages
+    (TorqueSamples), the rows (RowBuilder) and the estimate (OnlineEstimate)."""
+
+    def __init__(self, robot: RobotModel, config: PipelineConfig | None = None,
+                 base: BaseParameters | None = None):
+        self.robot = robot
+        self.config = config or PipelineConfig()
+        self.config.validate(robot.dof)
+        unknown = set(self.config.torque) - set(robot.joint_names)
+        if unknown:
+            raise IdentificationError(f'torque sources name unknown joints {sorted(unknown)}')
+        self.base = base or BaseParameters.from_robot(robot)
+        self.samples = TorqueSamples(robot, self.config)
+        self.converter = self.samples.converter
+        c = self.config
+        self.row_builder = RowBuilder(robot, self.base, c.half_window, c.smoother_order,
+                                      c.max_gap)
+        self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
+                                        'fc' in robot.extras)
+        self.frozen = False
+        self.reset()
+
+    # -- input: called on the ROS side, so nothing but a copy ------------------------------------
+    def add_joint_state(self, record: JointStateRecord) -> None:
+        self.samples.add_joint_state(record)
+
+    def add_joint_states(self, block: JointStateRecord) -> None:
+        """Joint states sharing names and layout, at once: stamp_ns (M,) int64, position,
+        velocity and effort (M, k) ((M, 0) when absent). The same as adding the M records
+        one by one (bag replay reads such blocks)."""
+        self.samples.add_joint_states(block)
+
+    def add_joint_state_cdr(self, messages: list[bytes]) -> None:
+        """sensor_msgs/JointState messages as CDR bytes, in arrival order (as the node takes
+        them); decoded when processed (one that cannot be decoded is counted 'malformed')."""
+        self.samples.add_joint_state_cdr(messages)
+
+    def add_currents(self, record: JointStateRecord) -> None:
+        self.samples.add_currents(record)
+
+    def add_currents_cdr(self, messages: list[bytes]) -> None:
+        """Motor current messages (sensor_msgs/JointState) as CDR bytes, in arrival order."""
+        self.samples.add_currents_cdr(messages)
+
+    def add_malformed(self) -> None:
+        """Count a message that could not even be decoded (received, and rejected)."""
+        self.samples.joint_states.malformed()
+
+    @property
+    def pending(self) -> int:
+        return self.samples.pending
+
+    # -- counters ---------------------------------------------------------------------------------
+    received = property(lambda self: self.samples.counters.received,
+                        doc='joint state messages received')
+    rejected = property(lambda self: self.samples.counters.rejected,
+                        doc='rejected messages per reason (validate.REJECT_REASONS)')
+    restarts = property(lambda self: self.samples.counters.restarts, doc='stream restarts')
+    excluded_rows = property(lambda self: self.estimator.excluded_rows,
+                             doc='joint equations left out near velocity reversals')
+    epoch_ns = property(lambda self: self.samples.counters.epoch_ns,
+                        doc='the first stamp (ns): time zero of the float stamps')
+    velocity_measured = property(lambda self: self.samples.velocity_measured)
+
+    # -- state ----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the estimate and all buffered data; counters restart too."""
+        self.samples.reset()
+        self.row_builder.reset()
+        self.estimator.reset()
+        self.used = 0
+        self._restarts_seen = 0
+        self._last_output_stamp = math.nan
+
+    @property
+    def delay(self) -> float:
+        """Smoother delay in samples; multiply by the sample period for seconds."""
+        return float(self.config.half_window)
+
+    # -- processing -----------------------------------------------------------------------------
+    def process(self, flush: bool = False) -> PipelineOutput:
+        """Work through everything queued. ``flush`` decides joint states still waiting for
+        currents (end of a bag) instead of holding them for ``hold_time``."""
+        s = self.samples.process(flush)
+        if self.samples.counters.restarts != self._restarts_seen:
+            self._restarts_seen = self.samples.counters.restarts
+            self.row_builder.reset()
+        if len(s) == 0:
+            return PipelineOutput.empty(self.robot.dof)
+        est = self.estimator
+        r = self.row_builder(s, self.samples.velocity_measured,
+                             self.config.update_batch if est.batch_due else None)
+        if len(r.t) == 0:
+            return PipelineOutput.empty(self.robot.dof)
+        predicted = r.rows[:, :, :self.base.num_base] @ est.theta
+        if not self.frozen:
+            est.add(r.rows, r.t, r.qd, r.qdd)
+            self.used += len(r.t)
+        stamps_ns = self.samples.counters.stamps_ns(r.t)
+        self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
+        return PipelineOutput(stamps_ns, r.q, r.qd, r.qdd, r.tau, predicted)
+
+    # -- results --------------------------------------------------------------------------------
+    @property
+    def rls(self) -> RecursiveLeastSquares:
+        """The recursive estimator, up to date with every processed sample."""
+        return self.estimator.rls
+
+    @property
+    def residuals(self) -> ResidualStatistics:
+        """Residual statistics, up to date with every processed sample."""
+        return self.estimator.residuals
+
+    def residual_rms(self) -> np.ndarray:
+        """Per-joint RMS of the (smoothed, weighted) measured minus predicted torque over the
+        samples used, for the current estimate (N m)."""
+        return self.estimator.residual_rms()
+
+    def relative_error(self, theta: np.ndarray | None = None) -> np.ndarray:
+        """Per-joint 100 ||tau - Yb theta|| / ||tau|| (percent) over the samples used, for
+        ``theta`` (default: the current estimate)."""
+        return self.residuals.relative_error(self.rls.theta if theta is None else theta)
+
+    def noise_variance(self) -> np.ndarray:
+        """Per-joint long-run variance of the torque residual (N m)^2."""
+        return self.estimator.noise_variance()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance of the base estimate (see OnlineEstimate.covariance)."""
+        return self.estimator.covariance
+
+    @property
+    def stddev(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+    def excitation(self) -> tuple[float, float]:
+        """(condition number, smallest eigenvalue) of the information the data brought."""
+        return self.estimator.excitation()
+
+    def converged(self) -> bool:
+        """Excited, enough samples, and the parameter uncertainty contributes less than
+        ``converged_ratio`` of the torque noise on every joint."""
+        return self.estimator.converged(self.excitation()[0], self.covariance)
+
+    def estimate(self) -> EstimateReport:
+        """A snapshot of the running estimate."""
+        cond, min_eig = self.excitation()
+        cov = self.covariance
+        rls = self.rls
+        return EstimateReport(
+            names=list(self.base.names), values=rls.theta.copy(),
+            stddev=np.sqrt(np.diag(cov)), num_samples=int(rls.num_samples),
+            stamp=self._last_output_stamp, condition_number=cond, min_eigenvalue=min_eig,
+            residual_rms=self.residual_rms(),
+            converged=self.estimator.converged(cond, cov), frozen=self.frozen)
+
+    def standard_parameters(self) -> np.ndarray:
+        """The full standard parameter vector closest to the model's own that reproduces the
+        base estimate (for the identified URDF)."""
+        return self.base.closest_standard(self.rls.theta, self.robot.phi_model)

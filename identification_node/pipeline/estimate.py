@@ -1,0 +1,172 @@
+"""Stage 6, estimate: recursive least squares on the base rows, with honest uncertainty.
+
+Rows are weighted (joint noise weights; a joint's equation left out near a velocity reversal
+when Coulomb friction is identified), gathered, and fed to the RLS and the residual statistics
+every ``update_batch`` samples in one batch (what sample-by-sample updates give). The torque is
+smoothed, so residuals are correlated over the window: the covariance uses their long-run
+variance (ResidualStatistics' block sums); until there are enough blocks, white raw noise is
+assumed (signals.smoothing_noise_gain).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..estimators import RecursiveLeastSquares, ResidualStatistics, row_information
+from ..signals import smoothing_noise_gain
+from .config import PipelineConfig
+
+
+@dataclass
+class EstimateReport:
+    """The running estimate: base parameters with standard deviations, and health figures."""
+    names: list
+    values: np.ndarray
+    stddev: np.ndarray
+    num_samples: int
+    stamp: float
+    condition_number: float
+    min_eigenvalue: float
+    residual_rms: np.ndarray
+    converged: bool
+    frozen: bool
+
+
+def converged(covariance: np.ndarray, gram: np.ndarray, count: float,
+              noise_variance: np.ndarray, num_samples: int, condition: float,
+              config: PipelineConfig) -> bool:
+    """Excited (``condition`` <= max_condition), ``num_samples`` >= min_samples, and the
+    parameter uncertainty adds less than ``converged_ratio`` of the torque noise
+    (``noise_variance`` (n,)) to every joint's predicted torque: the mean of trace(P G_j) /
+    count over the rows whose per-joint Gram matrices are ``gram`` (n, b, b)."""
+    if num_samples < config.min_samples or not condition <= config.max_condition:
+        return False
+    var = np.einsum('pq,nqp->n', covariance, gram) / max(count, 1)
+    return bool(np.all(np.sqrt(np.maximum(var, 0))
+                       <= config.converged_ratio * np.sqrt(noise_variance)))
+
+
+class OnlineEstimate:
+    """RLS and residual statistics of ``num_base`` parameters over ``dof`` joints' rows."""
+
+    def __init__(self, num_base: int, dof: int, config: PipelineConfig, coulomb: bool):
+        self.num_base, self.dof, self.config, self.coulomb = num_base, dof, config, coulomb
+        self._block = 8 * (2 * int(config.half_window) + 1)   # residual blocks: 8 windows
+        self._white_scale = 1.0 / smoothing_noise_gain(int(config.half_window),
+                                                       int(config.smoother_order))
+        # Inverse-variance weights per joint (RLS weights multiply squared residuals).
+        self._weights = (np.asarray(config.joint_noise_std, dtype=float) ** -2
+                         if len(config.joint_noise_std) else None)
+        self.reset()
+
+    def reset(self) -> None:
+        self._rls = RecursiveLeastSquares(self.num_base, forgetting=self.config.forgetting)
+        self._residuals = ResidualStatistics(self.num_base, self.dof, self._block)
+        self._updates: list[tuple] = []
+        self._pending_samples = 0
+        self.excluded_rows = 0
+
+    @property
+    def theta(self) -> np.ndarray:
+        """The estimate the predictions use: as of the last update."""
+        return self._rls.theta
+
+    @property
+    def batch_due(self) -> bool:
+        """Whether rows added now are applied within the call (so may live in a work array)."""
+        return not self._updates
+
+    def add(self, rows: np.ndarray, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> None:
+        """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n):
+        weighted (in place) and queued; applied once ``update_batch`` samples are gathered."""
+        w = self._row_weights(t, qd, qdd)
+        used = None
+        if w is not None:
+            root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
+            rows *= root[:, :, None]
+            used = root > 0
+        self._updates.append((rows, used))
+        self._pending_samples += len(rows)
+        if self._pending_samples >= self.config.update_batch:
+            self.apply()
+
+    def apply(self) -> None:
+        """Feed the rows gathered since the last update to the RLS and residual statistics in
+        one batch: their per-joint information is formed once for both (without forgetting)."""
+        if not self._updates:
+            return
+        parts, self._updates, self._pending_samples = self._updates, [], 0
+        rows = parts[0][0] if len(parts) == 1 else np.concatenate([u[0] for u in parts])
+        used = None if all(u[1] is None for u in parts) else np.concatenate([
+            np.ones(u[0].shape[:2], dtype=bool) if u[1] is None else u[1] for u in parts])
+        b = self.num_base
+        information = row_information(rows)
+        if not np.isfinite(information).all():  # the checked path names the culprit
+            self._rls.update(rows[:, :, :b], rows[:, :, b], used)  # (rows weighted already)
+            self._residuals.add(rows[:, :, :b], rows[:, :, b])
+            return
+        self._rls.update_rows(rows, used, information)
+        self._residuals.add_rows(rows, information)
+
+    def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
+        """Per (sample, joint) weights: the joint weights, and zero for a joint's equation while
+        its smoothing window may hold a velocity reversal, |qd| < v_min + |qdd| T_half, when
+        Coulomb friction is identified: there the friction torque turns faster than the
+        smoother resolves (and stiction is not modelled at all)."""
+        if not self.coulomb:
+            return self._weights
+        period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        reach = (self.config.coulomb_exclusion_speed
+                 + np.abs(qdd) * period * float(self.config.half_window))
+        slow = np.abs(qd) < reach
+        self.excluded_rows += int(np.count_nonzero(slow))
+        w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
+        w[slow] = 0.0
+        return w
+
+    # -- results: every gathered row applied first ----------------------------------------------
+    @property
+    def rls(self) -> RecursiveLeastSquares:
+        self.apply()
+        return self._rls
+
+    @property
+    def residuals(self) -> ResidualStatistics:
+        self.apply()
+        return self._residuals
+
+    def residual_rms(self) -> np.ndarray:
+        """Per-joint RMS of the (smoothed, weighted) measured minus predicted torque (N m)."""
+        return np.sqrt(self.residuals.variance(self.rls.theta))
+
+    def noise_variance(self) -> np.ndarray:
+        """Per-joint long-run variance of the torque residual (N m)^2: the noise the estimate
+        averages. White raw noise is assumed until 10 blocks of samples are in."""
+        theta = self.rls.theta
+        if self.residuals.blocks >= 10:
+            return self.residuals.long_run_variance(theta)
+        return self.residuals.variance(theta) * self._white_scale
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The RLS covariance, whose noise level comes from the smoothed residuals, rescaled
+        to their long-run variance."""
+        var = self.residuals.variance(self.rls.theta)
+        scale = (float(self.noise_variance().sum() / var.sum()) if np.nansum(var) > 0
+                 else self._white_scale)
+        return self.rls.covariance * scale
+
+    def excitation(self) -> tuple[float, float]:
+        """(condition number, smallest eigenvalue) of the information the data brought, without
+        the forgetting regulariser."""
+        ev = np.linalg.eigvalsh(self.rls.data_information)
+        if ev[-1] <= 0:
+            return math.inf, 0.0
+        return (float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf), float(max(ev[0], 0.0))
+
+    def converged(self, condition: float, covariance: np.ndarray) -> bool:
+        r = self.residuals
+        return converged(covariance, r.gram, r.count, self.noise_variance(),
+                         self.rls.num_samples, condition, self.config)

@@ -1,0 +1,201 @@
+"""Stage 2, validation: joint state and current blocks checked and mapped to the robot's joints.
+
+A block (messages sharing names and array lengths) is decided at once; every rejected message
+is counted by reason (``REJECT_REASONS``), never an exception or a NaN passed on. Accepted
+rows come out as Samples in the robot's joint order, stamps in seconds since the stream's
+epoch (its first stamp).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..records import JointStateRecord
+from ..robot import RobotModel
+from ..torque import TorqueConverter
+from .samples import Samples, stack_records
+
+REJECT_REASONS = (
+    'empty', 'length_mismatch', 'duplicate_names', 'missing_joints', 'non_finite',
+    'missing_velocity', 'missing_effort', 'out_of_order', 'repeated_stamp', 'no_current',
+    'unmatched_current', 'unknown_channels', 'stream_restart', 'malformed',
+)
+_MAX_LAYOUTS = 256   # layouts (name tuples) remembered per stream
+
+
+class Counters:
+    """Messages received, rejected per reason, stream restarts; and the stream's epoch, the
+    first stamp (ns), shared by both streams so their stamps compare."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.received = 0
+        self.restarts = 0
+        self.rejected = dict.fromkeys(REJECT_REASONS, 0)
+        self.epoch_ns: int | None = None
+
+    def reject(self, reason: str, count: int = 1) -> None:
+        self.rejected[reason] += int(count)
+
+    def seconds(self, stamps_ns) -> np.ndarray:
+        """Stamps (int ns) as float seconds since the epoch, exact to the nanosecond for spans
+        of days."""
+        if self.epoch_ns is None:
+            self.epoch_ns = int(stamps_ns[0])
+        return (np.asarray(stamps_ns, dtype=np.int64) - self.epoch_ns).astype(float) * 1e-9
+
+    def stamps_ns(self, seconds: np.ndarray) -> np.ndarray:
+        """Seconds since the epoch back to int64 ns."""
+        return self.epoch_ns + np.round(seconds * 1e9).astype(np.int64)
+
+
+def _layout(cache: dict, names: tuple, build):
+    """``build(pos)`` for messages with ``names`` (pos: name -> message column), or
+    'duplicate_names'; kept in ``cache`` per names."""
+    layout = cache.get(names)
+    if layout is None:
+        pos = {name: i for i, name in enumerate(names)}
+        layout = 'duplicate_names' if len(pos) != len(names) else build(pos)
+        if len(cache) > _MAX_LAYOUTS:
+            cache.clear()
+        cache[names] = layout
+    return layout
+
+
+class JointStateValidator:
+    """Joint state blocks to Samples in ``robot``'s joint order: layouts checked (names,
+    lengths, velocity and effort where needed), rows with a needed value not finite dropped;
+    every rejection counted. ``velocity`` 'auto' is decided by the first accepted block."""
+
+    def __init__(self, robot: RobotModel, converter: TorqueConverter, velocity: str,
+                 counters: Counters):
+        self.robot, self.counters = robot, counters
+        self._auto = velocity == 'auto'
+        self.velocity_mode: str | None = None if self._auto else velocity
+        self._measured_columns = np.array([robot.joint_names.index(j)
+                                           for j in converter.measured_joints], dtype=int)
+        self._cache: dict[tuple, np.ndarray | slice | str] = {}
+
+    def reset(self) -> None:
+        if self._auto:
+            self.velocity_mode = None
+
+    @property
+    def velocity_measured(self) -> bool:
+        return self.velocity_mode == 'measured'
+
+    def columns(self, names: tuple) -> np.ndarray | slice | str:
+        """Message columns in the robot's joint order (a plain slice when the message has
+        exactly the robot's joints in its order), or the reason to reject the layout."""
+        return _layout(self._cache, names, self._columns)
+
+    def _columns(self, pos: dict) -> np.ndarray | slice | str:
+        if any(j not in pos for j in self.robot.joint_names):
+            return 'missing_joints'
+        idx = np.array([pos[j] for j in self.robot.joint_names])
+        return slice(None) if len(pos) == len(idx) and (idx == np.arange(len(idx))).all() \
+            else idx
+
+    def __call__(self, b: JointStateRecord) -> Samples:
+        """One block (rows sharing names and layout) validated; rejects counted."""
+        n, M = self.robot.dof, len(b.stamp_ns)
+        self.counters.received += M
+        if M == 0:
+            return Samples.empty(n)
+        k = len(b.names)
+        pos, vel, eff = b.position.shape[1], b.velocity.shape[1], b.effort.shape[1]
+        reason = idx = None
+        if not k or not pos:
+            reason = 'empty'
+        elif pos != k or vel not in (0, k) or eff not in (0, k):
+            reason = 'length_mismatch'
+        else:
+            idx = self.columns(tuple(b.names))
+            reason = idx if isinstance(idx, str) else None
+        if reason is None and self.velocity_mode is None:
+            self.velocity_mode = 'measured' if vel else 'differentiate'
+        if reason is None and self.velocity_measured and not vel:
+            reason = 'missing_velocity'
+        if reason is None and len(self._measured_columns) and not eff:
+            reason = 'missing_effort'
+        if reason is not None:
+            self.counters.reject(reason, M)
+            return Samples.empty(n)
+        nan = np.full((M, n), np.nan) if not (vel and eff) else None
+        s = Samples(self.counters.seconds(b.stamp_ns),
+                    np.asarray(b.position, dtype=float)[:, idx],
+                    np.asarray(b.velocity, dtype=float)[:, idx] if vel else nan,
+                    np.asarray(b.effort, dtype=float)[:, idx] if eff else nan)
+        finite = np.isfinite(s.q).all(axis=1)
+        if self.velocity_measured:
+            finite &= np.isfinite(s.qd).all(axis=1)
+        if len(self._measured_columns):
+            finite &= np.isfinite(s.eff[:, self._measured_columns]).all(axis=1)
+        if not finite.all():
+            self.counters.reject('non_finite', np.count_nonzero(~finite))
+            s = s.select(finite)
+        return s
+
+
+class CurrentValidator:
+    """Motor current records to Samples of currents (M, n, 3) and electrical angles (M, n)
+    (NaN where not given), in stamp order; rejects counted."""
+
+    def __init__(self, robot: RobotModel, converter: TorqueConverter, counters: Counters):
+        self.robot, self.counters = robot, counters
+        self._channels = {name: (i, k) for name, i, k in converter.current_channel_slots()}
+        self._cache: dict[tuple, tuple | str] = {}
+
+    def layout(self, names: tuple) -> tuple | str:
+        """For current messages with ``names``: the message columns of the configured channels
+        and their flat slots joint * 3 + phase, the columns of each joint's electrical angle
+        (its last channel) and those joints; or the reason to reject the layout."""
+        return _layout(self._cache, names, self._layout)
+
+    def _layout(self, pos: dict) -> tuple | str:
+        known = sum(name in pos for name in self._channels)
+        if known < len(self._channels):
+            return 'unknown_channels' if not known else 'missing_joints'
+        cols = np.array([pos[name] for name in self._channels])
+        slots = np.array([3 * i + k for i, k in self._channels.values()])
+        angle = {i: col for col, (i, _) in sorted(zip(cols, self._channels.values()))}
+        return cols, slots, np.array(list(angle.values())), np.array(list(angle))
+
+    def __call__(self, records: list) -> Samples:
+        n = self.robot.dof
+        parts = []
+        for b in stack_records(records):
+            M, k = len(b.stamp_ns), len(b.names)
+            eff, pos = b.effort.shape[1], b.position.shape[1]
+            if not k or not eff:
+                layout = 'empty'
+            elif eff != k or pos not in (0, k):
+                layout = 'length_mismatch'
+            else:
+                layout = self.layout(tuple(b.names))
+            if isinstance(layout, str):
+                self.counters.reject(layout, M)
+                continue
+            cols, slots, angle_cols, angle_joints = layout
+            values = np.asarray(b.effort, dtype=float)[:, cols]
+            cur = np.full((M, 3 * n), np.nan)
+            cur[:, slots] = values
+            theta = np.full((M, n), np.nan)
+            if pos:
+                theta[:, angle_joints] = np.asarray(b.position, dtype=float)[:, angle_cols]
+            part = (self.counters.seconds(b.stamp_ns), cur.reshape(M, n, 3), theta)
+            finite = np.isfinite(values).all(axis=1)
+            if not finite.all():
+                self.counters.reject('non_finite', np.count_nonzero(~finite))
+                part = tuple(a[finite] for a in part)
+            parts.append(part)
+        if not parts:
+            return Samples.empty(n, with_currents=True)
+        stamps, cur, theta = parts[0] if len(parts) == 1 else (
+            np.concatenate(a) for a in zip(*parts))
+        if (stamps[1:] < stamps[:-1]).any():
+            order = np.argsort(stamps, kind='stable')
+            stamps, cur, theta = stamps[order], cur[order], theta[order]
+        z = np.zeros((len(stamps), 0))
+        return Samples(stamps, z, z, z, cur, theta)
