@@ -347,12 +347,9 @@ class LeastSquares(_BatchAccumulator):
 
 
 class WeightedLeastSquares(_BatchAccumulator):
-    """Weighted least squares with per-joint noise variances estimated from the data.
-
-    Radkhah et al. eq. 6, theta = (A' S^-1 A)^-1 A' S^-1 tau with S = diag(sigma_j^2) per joint,
-    as feasible GLS: start from OLS, re-estimate sigma_j^2 = rss_j / (N - h_j) from the residuals,
-    re-solve, until the variances change by less than ``tol`` (relative) or ``iterations``.
-    Covariance (A' S^-1 A)^-1. noise_variance are the sigma_j^2; rss is unweighted.
+    """Weighted least squares with per-joint noise variances estimated from the data: the
+    samples' QR factors as normal equations into :func:`weighted_solve` (feasible GLS,
+    Radkhah et al. eq. 6). noise_variance are the sigma_j^2; rss is unweighted.
     """
 
     def __init__(self, num_params: int, num_joints: int, *, iterations: int = 20,
@@ -361,23 +358,17 @@ class WeightedLeastSquares(_BatchAccumulator):
         self.iterations = _check_count('iterations', iterations)
         self.tol = float(tol)
 
+    def normal_equations(self) -> NormalEquations:
+        return NormalEquations(self._R_aug.transpose(0, 2, 1) @ self._R_aug,
+                               np.full(self.num_joints, float(self.num_samples)))
+
     def solve(self) -> Estimate:
         """Estimate from all data added so far; IdentificationError if not excited enough."""
         self._require_data()
-        theta, G, rss, sigma2 = self._weighted_solve(np.ones(self.num_joints))
-        if sigma2.max() <= 0:  # noise-free data: any weights give the same (exact) fit
-            cov = np.zeros((self.num_params, self.num_params))
-            return Estimate.from_covariance(theta, cov, sigma2, self.num_samples, rss.sum())
-        for _ in range(self.iterations):
-            # Floor: a (nearly) noise-free joint must not get an infinite weight.
-            weights = 1.0 / np.maximum(sigma2, 1e-12 * sigma2.max())
-            theta, G, rss, new = self._weighted_solve(weights)
-            converged = np.max(np.abs(new - sigma2) / np.maximum(new, 1e-300)) < self.tol
-            sigma2 = new
-            if converged:
-                break
-        cov = _covariance(G, 1.0, np.ones(self.num_params, dtype=bool))
-        return Estimate.from_covariance(theta, cov, sigma2, self.num_samples, rss.sum())
+        equations = self.normal_equations()
+        fit = weighted_solve(equations, iterations=self.iterations, tol=self.tol)
+        return Estimate.from_covariance(fit.theta, fit.covariance, fit.noise_variance,
+                                        self.num_samples, equations.rss(fit.theta).sum())
 
 
 class RidgeRegression(_BatchAccumulator):
@@ -417,6 +408,71 @@ class RidgeRegression(_BatchAccumulator):
         M = Rr_inv @ (Rr_inv.T @ R.T)  # G K'K G = M M'
         cov = _covariance(M, rss.sum() / dof, np.ones(p, dtype=bool))
         return Estimate.from_covariance(theta, cov, noise, self.num_samples, rss.sum())
+
+
+# -- weighted least squares on normal equations ------------------------------------------------
+@dataclass
+class WeightedFit:
+    """theta (p,), covariance (p, p), per-joint noise variance of the equations (n,) and s2, the
+    weighted residual variance (1 when the weights are the true inverse variances)."""
+    theta: np.ndarray
+    covariance: np.ndarray
+    noise_variance: np.ndarray
+    s2: float
+
+
+def weighted_solve(equations: NormalEquations, known: bool = False, iterations: int = 20,
+                   tol: float = 1e-8) -> WeightedFit:
+    """Weighted least squares of tau_j = Y_j theta from per-joint normal equations, each
+    joint's equations counted in ``equations.count`` (left-out equations added as zeros).
+
+    known: the equations were scaled by their inverse noise standard deviation; covariance
+    (A'A)^-1 max(1, s2) (inflated when the residuals exceed the noise model). Otherwise
+    feasible GLS, Radkhah et al. eq. 6: per-joint variances sigma_j^2 = rss_j / (N_j - h_j)
+    (h_j the joint's leverage), re-solved until they change by less than ``tol`` (relative) or
+    ``iterations``; covariance (A' S^-1 A)^-1. Column-scaled normal equations: an information
+    whose scaled condition exceeds 1e14 is not excited enough.
+    """
+    n, b = equations.num_joints, equations.num_params
+    counts, gram, cross = equations.count, equations.gram, equations.cross
+    if counts.sum() <= b:
+        raise IdentificationError(
+            f'not enough samples: {int(counts.sum())} torque equations for {b} parameters')
+
+    def solve(w: np.ndarray):
+        M = np.einsum('j,jpq->pq', w, gram)
+        d = np.sqrt(np.diag(M))
+        ev = np.linalg.eigvalsh(M / np.outer(d, d)) if d.min() > 0 else np.zeros(1)
+        if ev[0] <= 1e-14 * ev[-1]:
+            raise IdentificationError(
+                f'not enough excitation: the data ({int(counts.max())} samples x {n} joints) '
+                f'do not determine all {b} parameters; excite more joints/directions')
+        P = np.linalg.inv(M / np.outer(d, d)) / np.outer(d, d)
+        P = 0.5 * (P + P.T)
+        theta = P @ (w @ cross)
+        lev = w * np.einsum('pq,jqp->j', P, gram)
+        return theta, P, equations.rss(theta), lev
+
+    if known:
+        theta, P, rss, _ = solve(np.ones(n))
+        s2 = float(rss.sum() / (counts.sum() - b))
+        return WeightedFit(theta, P * max(1.0, s2), rss / np.maximum(counts, 1), s2)
+    w = np.ones(n)
+    theta, P, rss, lev = solve(w)
+    sigma2 = rss / np.maximum(counts - lev, 1.0)
+    if sigma2.max() <= 0:      # noise-free: any weights give the same exact fit
+        return WeightedFit(theta, np.zeros((b, b)), sigma2, 0.0)
+    for _ in range(iterations):
+        # Floor: a (nearly) noise-free joint must not get an infinite weight.
+        w = 1.0 / np.maximum(sigma2, 1e-12 * sigma2.max())
+        theta, P, rss, lev = solve(w)
+        new = rss / np.maximum(counts - lev, 1.0)
+        done = np.max(np.abs(new - sigma2) / np.maximum(new, 1e-300)) < tol
+        sigma2 = new
+        if done:
+            break
+    s2 = float((w * rss).sum() / (counts.sum() - b))
+    return WeightedFit(theta, P, sigma2, s2)
 
 
 # -- recursive least squares ------------------------------------------------------------------

@@ -21,7 +21,7 @@ When Coulomb friction is identified, a joint's equations within the filter's rea
 velocity reversals (speed below ``coulomb_exclusion_speed``) are left out, as the pipeline does:
 stiction, and a simulated light joint's stiff friction switch, are where the model fails. The
 least squares therefore works on residual sums (ResidualStatistics) with per-joint equation
-counts (weighted_solve).
+counts (estimators.weighted_solve).
 
 Memory: unlike the streaming pipeline (replay.identify_bag), this path holds the bag's validated
 samples in memory (q, qd, torque: three (N, n) float arrays); the regressor is built and filtered
@@ -39,8 +39,9 @@ import numpy as np
 
 from .bagio import iter_joint_states, open_bag, read_string_topic
 from .errors import IdentificationError
-from .estimators import ResidualStatistics
+from .estimators import ResidualStatistics, WeightedFit, weighted_solve
 from .identifiability import BaseParameters, sample_motion
+from .normal_equations import NormalEquations
 from .pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput, TorqueSamples,
                        converged)
 from .replay import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION, Checkpoint, ReplayResult,
@@ -465,70 +466,6 @@ class Identification:
         return consistency_problems(self.robot, self.standard_parameters())
 
 
-# -- weighted least squares on (masked) equations ------------------------------------------------
-@dataclass
-class WeightedFit:
-    """theta (b,), covariance (b, b), per-joint noise variance of the equations (n,) and s2, the
-    weighted residual variance (1 when the weights are the true inverse variances)."""
-    theta: np.ndarray
-    covariance: np.ndarray
-    noise_variance: np.ndarray
-    s2: float
-
-
-def weighted_solve(stats: ResidualStatistics, counts: np.ndarray, known: bool = False,
-                   iterations: int = 20, tol: float = 1e-8) -> WeightedFit:
-    """Weighted least squares from residual sums of equations, each joint's counted in
-    ``counts`` (left-out equations added as zeros).
-
-    known: the equations were scaled by their inverse noise standard deviation; covariance
-    (A'A)^-1 max(1, s2) (inflated when the residuals exceed the noise model). Otherwise
-    feasible GLS, Radkhah et al. eq. 6: per-joint variances sigma_j^2 = rss_j / (N_j - h_j)
-    (h_j the joint's leverage), re-solved until they settle; covariance (A' S^-1 A)^-1.
-    Normal equations, column-scaled: the information's condition number is reported and
-    bounded by max_condition, far inside double precision.
-    """
-    n, b = stats.n, stats.p
-    counts = np.asarray(counts, dtype=float)
-    if stats.count == 0 or counts.sum() <= b:
-        raise IdentificationError(
-            f'not enough samples: {int(counts.sum())} torque equations for {b} parameters')
-
-    def solve(w: np.ndarray):
-        M = np.einsum('j,jpq->pq', w, stats.gram)
-        d = np.sqrt(np.diag(M))
-        ev = np.linalg.eigvalsh(M / np.outer(d, d)) if d.min() > 0 else np.zeros(1)
-        if ev[0] <= 1e-14 * ev[-1]:
-            raise IdentificationError(
-                f'not enough excitation: the data ({stats.count} samples x {n} joints) do not '
-                f'determine all {b} base parameters; excite more joints/directions')
-        P = np.linalg.inv(M / np.outer(d, d)) / np.outer(d, d)
-        P = 0.5 * (P + P.T)
-        theta = P @ (w @ stats.cross)
-        lev = w * np.einsum('pq,jqp->j', P, stats.gram)
-        return theta, P, stats.rss(theta), lev
-
-    if known:
-        theta, P, rss, _ = solve(np.ones(n))
-        s2 = float(rss.sum() / (counts.sum() - b))
-        return WeightedFit(theta, P * max(1.0, s2), rss / np.maximum(counts, 1), s2)
-    w = np.ones(n)
-    theta, P, rss, lev = solve(w)
-    sigma2 = rss / np.maximum(counts - lev, 1.0)
-    if sigma2.max() <= 0:      # noise-free: any weights give the same exact fit
-        return WeightedFit(theta, np.zeros((b, b)), sigma2, 0.0)
-    for _ in range(iterations):
-        w = 1.0 / np.maximum(sigma2, 1e-12 * sigma2.max())
-        theta, P, rss, lev = solve(w)
-        new = rss / np.maximum(counts - lev, 1.0)
-        done = np.max(np.abs(new - sigma2) / np.maximum(new, 1e-300)) < tol
-        sigma2 = new
-        if done:
-            break
-    s2 = float((w * rss).sum() / (counts.sum() - b))
-    return WeightedFit(theta, P, sigma2, s2)
-
-
 class _Accumulator:
     """Residual sums of the equations fitted (scaled and masked) and of the same equations
     unscaled (for relative errors), with per-joint equation counts."""
@@ -549,7 +486,8 @@ class _Accumulator:
             self.fit.add(Y * rows.scale[..., None], tau * rows.scale)
 
     def solve(self) -> WeightedFit:
-        return weighted_solve(self.fit, self.counts, known=self.fit is not self.plain)
+        equations = NormalEquations(self.fit.normal_equations().augmented, self.counts)
+        return weighted_solve(equations, known=self.fit is not self.plain)
 
 
 # -- batch identification -----------------------------------------------------------------------

@@ -11,10 +11,11 @@ from identification_node import offline
 from identification_node.bagio import BagWriter, iter_joint_states, open_bag
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.estimators import ResidualStatistics, WeightedLeastSquares
+from identification_node.estimators import ResidualStatistics, weighted_solve
+from identification_node.normal_equations import NormalEquations
 from identification_node.offline import (BagSamples, BatchOptions, Stream, fourier_fit,
                                          identify_samples, offline_identify, read_samples,
-                                         validate, weighted_solve)
+                                         validate)
 from identification_node.replay import identify_bag
 from identification_node.robot import load_robot
 from identification_node.settings import Settings, read_parameter_file
@@ -114,26 +115,13 @@ def random_problem(seed, N=400, n=3, p=6):
     return Y, tau
 
 
-def test_weighted_solve_equals_the_estimators_weighted_least_squares():
-    Y, tau = random_problem(0)
-    ref = WeightedLeastSquares(6, 3)
-    ref.add(Y, tau)
-    ref = ref.solve()
-    stats = ResidualStatistics(6, 3, 8)
-    stats.add(Y, tau)
-    fit = weighted_solve(stats, np.full(3, len(Y)))
-    np.testing.assert_allclose(fit.theta, ref.theta, rtol=1e-9)
-    np.testing.assert_allclose(fit.covariance, ref.covariance, rtol=1e-7)
-    np.testing.assert_allclose(fit.noise_variance, ref.noise_variance, rtol=1e-7)
-
-
 def test_weighted_solve_leaves_masked_equations_out():
     # Reference: feasible GLS on the stacked equations that remain, written out directly.
     Y, tau = random_problem(1)
     mask = np.random.default_rng(2).random(tau.shape) > 0.3
     stats = ResidualStatistics(6, 3, 8)
     stats.add(Y * mask[..., None], tau * mask)
-    fit = weighted_solve(stats, mask.sum(axis=0))
+    fit = weighted_solve(NormalEquations(stats.normal_equations().augmented, mask.sum(axis=0)))
     w = np.ones(3)
     for _ in range(50):
         rows = [(Y[mask[:, j], j] * np.sqrt(w[j]), tau[mask[:, j], j] * np.sqrt(w[j]))
@@ -155,7 +143,7 @@ def test_weighted_solve_refuses_unexcited_data():
     stats = ResidualStatistics(6, 3, 8)
     stats.add(Y, tau)
     with pytest.raises(IdentificationError, match='excitation'):
-        weighted_solve(stats, np.full(3, len(Y)))
+        weighted_solve(stats.normal_equations())
 
 
 # -- periodic averaging ---------------------------------------------------------------------------
