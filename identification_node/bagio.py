@@ -1,11 +1,14 @@
-"""rosbag2 (ROS 2 Jazzy) bag reading and writing without rclpy, on top of `rosbags`.
+"""rosbag2 (ROS 2 Jazzy) bag reading and writing without rclpy, on top of `rosbags` and `mcap`.
 
 Reading streams message by message (memory does not grow with the bag length).
 ``sensor_msgs/msg/JointState`` has a specialised CDR decoder (struct + np.frombuffer),
 about 5x faster than the rosbags deserializer, which stays the reference and the fallback
 (big-endian data, anything the fast path does not accept). ``iter_joint_state_blocks``
-reads one JointState topic of an indexed mcap bag a chunk at a time and decodes runs of
-messages of one layout at once (another ~10x); it yields what ``iter_joint_states`` yields.
+reads one JointState topic of an indexed mcap bag a chunk at a time (the mcap library's
+reader: summary, chunk records, decompression and checksum) and decodes runs of messages of
+one layout at once (another ~10x); it yields what ``iter_joint_states`` yields. The node's
+polled messages are decoded the same way (``decode_joint_states``). Only public APIs of
+rosbags (Reader, Writer, typesys) and mcap are used.
 
 Writing goes into a hidden temporary sibling directory that is renamed into place on a
 successful close, so a bag path either holds a complete bag or nothing.
@@ -23,9 +26,10 @@ import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
+import yaml
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability
 from rosbags.interfaces import QosTime
@@ -276,6 +280,7 @@ class BagReader:
 
     def __init__(self, path: str | Path, *, allow_empty: bool = False) -> None:
         self.path = Path(path)
+        self._files: list[BinaryIO] = []
         target = _storage_target(self.path)
         try:
             self._reader = Reader(target)
@@ -386,8 +391,17 @@ class BagReader:
         except Exception as err:
             raise _reader_error(self.path, err) from None
 
+    def open_storage_file(self, path: Path) -> BinaryIO:
+        """One of the bag's storage files opened for reading (binary), closed with the bag."""
+        stream = open(path, 'rb')
+        self._files.append(stream)
+        return stream
+
     def close(self) -> None:
         """Close the storage files (idempotent)."""
+        for stream in getattr(self, '_files', ()):
+            stream.close()
+        self._files = []
         reader, self._reader = getattr(self, '_reader', None), None
         if reader is not None and reader.is_open:
             reader.close()
@@ -464,62 +478,77 @@ def iter_joint_state_blocks(reader: BagReader, topic: str
             yield np.array([t_ns]), record
         return
     decoder = JointStateDecoder()
-    for storage, ids in storages:
-        for chunk in _chunks(storage, ids):
+    for stream, summary, ids in storages:
+        for chunk in _chunks(summary, ids):
             try:
-                buf = _read_chunk(storage, chunk)
+                buf = _read_chunk(stream, chunk)
                 found = _message_records(buf)
             except Exception as err:
                 raise _reader_error(reader.path, err) from None
             yield from _chunk_blocks(buf, *found, ids, chunk, decoder, topic)
 
 
-def _mcap_storages(reader: BagReader, topic: str) -> list[tuple[Any, set[int]]] | None:
-    """(rosbags McapReader, channel ids of ``topic``) of each storage file in reading order,
-    or None when block reading would not reproduce the reader's message order."""
-    try:
-        from rosbags.rosbag2.storage_mcap import McapReader
-        storage = reader._reader.storage
-        if isinstance(storage, McapReader):
-            storages = [storage]
-        elif getattr(storage.metadata, 'compression_mode', None) != 'message':
-            storages = list(storage.storages)
-        else:
-            return None
-        wanted = [c for c in reader._connections if c.topic == topic]
-        out = []
-        for st in storages:
-            if not isinstance(st, McapReader) or not st.chunks:
-                return None
-            ids = {x.id for x in st.connections if any(
-                y.topic == x.topic and y.msgtype == x.msgtype and y.ext == x.ext
-                and (not x.digest or not y.digest or y.digest == x.digest) for y in wanted)}
-            chunks = _chunks(st, ids)
-            # rosbags merges the chunks by (log time, chunk offset): in index order here
-            if any(b.message_start_time < a.message_end_time
-                   or (b.message_start_time == a.message_end_time
-                       and b.chunk_start_offset < a.chunk_start_offset)
-                   for a, b in zip(chunks, chunks[1:])):
-                return None
-            out.append((st, ids))
-        return out
-    except Exception:  # not the rosbags internals this knows: read message by message
+def _mcap_files(reader: BagReader) -> list[Path] | None:
+    """The bag's storage files when they are plain mcap (rosbag2 metadata.yaml, or a lone
+    .mcap file), else None."""
+    path = reader.path
+    if path.is_file():
+        return [path] if path.suffix == '.mcap' else None
+    if not (path / 'metadata.yaml').is_file():
+        lone = _storage_target(path)
+        return [lone] if lone.suffix == '.mcap' else None
+    info = yaml.safe_load((path / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    if info.get('storage_identifier') != 'mcap' or info.get('compression_mode'):
         return None
+    return [path / name for name in info['relative_file_paths']]
 
 
-def _chunks(storage: Any, ids: set[int]) -> list:
-    return [c for c in storage.chunks if any(c.channel_count.get(i, 0) for i in ids)]
+def _mcap_storages(reader: BagReader, topic: str
+                   ) -> list[tuple[BinaryIO, Any, set[int]]] | None:
+    """(open file, mcap summary, channel ids of ``topic``) of each storage file in reading order,
+    or None when block reading would not reproduce the reader's message order (sqlite3, file
+    or message compression, no chunk index, chunks overlapping in time)."""
+    from mcap.reader import make_reader
+    files = _mcap_files(reader)
+    if files is None:
+        return None
+    out = []
+    for path in files:
+        stream = reader.open_storage_file(path)
+        storage = make_reader(stream, validate_crcs=True)
+        try:
+            summary = storage.get_summary()
+        except Exception:   # no summary: read message by message
+            return None
+        if summary is None or not summary.chunk_indexes:
+            return None
+        ids = {i for i, c in summary.channels.items() if c.topic == topic}
+        chunks = _chunks(summary, ids)
+        # rosbags merges the chunks by (log time, chunk offset): in index order here
+        if any(b.message_start_time < a.message_end_time
+               or (b.message_start_time == a.message_end_time
+                   and b.chunk_start_offset < a.chunk_start_offset)
+               for a, b in zip(chunks, chunks[1:])):
+            return None
+        out.append((stream, summary, ids))
+    return out
 
 
-def _read_chunk(storage: Any, chunk: Any) -> bytes:
-    """The decompressed, checksum-verified records of an mcap chunk (as rosbags reads it)."""
-    from rosbags.rosbag2.storage_mcap import decompress, read_exact
-    bio = storage.bio
-    bio.seek(chunk.chunk_start_offset + 9 + 24)
-    (crc,) = _U32.unpack(read_exact(bio, 4))
-    bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
-    data = read_exact(bio, chunk.compressed_size)
-    return decompress(data, chunk.compression, chunk.uncompressed_size, crc)
+def _chunks(summary: Any, ids: set[int]) -> list:
+    """The chunk indexes of an mcap summary holding messages of the channels ``ids``, in
+    file order."""
+    return sorted((c for c in summary.chunk_indexes if ids & set(c.message_index_offsets)),
+                  key=lambda c: c.chunk_start_offset)
+
+
+def _read_chunk(stream: BinaryIO, chunk: Any) -> bytes:
+    """The decompressed, checksum-verified records of an mcap chunk (mcap's reader)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk
+    from mcap.stream_reader import get_chunk_data_stream
+    stream.seek(chunk.chunk_start_offset + 1 + 8)   # the record's opcode and length
+    data, size = get_chunk_data_stream(Chunk.read(ReadDataStream(stream)), validate_crc=True)
+    return data.read(size)
 
 
 def _message_records(buf: bytes) -> tuple[np.ndarray, np.ndarray]:
