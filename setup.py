@@ -47,9 +47,9 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'identification_node = identification_node.ros.node:main',
-            'simulated_arm = identification_node.ros.sim_node:main',
-            'identification_cli = identification_node.cli:main',
+            'identification_node = identification_node.programs:identification_node',
+            'simulated_arm = identification_node.programs:simulated_arm',
+            'identification_cli = identification_node.programs:identification_cli',
         ],
     },
 )

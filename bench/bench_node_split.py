@@ -122,13 +122,13 @@ def run_relay(rate: float, seconds: float, warmup: float) -> None:
         received[0] += 1
         pub.publish(raw)
     node.create_subscription(JointState, 'joint_states', relay, INPUT_QOS, raw=True)
-    result = drive(node, lambda: received[0], rate, seconds, warmup)
+    result = drive(node, lambda: received[0], rate, seconds, warmup, polled=False)
     print(json.dumps({**result, 'runs': 0, **dict.fromkeys(PARTS, 0.0)}), flush=True)
     os._exit(0)
 
 
 def drive(node, received, rate: float, seconds: float, warmup: float,
-          reset=lambda: None) -> dict:
+          reset=lambda: None, polled: bool = True) -> dict:
     """Spin ``node`` with the listener and the publisher (other processes) running; after
     ``warmup`` s of messages, ``reset()`` and measure: the process CPU (s), the wall time and
     the messages ``received()`` over ``seconds`` - 1 s."""
@@ -136,7 +136,7 @@ def drive(node, received, rate: float, seconds: float, warmup: float,
 
     from identification_node.ros.spin import make_executor
 
-    executor = make_executor()
+    executor = make_executor(polled)
     executor.add_node(node)
     never = Future()
     total = seconds + warmup

@@ -1,6 +1,6 @@
 """python -m identification_node VERB ..."""
 import sys
 
-from .cli import main
+from .programs import identification_cli
 
-sys.exit(main())
+sys.exit(identification_cli())

@@ -268,7 +268,6 @@ def test_polled_input_takes_every_message_in_order_and_only_when_polled(ros):
         assert polling[0], 'dispatched by the executor'
         got.extend(raws)
     source = PolledSubscription(node, JointState, '/polled/joint_states', handle, RELIABLE)
-    assert source.polled        # this rclpy keeps the node's subscriptions in a list
     ros.add(node)               # spun by an executor, as the identification node is
     pub = ros.client.create_publisher(JointState, '/polled/joint_states', RELIABLE)
     assert wait_for(lambda: pub.get_subscription_count(), 10)

@@ -167,3 +167,16 @@ def test_installed_cli_help_lists_verbs(install, site_packages, tmp_path):
     bad = subprocess.run([str(script), 'no-such-verb'], cwd=tmp_path, capture_output=True,
                          text=True, env=installed_env(site_packages, install), timeout=120)
     assert bad.returncode == 2 and 'invalid choice' in bad.stderr
+
+
+def test_importing_the_package_leaves_the_process_environment_alone(tmp_path):
+    """A controller importing controller_client (and so the package) keeps its environment;
+    the package's programs set theirs in their entry points (programs.py)."""
+    code = ('import os, identification_node.controller_client, identification_node.pipeline; '
+            "print(os.environ.get('OPENBLAS_NUM_THREADS'))")
+    env = {k: v for k, v in os.environ.items() if k != 'OPENBLAS_NUM_THREADS'}
+    env['PYTHONPATH'] = str(ROOT)
+    proc = subprocess.run([sys.executable, '-c', code], cwd=tmp_path, capture_output=True,
+                          text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ['None']

@@ -9,6 +9,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.duration import Duration
 from rclpy.event_handler import (QoSMessageLostInfo, SubscriptionEventCallbacks,
                                  UnsupportedEventTypeError)
@@ -45,18 +46,26 @@ def publish_joint_states(publisher, stamps_ns: np.ndarray, names: Sequence[str],
         publisher.publish(raw)
 
 
+class PolledGroup(ReentrantCallbackGroup):
+    """A callback group whose subscriptions rclpy's executors never wait for nor dispatch
+    (they ask ``can_execute``); its other entities, the subscriptions' event handlers, run as
+    usual. The EventsExecutor does not honour callback groups: spin nodes with polled inputs
+    with rclpy's Executor classes (spin.make_executor(polled=True))."""
+
+    def can_execute(self, entity: Any) -> bool:
+        return not isinstance(entity, Subscription) and super().can_execute(entity)
+
+
 class PolledSubscription:
     """A raw subscription of ``node`` that the executor never dispatches: ``poll`` takes every
     queued message from the middleware and hands them to ``handle`` as one list of CDR bytes,
     in arrival order.
 
-    With rclpy's EventsExecutor, receiving 1 kHz through a callback per message cost the
-    process 81 us of CPU per message, taking the queue in batches from a timer 58 us
-    (measured with a no-op handler). The subscription is created by ``create_subscription``
-    (topic remapping, QoS and QoS overrides as usual) and then taken off the node's list of
-    subscriptions, which is what executors dispatch. If this rclpy has no such list the
-    subscription stays dispatched (``handle`` gets each message in a list of its own) and
-    ``poll`` finds nothing to take: the same messages, at the usual cost.
+    Receiving 1 kHz through an executor callback per message cost the process 81 us of CPU
+    per message, taking the queue in batches 58 us (EventsExecutor, a no-op handler). The
+    subscription is created by ``create_subscription`` (topic remapping, QoS and QoS
+    overrides as usual) in a PolledGroup; ``poll`` takes its messages through the
+    subscription's handle, as executors do.
 
     ``lost`` counts the messages that never reached ``handle``. While the topic has one
     publisher: the gaps in the publication sequence numbers of the messages taken, which
@@ -73,7 +82,8 @@ class PolledSubscription:
         self._last_seq: int | None = None
         self._gaps = self._reported = 0     # written by poll's / the executor's thread
         create = partial(node.create_subscription, msg_type, topic,
-                         lambda raw: handle([raw]), qos, raw=True, **kwargs)
+                         lambda raw: handle([raw]), qos, raw=True,
+                         callback_group=PolledGroup(), **kwargs)
         try:
             self.subscription: Subscription = create(event_callbacks=SubscriptionEventCallbacks(
                 message_lost=self._on_message_lost))
@@ -81,10 +91,6 @@ class PolledSubscription:
         except UnsupportedEventTypeError:
             self.subscription = create()   # the QoS override parameters are declared once
             self.events = False
-        subscriptions = getattr(node, '_subscriptions', None)
-        self.polled = isinstance(subscriptions, list) and self.subscription in subscriptions
-        if self.polled:
-            subscriptions.remove(self.subscription)
 
     @property
     def lost(self) -> int | None:
@@ -98,8 +104,6 @@ class PolledSubscription:
 
     def poll(self) -> int:
         """Hand every queued message to ``handle``; returns how many there were."""
-        if not self.polled:
-            return 0
         sub, messages, numbers = self.subscription, [], []
         with sub.handle:
             take = sub.handle.take_message
@@ -142,6 +146,5 @@ class PolledSubscription:
             'parameters)', throttle_duration_sec=5.0)
 
     def destroy(self) -> None:
-        """Destroy the subscription (the node no longer knows it)."""
-        if self.polled:
-            self.subscription.destroy()
+        """Destroy the subscription."""
+        self.node.destroy_subscription(self.subscription)

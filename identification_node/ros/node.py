@@ -78,6 +78,10 @@ def warn_unknown_parameters(node: Node) -> list[str]:
     """Log a warning naming the parameters given to ``node`` (command line, parameter files)
     that it never declared, typically misspelt ones, which rclpy otherwise drops silently;
     returns their names. Call once every parameter is declared."""
+    # Trade-off: rclpy has no public accessor for the overrides a node was given (the public
+    # alternative, automatically_declare_parameters_from_overrides, declares them all untyped
+    # and clashes with the QoS override parameters rclpy declares itself). So the attribute is
+    # read, never written; without it (another rclpy) there is no warning, nothing else.
     given = getattr(node, '_parameter_overrides', {})
     unknown = sorted(name for name in given if not node.has_parameter(name))
     if unknown:
@@ -321,7 +325,7 @@ def main(args: list[str] | None = None) -> int:
     # While the executor thread runs Python (the 1 Hz refresh takes a few ms), the processing
     # thread gets the GIL after this interval instead of the default 5 ms: the latency tail.
     sys.setswitchinterval(0.0005)
-    return run_node(IdentificationNode, 'identification_node', args)
+    return run_node(IdentificationNode, 'identification_node', args, polled=True)
 
 
 if __name__ == '__main__':

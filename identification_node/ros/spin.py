@@ -94,9 +94,13 @@ class PeriodicThread:
             self._thread.join()
 
 
-def make_executor():
-    """The EventsExecutor (about a third of the per-message cost), else the default one."""
+def make_executor(polled: bool = False):
+    """The EventsExecutor (about a third of the per-message cost), else the default one.
+    ``polled``: for a node with PolledSubscriptions, rclpy's SingleThreadedExecutor, which
+    honours callback groups (the EventsExecutor does not: it would dispatch them)."""
     import rclpy.executors
+    if polled:
+        return rclpy.executors.SingleThreadedExecutor()
     try:
         from rclpy.experimental import EventsExecutor
         return EventsExecutor()
@@ -105,10 +109,11 @@ def make_executor():
 
 
 def run_node(factory: Callable[[], Any], name: str, args: list[str] | None = None,
-             done: Callable[[Any], bool] | None = None, linger: float = 0.0) -> int:
+             done: Callable[[Any], bool] | None = None, linger: float = 0.0,
+             polled: bool = False) -> int:
     """Create the node with ``factory`` and spin it until SIGINT/SIGTERM or ``done(node)``,
-    then ``linger`` seconds more. Returns the exit code: 0, or 2 when the factory refuses its
-    parameters (IdentificationError, printed as one line)."""
+    then ``linger`` seconds more (``polled``: see make_executor). Returns the exit code: 0, or
+    2 when the factory refuses its parameters (IdentificationError, printed as one line)."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     from rclpy.task import Future
@@ -121,7 +126,7 @@ def run_node(factory: Callable[[], Any], name: str, args: list[str] | None = Non
             print(f'{name}: error: {exc}', file=sys.stderr)
             rclpy.try_shutdown()
             return 2
-        executor = make_executor()
+        executor = make_executor(polled)
         executor.add_node(node)
         never = Future()
         try:
