@@ -28,6 +28,7 @@ setup(
         'rosbags>=0.11,<1',
         'mcap>=1.2,<2',
         'matplotlib>=3.6,<4',
+        'dask[distributed]>=2024.1',   # the fleet verb's cluster (fleet.py)
     ],
     extras_require={
         'ros': [

@@ -537,6 +537,32 @@ class RecursiveLeastSquares:
         self._num_joints = None if num_joints is None else _check_count('num_joints', num_joints)
         self.reset()
 
+    @classmethod
+    def from_normal_equations(cls, equations: NormalEquations, num_samples: int, *,
+                              theta: np.ndarray | None = None, rcond: float = _DEFAULT_RCOND
+                              ) -> RecursiveLeastSquares:
+        """The estimator (no forgetting, no prior) that has seen data with these per-joint
+        normal equations, e.g. the merged statistics of many bags: the same estimate,
+        covariance and residuals as streaming those rows in, to rounding. ``theta``: another
+        solution to hold instead of the least-squares one (e.g. a physically consistent
+        solve); residuals and noise are then those of it."""
+        rls = cls(equations.num_params, rcond=rcond, num_joints=equations.num_joints)
+        total = equations.augmented.sum(axis=0)
+        F = _cholesky_augmented(total)
+        rls._F = F if F is not None else _information_factor('information', total,
+                                                             equations.num_params + 1)
+        rls._joint_info = equations.augmented.copy()
+        rls._count = equations.count.copy()
+        rls.num_samples = int(num_samples)
+        rls._refresh()
+        if theta is not None:
+            theta = _as_float('theta', theta)
+            if theta.shape != (equations.num_params,) or not np.isfinite(theta).all():
+                raise IdentificationError(f'theta must be {equations.num_params} finite '
+                                          f'values, got shape {theta.shape}')
+            rls._theta = theta.copy()
+        return rls
+
     # -- state ----------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget all data: back to the prior."""
@@ -788,6 +814,24 @@ class ResidualStatistics:
         self.blocks += whole + 1
         self._open = rows[rest:].sum(axis=0)
         self._fill = N - rest
+
+    def close_block(self) -> None:
+        """End the block being filled without counting it: the next sample starts a new
+        block (a new recording, whose residuals are not correlated with the last's)."""
+        self._open[:] = 0.0
+        self._fill = 0
+
+    def __add__(self, other: ResidualStatistics) -> ResidualStatistics:
+        """The statistics of two separate recordings together (exact: the sums add); each
+        one's unfinished block is left out, as close_block does."""
+        if (self.p, self.n, self.block) != (other.p, other.n, other.block):
+            raise IdentificationError(
+                f'cannot merge residual statistics of (params, joints, block) '
+                f'{(self.p, self.n, self.block)} and {(other.p, other.n, other.block)}')
+        out = ResidualStatistics(self.p, self.n, self.block)
+        out._info, out._binfo = self._info + other._info, self._binfo + other._binfo
+        out.count, out.blocks = self.count + other.count, self.blocks + other.blocks
+        return out
 
     @staticmethod
     def _ss(gram, cross, sq, theta):

@@ -57,10 +57,12 @@ def bag_robot(bag: str | os.PathLike, settings: Settings) -> RobotModel:
 def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                  batch: int = 1000, checkpoints: int = 50,
-                 on_output: Callable[[PipelineOutput], None] | None = None) -> ReplayResult:
+                 on_output: Callable[[PipelineOutput], None] | None = None,
+                 pipeline: IdentificationPipeline | None = None) -> ReplayResult:
     """Identify ``robot`` from the bag's joint states (and motor currents when the settings'
-    torque sources need them). ``on_output`` sees every batch the pipeline outputs."""
-    pipeline = settings.build(robot)
+    torque sources need them). ``on_output`` sees every batch the pipeline outputs;
+    ``pipeline``: the one to feed (default: the settings' own, new)."""
+    pipeline = pipeline or settings.build(robot)
     topics = [joint_states]
     if pipeline.converter.needs_currents:
         topics.append(motor_currents)

@@ -20,6 +20,7 @@ VERBS = {
     'record': ('record', 'record topics into a bag (ros2 bag record)'),
     'simulate': ('simulate', 'simulate an arm into a rosbag2 bag, with its true parameters'),
     'identify': ('identify', 'identify the base parameters from a bag (offline replay)'),
+    'fleet': ('fleet', 'identify many bags of many robots on a Dask cluster, with drift flags'),
     'sim': ('sim', 'run the simulated arm node (real-time joint states and currents)'),
     'node': ('node', 'run the identification node'),
 }

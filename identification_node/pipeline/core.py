@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 
@@ -124,6 +125,7 @@ class IdentificationPipeline:
         if self.samples.counters.restarts != self._restarts_seen:
             self._restarts_seen = self.samples.counters.restarts
             self.row_builder.reset()
+            self.estimator.end_stream()
         if len(s) == 0:
             return PipelineOutput.empty(self.robot.dof)
         est = self.estimator
@@ -138,6 +140,25 @@ class IdentificationPipeline:
         stamps_ns = self.samples.counters.stamps_ns(r.t)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, r.q, r.qd, r.qdd, r.tau, predicted)
+
+    def restore(self, rls: RecursiveLeastSquares, residuals: ResidualStatistics,
+                used: int, received: int = 0, rejected: Mapping[str, int] | None = None,
+                excluded_rows: int = 0, restarts: int = 0, last_stamp_ns: int | None = None
+                ) -> None:
+        """Take the sufficient statistics of processed data (e.g. merged over many bags,
+        fleet.py): the estimate, covariance, noise and convergence then follow exactly as
+        for data streamed in. Nothing stays queued; the counters are the given ones."""
+        if (rls.num_params, residuals.p, residuals.n) != (
+                self.base.num_base, self.base.num_base, self.robot.dof):
+            raise IdentificationError('statistics of another robot or parameter set')
+        self.reset()
+        self.estimator.restore(rls, residuals, excluded_rows)
+        counters = self.samples.counters
+        counters.received, counters.restarts = int(received), int(restarts)
+        counters.rejected.update(rejected or {})
+        self.used, self._restarts_seen = int(used), int(restarts)
+        if last_stamp_ns is not None:
+            self._last_output_stamp = float(last_stamp_ns) * 1e-9
 
     # -- results --------------------------------------------------------------------------------
     @property

@@ -110,6 +110,19 @@ class OnlineEstimate:
         self._rls.update_rows(rows, used, information)
         self._residuals.add_rows(rows, information)
 
+    def end_stream(self) -> None:
+        """The stream ended (a restart): its rows applied, its unfinished residual block left
+        out, so no block spans two streams (their residuals are not correlated)."""
+        self.apply()
+        self._residuals.close_block()
+
+    def restore(self, rls: RecursiveLeastSquares, residuals: ResidualStatistics,
+                excluded_rows: int = 0) -> None:
+        """Take the estimator and residual sums of processed data (e.g. merged over many
+        bags, fleet.py); nothing gathered stays pending."""
+        self.reset()
+        self._rls, self._residuals, self.excluded_rows = rls, residuals, int(excluded_rows)
+
     def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
         """Per (sample, joint) weights: the joint weights, and zero for a joint's equation while
         its smoothing window may hold a velocity reversal, |qd| < v_min + |qdd| T_half, when

@@ -1,0 +1,156 @@
+"""Fleet benchmark: bags/s and samples/s of ``fleet`` with 1 and 2 worker processes, the
+scaling efficiency, and the peak memory of a worker against bag length.
+
+The bags: bench_replay's simulated CRS A465 (6 joints, 1 kHz, measured torque, fv and fc
+identified with config/crs_a465.yaml), ``--bags`` links to the same cached bag of
+``--samples`` samples (separate paths, so separate tasks). Each configuration runs on a fresh
+LocalCluster (single-threaded worker processes), warmed up by importing the package on every
+worker; the time is run_fleet's wall time (map on the workers, reduce and solve here), best
+of ``--repeat`` runs alternating 1 and 2 workers. Scaling efficiency = speed-up / 2.
+
+Memory: a fresh 1-worker cluster maps one bag of each length in ``--lengths``; the worker's
+peak resident set size (VmHWM) above its size before the task.
+
+    .venv/bin/python bench/bench_fleet.py [--samples 100000] [--bags 4] [--repeat 3]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS; workers too
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_replay import CONFIG, ROOT, make_bag  # noqa: E402
+
+sys.path.insert(0, str(ROOT))   # this checkout's package, here and in the workers
+os.environ['PYTHONPATH'] = os.pathsep.join(
+    [str(ROOT)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
+
+
+def vmhwm_kib() -> int:
+    """This process's peak resident set size (kiB)."""
+    for line in open('/proc/self/status'):
+        if line.startswith('VmHWM:'):
+            return int(line.split()[1])
+    return 0
+
+
+def reset_peak() -> int:
+    """Reset VmHWM to the current RSS (Linux: write 5 to clear_refs); the RSS then (kiB)."""
+    with open('/proc/self/clear_refs', 'w') as f:
+        f.write('5')
+    return vmhwm_kib()
+
+
+def warm_up() -> None:
+    import identification_node.fleet  # noqa: F401
+
+
+def cluster(workers: int):
+    from distributed import Client, LocalCluster
+
+    c = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                     host='127.0.0.1', dashboard_address='127.0.0.1:0')
+    client = Client(c)
+    client.run(warm_up)
+    return client
+
+
+def entries(bag: Path, count: int, folder: Path) -> list:
+    from identification_node.fleet import FleetEntry
+
+    out = []
+    for k in range(count):
+        link = folder / f'bag{k}'
+        if not link.exists():
+            link.symlink_to(bag.resolve(), target_is_directory=True)
+        out.append(FleetEntry(str(link), 'crs', f'p{k % 2}', config=str(CONFIG)))
+    return out
+
+
+def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, int]:
+    """(wall s, CPU s of the workers, samples used) of one fleet run."""
+    from identification_node.fleet import run_fleet
+
+    client = cluster(workers)
+    try:
+        cpu0 = client.run(time.process_time)
+        start = time.perf_counter()
+        result = run_fleet(fleet_entries, client)
+        wall = time.perf_counter() - start
+        cpu1 = client.run(time.process_time)
+    finally:
+        c = client.cluster
+        client.close()
+        c.close()
+    if result.failed:
+        raise SystemExit(f'bench: failed bags {result.failed}')
+    cpu = sum(cpu1[w] - cpu0[w] for w in cpu1)
+    return wall, cpu, sum(s.used for s in result.groups.values())
+
+
+def peak_memory(bag: Path) -> tuple[float, float]:
+    """(RSS before, peak RSS above it) of a fresh worker mapping ``bag``, MiB."""
+    from identification_node.fleet import FleetEntry, MapTask, run_task
+
+    client = cluster(1)
+    try:
+        before = next(iter(client.run(reset_peak).values()))
+        task = MapTask(FleetEntry(str(bag), 'crs', 'p', config=str(CONFIG)))
+        stats = client.submit(run_task, task, pure=False).result()
+        peak = next(iter(client.run(vmhwm_kib).values()))
+    finally:
+        c = client.cluster
+        client.close()
+        c.close()
+    if not hasattr(stats, 'used'):
+        raise SystemExit(f'bench: {stats}')
+    return before / 1024, (peak - before) / 1024
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--samples', type=int, default=100000)
+    parser.add_argument('--bags', type=int, default=4)
+    parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--lengths', type=int, nargs='+', default=[50000, 100000])
+    args = parser.parse_args()
+    import logging
+    logging.getLogger('distributed').setLevel(logging.ERROR)
+
+    bag = make_bag(args.samples)
+    with tempfile.TemporaryDirectory() as tmp:
+        fleet_entries = entries(bag, args.bags, Path(tmp))
+        best = {1: float('inf'), 2: float('inf')}
+        samples = 0
+        for r in range(args.repeat):
+            for workers in (1, 2):
+                wall, cpu, samples = timed_run(workers, fleet_entries)
+                best[workers] = min(best[workers], wall)
+                print(f'run {r + 1}: {workers} worker(s) {wall:.2f} s, workers\' CPU '
+                      f'{cpu:.2f} s ({cpu / wall:.2f} cores busy; load average '
+                      f'{os.getloadavg()[0]:.2f})', flush=True)
+    print(f'\n{args.bags} bags of {args.samples} samples ({samples} samples used in all), '
+          f'best of {args.repeat}:')
+    print('| workers | wall (s) | bags/s | samples/s |')
+    print('|---:|---:|---:|---:|')
+    for workers in (1, 2):
+        w = best[workers]
+        print(f'| {workers} | {w:.2f} | {args.bags / w:.2f} | {samples / w:,.0f} |')
+    speedup = best[1] / best[2]
+    print(f'speed-up 1 -> 2 workers: {speedup:.2f}x, scaling efficiency {speedup / 2:.0%}')
+    print('\nworker memory while mapping one bag:')
+    print('| bag samples | worker RSS before (MiB) | peak above it (MiB) |')
+    print('|---:|---:|---:|')
+    for n in args.lengths:
+        before, peak = peak_memory(make_bag(n))
+        print(f'| {n} | {before:.1f} | {peak:.1f} |', flush=True)
+
+
+if __name__ == '__main__':
+    main()
