@@ -4,9 +4,11 @@ scaling efficiency, and the peak memory of a worker against bag length.
 The bags: bench_replay's simulated CRS A465 (6 joints, 1 kHz, measured torque, fv and fc
 identified with config/crs_a465.yaml), ``--bags`` links to the same cached bag of
 ``--samples`` samples (separate paths, so separate tasks). Each configuration runs on a fresh
-LocalCluster (single-threaded worker processes), warmed up by importing the package on every
-worker; the time is run_fleet's wall time (map on the workers, reduce and solve here), best
-of ``--repeat`` runs alternating 1 and 2 workers. Scaling efficiency = speed-up / 2.
+LocalCluster (single-threaded worker processes), warmed up by importing the package and by
+one untimed fleet run of one bag per worker (a worker's first task loads the robot and warms
+its caches); the time is run_fleet's wall time of the next run (map on the workers, reduce
+and solve here), best of ``--repeat`` runs alternating 1 and 2 workers. Scaling efficiency =
+speed-up / 2.
 
 Memory: a fresh 1-worker cluster maps one bag of each length in ``--lengths``; the worker's
 peak resident set size (VmHWM) above its size before the task.
@@ -79,6 +81,7 @@ def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, int]:
 
     client = cluster(workers)
     try:
+        run_fleet(fleet_entries[:workers], client)   # warm-up: first tasks load the robot
         cpu0 = client.run(time.process_time)
         start = time.perf_counter()
         result = run_fleet(fleet_entries, client)
