@@ -82,6 +82,7 @@ class OnlineEstimate:
         self._pending_samples = 0
         self.excluded_rows = 0
         self.numerical_failures = 0
+        self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
         self._last_t = math.nan
         self.gate.reset()
 
@@ -135,6 +136,8 @@ class OnlineEstimate:
             self._rls, self._residuals = saved
             self.numerical_failures += 1
             self._reject('numerical_failure', len(rows))
+            return
+        self._rows_used += len(rows) if used is None else used.sum(axis=0)
 
     def _screened(self, rows: np.ndarray, used: np.ndarray | None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -153,8 +156,10 @@ class OnlineEstimate:
             return rows, used
         theta = self._rls.theta
         before = gate.outliers
+        # the residual variance per used row (rows left out, weight 0, hold no residual)
+        sigma = np.sqrt(self._residuals.rss(theta) / np.maximum(self._rows_used, 1))
         keep, back = gate.screen(
-            rows[:, :, b] - rows[:, :, :b] @ theta, np.sqrt(self._residuals.variance(theta)),
+            rows[:, :, b] - rows[:, :, :b] @ theta, sigma,
             lambda gated: (rows[gated], None if used is None else used[gated]), self._last_t)
         self._reject('outlier', gate.outliers - before)   # negative: given back on a shift
         if keep.all() and not back:
