@@ -102,25 +102,28 @@ class PlausibilityBounds:
                 for i, j in enumerate(joint_names)}
 
     # -- gates: a bool per sample (row), True when every value is within its bound ------------
-    def positions_ok(self, q: np.ndarray) -> np.ndarray:
-        return ((q >= self.position_lower) & (q <= self.position_upper)).all(axis=1)
-
     def ok(self, q: np.ndarray | None = None, qd: np.ndarray | None = None,
            qdd: np.ndarray | None = None, tau: np.ndarray | None = None,
            columns: np.ndarray | None = None) -> np.ndarray:
         """Samples (rows of the (M, n) arrays given) within every bound; NaN fails. ``tau``
-        may hold the joints ``columns`` only (the measured ones)."""
-        arrays = [a for a in (q, qd, qdd, tau) if a is not None]
-        good = np.ones(len(arrays[0]) if arrays else 0, dtype=bool)
-        if q is not None:
-            good &= self.positions_ok(q)
-        for a, bound in ((qd, self.velocity), (qdd, self.acceleration)):
-            if a is not None:
-                good &= (np.abs(a) <= bound).all(axis=1)
-        if tau is not None:
-            bound = self.effort if columns is None else self.effort[columns]
-            good &= (np.abs(tau) <= bound).all(axis=1)
-        return good
+        may hold the joints ``columns`` only (the measured ones). One comparison of all the
+        values side by side (the check runs on every batch)."""
+        given = (q is not None, qd is not None, qdd is not None, tau is not None)
+        key = given + (None if columns is None else tuple(columns),)
+        limit = self._limits.get(key) if hasattr(self, '_limits') else None
+        if limit is None:
+            centre = 0.5 * (self.position_lower + self.position_upper)
+            self._centre = centre
+            effort = self.effort if columns is None else self.effort[columns]
+            parts = (0.5 * (self.position_upper - self.position_lower), self.velocity,
+                     self.acceleration, effort)
+            limit = np.concatenate([b for b, g in zip(parts, given) if g])
+            self._limits = getattr(self, '_limits', {})
+            self._limits[key] = limit
+        values = [a for a in (None if q is None else q - self._centre, qd, qdd, tau)
+                  if a is not None]
+        x = values[0] if len(values) == 1 else np.concatenate(values, axis=1)
+        return (np.abs(x) <= limit).all(axis=1)   # NaN compares false, silently
 
     def currents_ok(self, currents: np.ndarray) -> np.ndarray:
         """Samples of currents (M, n, 3) (NaN where a joint has no such channel) within the

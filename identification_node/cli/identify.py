@@ -239,9 +239,15 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.report)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
+    from ..bagio import open_bag
     from ..prior import safe_prior
     for note in safe_prior(robot)[1]:
         print(f'warning: {note}', file=sys.stderr)
+    for bag in [args.bag] + ([args.validate] if args.validate else []):
+        with open_bag(bag) as reader:   # its chunk CRCs verified
+            if reader.unverified_chunks:
+                print(f'warning: bag {bag}: {reader.unverified_chunks} mcap chunk(s) carry no '
+                      'CRC, so corruption in them cannot be detected', file=sys.stderr)
     topics = (args.joint_states_topic, args.currents_topic)
     options = None
     if method == 'rls':

@@ -148,9 +148,7 @@ class IdentificationPipeline:
         predicted = r.rows[:, :, :self.base.num_base] @ est.theta
         # the smoothed motion and torque within bounds too (accelerations are checked here
         # only; a spike that passed the raw gates spreads over the smoothing window)
-        with np.errstate(invalid='ignore', over='ignore'):
-            plausible = (self.bounds.ok(r.q, r.qd, r.qdd, r.tau)
-                         & np.isfinite(predicted).all(axis=1))
+        plausible = self.bounds.ok(r.q, r.qd, r.qdd, r.tau) & np.isfinite(predicted).all(axis=1)
         if not plausible.all():
             self.samples.counters.reject('implausible', np.count_nonzero(~plausible))
             r = type(r)(*(a[plausible] for a in r))

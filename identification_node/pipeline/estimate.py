@@ -83,6 +83,7 @@ class OnlineEstimate:
         self.excluded_rows = 0
         self.numerical_failures = 0
         self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
+        self._next_arm = 0                       # samples at which arming is asked next
         self._last_t = math.nan
         self.gate.reset()
 
@@ -149,8 +150,10 @@ class OnlineEstimate:
             self._reject('regressor_overflow', np.count_nonzero(~finite))
             rows, used = rows[finite], None if used is None else used[finite]
         gate, b = self.gate, self.num_base
+        # armed once converged: asked every gate window of samples (the test is not cheap)
         if (gate.settings.enabled and not gate.armed
-                and self._rls.num_samples >= self.config.min_samples):
+                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm)):
+            self._next_arm = self._rls.num_samples + int(gate.settings.window)
             gate.armed = self.converged(self.excitation()[0], self.covariance)
         if not gate.armed or len(rows) == 0:
             return rows, used
