@@ -239,8 +239,10 @@ class IdentificationNode(Node):
 
     def _on_processing_error(self, exc: BaseException) -> None:
         self.callback_errors['processing'] += 1
-        self.get_logger().error('processing failed: ' + ''.join(
-            traceback.format_exception(exc)), throttle_duration_sec=5.0)
+        where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+        at = f' (at {where.filename}:{where.lineno})' if where else ''
+        self.get_logger().error(f'processing failed: {type(exc).__name__}: {exc}{at}',
+                                throttle_duration_sec=5.0)
 
     def _publish_efforts(self, out: PipelineOutput) -> None:
         if len(out.stamps_ns) == 0:
