@@ -59,6 +59,10 @@ class PlausibilityBounds:
     acceleration: np.ndarray
     effort: np.ndarray
     current: np.ndarray
+    _limits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self._centre = 0.5 * (self.position_lower + self.position_upper)
 
     @classmethod
     def from_robot(cls, robot, settings: PlausibilitySettings | None = None,
@@ -110,16 +114,12 @@ class PlausibilityBounds:
         values side by side (the check runs on every batch)."""
         given = (q is not None, qd is not None, qdd is not None, tau is not None)
         key = given + (None if columns is None else tuple(columns),)
-        limit = self._limits.get(key) if hasattr(self, '_limits') else None
-        if limit is None:
-            centre = 0.5 * (self.position_lower + self.position_upper)
-            self._centre = centre
+        limit = self._limits.get(key)
+        if limit is None:   # the bounds side by side, as the values will be
             effort = self.effort if columns is None else self.effort[columns]
             parts = (0.5 * (self.position_upper - self.position_lower), self.velocity,
                      self.acceleration, effort)
-            limit = np.concatenate([b for b, g in zip(parts, given) if g])
-            self._limits = getattr(self, '_limits', {})
-            self._limits[key] = limit
+            limit = self._limits[key] = np.concatenate([b for b, g in zip(parts, given) if g])
         values = [a for a in (None if q is None else q - self._centre, qd, qdd, tau)
                   if a is not None]
         x = values[0] if len(values) == 1 else np.concatenate(values, axis=1)
