@@ -38,6 +38,7 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.store import Typestore
 
 from identification_node.errors import IdentificationError
+from identification_node.mcap_check import add_chunk_crcs, verify_chunks
 from identification_node.records import JointStateRecord
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -285,6 +286,10 @@ class BagReader:
         try:
             self._reader = Reader(target)
             self._reader.open()
+            # chunk checksums before any message: corruption is an error naming the chunk
+            files = sorted(target.glob('*.mcap')) if target.is_dir() else [target]
+            self.unverified_chunks = sum(verify_chunks(f) for f in files
+                                         if f.suffix == '.mcap')
         except IdentificationError:
             raise
         except Exception as err:
@@ -1039,6 +1044,8 @@ class BagWriter:
             return
         try:
             writer.close()
+            for storage in (self._tmp / self.path.name).glob('*.mcap'):
+                add_chunk_crcs(storage)
             self._commit()
         except BaseException as err:
             shutil.rmtree(self._tmp, ignore_errors=True)

@@ -66,6 +66,32 @@ def format_expression(terms: dict[str, float]) -> str:
     return ''.join(parts)
 
 
+def unexcited_directions(information: np.ndarray, names: Sequence[str],
+                         max_condition: float = 1e8) -> list[tuple[str, list[str]]]:
+    """The directions of parameter space the data do not determine: eigenvectors of the
+    column-scaled information (p, p) of the parameters ``names`` whose eigenvalue is below
+    1 / ``max_condition`` of the largest (parameters with no information at all, each alone).
+    Returns (readable combination, names of the parameters in it) per direction, the
+    combination normalised to its largest coefficient 1 and rounded."""
+    info = np.asarray(information, dtype=float)
+    if not np.isfinite(info).all():
+        return [('all parameters (the information is not finite)', list(names))]
+    d = np.sqrt(np.maximum(np.diag(info), 0.0))
+    ok = d > 1e-12 * max(d.max(), 1e-300)
+    out = [(str(names[i]), [str(names[i])]) for i in np.flatnonzero(~ok)]
+    if ok.any():
+        scaled = info[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
+        ev, vec = np.linalg.eigh(scaled)
+        kept = [str(n) for n, k in zip(names, ok) if k]
+        for k in np.flatnonzero(ev < ev[-1] / max_condition):
+            v = vec[:, k] / d[ok]                      # back to the parameters' units
+            v = v / v[np.argmax(np.abs(v))]
+            terms = {kept[i]: float(c) for i, c in enumerate(_clean(v))
+                     if abs(c) >= 1e-3}
+            out.append((format_expression(terms), list(terms)))
+    return out
+
+
 class BaseParameters:
     """The base parameters beta = K phi of a regressor with standard columns ``param_names``.
 

@@ -40,10 +40,11 @@ import numpy as np
 from .bagio import iter_joint_states, open_bag, read_string_topic
 from .errors import IdentificationError
 from .estimators import ResidualStatistics, WeightedFit, weighted_solve
-from .identifiability import BaseParameters, sample_motion
+from .identifiability import BaseParameters, sample_motion, unexcited_directions
 from .normal_equations import NormalEquations
 from .pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput, TorqueSamples,
                        converged)
+from .prior import safe_prior
 from .replay import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION, Checkpoint, ReplayResult,
                      check_usable, identify_bag)
 from .robot import RobotModel, load_robot
@@ -446,6 +447,13 @@ class Identification:
             return np.where(self.theta == 0, np.inf, 100 * self.stddev / np.abs(self.theta))
 
     @property
+    def unexcited(self) -> list[tuple[str, list[str]]]:
+        """The base-parameter directions the data do not determine (identifiability.
+        unexcited_directions of the rows fitted; empty when the motion excites them all)."""
+        limit = self.pipeline.config.max_condition if self.pipeline is not None else 1e8
+        return unexcited_directions(self.residuals.gram.sum(axis=0), self.base.names, limit)
+
+    @property
     def theta_model(self) -> np.ndarray:
         """The base parameters of the robot description's own (URDF/CAD) parameters."""
         return self.base.to_base(self.robot.phi_model)
@@ -460,7 +468,7 @@ class Identification:
 
     def standard_parameters(self) -> np.ndarray:
         """The full parameter vector closest to the model's that reproduces theta."""
-        return self.base.closest_standard(self.theta, self.robot.phi_model)
+        return self.base.closest_standard(self.theta, safe_prior(self.robot)[0])
 
     def consistency_problems(self) -> list[str]:
         return consistency_problems(self.robot, self.standard_parameters())

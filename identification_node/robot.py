@@ -101,6 +101,17 @@ def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
                                   + (f' ({detail})' if detail else '')) from None
 
 
+def _mimic_joints(xml: str) -> dict[str, str]:
+    """URDF joints with a <mimic>: name -> the joint it follows."""
+    import xml.etree.ElementTree as ET
+    try:
+        root = ET.fromstring(xml)
+    except ET.ParseError:
+        return {}
+    return {j.get('name'): j.find('mimic').get('joint', '?') for j in root.iter('joint')
+            if j.find('mimic') is not None}
+
+
 def _is_prismatic(joint: pin.JointModel) -> bool:
     return 'Prismatic' in joint.shortname() or joint.shortname().startswith('JointModelP')
 
@@ -121,9 +132,24 @@ class RobotModel:
         self.description, self.kind, self.name = read_description(description)
         full = _build_pin_model(self.description, self.kind, self.name)
         movable = [full.names[j] for j in range(1, full.njoints) if full.joints[j].nv > 0]
+        if not movable:
+            where = '' if str(description).lstrip().startswith('<') or self.name == str(
+                description) else f' ({description})'
+            raise IdentificationError(f'robot {self.name}{where} has no movable joints: '
+                                      'nothing to identify')
         if joints is None or len(joints) == 0:
             joints = movable
         joints = [str(j).strip() for j in joints]
+        mimics = _mimic_joints(self.description) if self.kind == 'urdf' else {}
+        mimicking = [j for j in joints if j in mimics]
+        if mimicking:
+            others = [j for j in movable if j not in mimics]
+            raise IdentificationError(
+                f'robot {self.name}: ' + ', '.join(f"joint '{j}' mimics '{mimics[j]}'"
+                                                   for j in mimicking)
+                + ' (URDF <mimic>): mimic joints are not modelled, so they cannot be '
+                f"identified; choose the joints without them (joints: [{', '.join(others)}]), "
+                'which locks them at 0 with their links merged into their parents')
         if len(set(joints)) != len(joints):
             raise IdentificationError(f'joints listed more than once: {joints}')
         for j in joints:

@@ -15,7 +15,9 @@ from typing import TYPE_CHECKING, Any, Mapping
 import yaml
 
 from .errors import IdentificationError
+from .plausibility import PlausibilitySettings
 from .robot import RobotModel, load_robot
+from .robust import RobustSettings
 from .torque import JointTorqueConfig
 
 if TYPE_CHECKING:   # the pipeline's defaults come from PARAMETERS below: imported when used
@@ -55,6 +57,27 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'publish.estimate_rate': (1.0, 'Hz for base_parameters, estimate.* and robot_description'),
     'publish.diagnostics_rate': (1.0, 'Hz for /diagnostics'),
     'output_directory': ('identification_output', 'directory the save service writes into'),
+    # robustness (plausibility.py, robust.py)
+    'plausibility.margin': (2.0, 'URDF limits are widened by this factor (>= 1) into the '
+                            'bounds beyond which samples are rejected as implausible'),
+    'plausibility.position': (1e6, 'rad (prismatic: / 10 m); |q| bound of joints without range'),
+    'plausibility.velocity': (100.0, 'rad/s (prismatic: / 10 m/s) without a URDF velocity limit'),
+    'plausibility.acceleration': (1000.0, 'rad/s^2 (prismatic: / 10 m/s^2) |qdd| bound'),
+    'plausibility.effort': (1e4, 'N m (or N) without a URDF effort limit'),
+    'plausibility.current_limit': ([], 'per joint motor current bound, A (empty or 0: the '
+                                   'current giving the torque bound through kt and gear_ratio)'),
+    'robust.enabled': (True, 'innovation gating of outliers once the estimate converged'),
+    'robust.k': (5.0, 'a sample beyond k residual standard deviations is an outlier'),
+    'robust.window': (1000, 'samples over which the fraction of outliers is watched'),
+    'robust.shift_fraction': (0.5, 'this fraction of outliers in the window is a residual '
+                              'shift: reported, and gating stops until it falls below half'),
+    'max_names': (256, 'names per input message; messages with more are rejected'),
+    'layout_cache_bytes': (4 << 20, 'bytes of message layouts (name lists) kept decoded'),
+    'watchdog_timeout': (10.0, 's without the executor or processing making progress after '
+                         'which the node logs it and exits (status 3) for a supervisor; 0: off'),
+    'lost_messages.middleware_event': (False, "count lost messages also by the middleware's "
+                                       'message-lost event (several publishers); off: it can '
+                                       'deadlock rmw_fastrtps under bursts'),
 }
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
 # PipelineConfig fields whose parameter has another name.
@@ -82,7 +105,8 @@ def read_parameter_file(path: str | Path) -> dict[str, Any]:
     try:
         data = yaml.safe_load(Path(path).read_text())
     except (OSError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read parameter file {path}: {exc}') from None
+        text = ' '.join(str(exc).split())   # one line (YAML errors quote the file's lines)
+        raise IdentificationError(f'cannot read parameter file {path}: {text}') from None
     if not isinstance(data, Mapping):
         raise IdentificationError(f'parameter file {path} does not hold a mapping')
     for value in data.values():
@@ -113,6 +137,8 @@ class Settings:
         values.update(given)
         for name, (default, _) in PARAMETERS.items():
             values[name] = coerce(name, values[name], default)
+        if values['watchdog_timeout'] < 0:
+            raise IdentificationError('parameter watchdog_timeout must be >= 0')
         for name in ('process_period', 'publish.estimate_rate', 'publish.diagnostics_rate'):
             if not values[name] > 0:
                 raise IdentificationError(f'parameter {name} = {values[name]} must be > 0')
@@ -173,7 +199,16 @@ class Settings:
             joint_noise_std=v['joint_noise_std'],
             coulomb_exclusion_speed=v['coulomb_exclusion_speed'],
             converged_ratio=v['converged_ratio'], max_condition=v['max_condition'],
-            min_samples=v['min_samples'])
+            min_samples=v['min_samples'],
+            plausibility=PlausibilitySettings(
+                margin=v['plausibility.margin'], position=v['plausibility.position'],
+                velocity=v['plausibility.velocity'],
+                acceleration=v['plausibility.acceleration'], effort=v['plausibility.effort'],
+                current_limit=v['plausibility.current_limit']),
+            robust=RobustSettings(enabled=v['robust.enabled'], k=v['robust.k'],
+                                  window=v['robust.window'],
+                                  shift_fraction=v['robust.shift_fraction']),
+            max_names=v['max_names'], layout_cache_bytes=v['layout_cache_bytes'])
 
     def build(self, robot: RobotModel | None = None) -> IdentificationPipeline:
         """The pipeline these settings describe (loading the robot unless given)."""
@@ -198,7 +233,8 @@ def coerce(name: str, value: Any, default: Any) -> Any:
         if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
             value = [value]
         value = list(value)
-        kind = type(default[0]) if default else (float if name == 'joint_noise_std' else str)
+        kind = type(default[0]) if default else (
+            float if name in ('joint_noise_std', 'plausibility.current_limit') else str)
         return [coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
     if isinstance(default, bool):
         if not isinstance(value, bool):

@@ -31,11 +31,21 @@ def consistency_problems(robot: RobotModel, phi: np.ndarray, rtol: float = 1e-9)
     inertia and friction coefficients >= 0."""
     problems = []
     for i, link in enumerate(robot.link_names):
-        m, _, Ic = link_inertia(phi[10 * i:10 * i + 10])
+        block = phi[10 * i:10 * i + 10]
+        if not np.isfinite(block).all():
+            problems.append(f'{link}: parameters not finite ('
+                            + ' '.join(f'{v:.4g}' for v in block) + ')')
+            continue
+        with np.errstate(over='ignore', invalid='ignore'):
+            m, _, Ic = link_inertia(block)
         if not m > 0:
             problems.append(f'{link}: mass {m:.6g} kg is not positive')
             continue
-        ev = np.linalg.eigvalsh(Ic)
+        try:
+            ev = np.linalg.eigvalsh(Ic)
+        except (np.linalg.LinAlgError, ValueError):   # overflow on absurd values
+            problems.append(f'{link}: inertia about the centre of mass is not finite')
+            continue
         tol = rtol * max(1.0, float(np.abs(ev).max()))
         if ev[0] <= tol:
             problems.append(f'{link}: inertia about the centre of mass is not positive definite '
@@ -44,7 +54,9 @@ def consistency_problems(robot: RobotModel, phi: np.ndarray, rtol: float = 1e-9)
             problems.append(f'{link}: principal moments {np.array2string(ev, precision=4)} '
                             'violate the triangle inequality')
     for name, value in zip(robot.param_names[robot.n_inertial:], phi[robot.n_inertial:]):
-        if name.rsplit('.', 1)[1] in ('fv', 'fc', 'Ia') and value < 0:
+        if not np.isfinite(value):
+            problems.append(f'{name} = {value} is not finite')
+        elif name.rsplit('.', 1)[1] in ('fv', 'fc', 'Ia') and value < 0:
             problems.append(f'{name} = {value:.6g} is negative')
     return problems
 

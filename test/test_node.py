@@ -290,7 +290,8 @@ def test_polled_input_takes_every_message_in_order_and_only_when_polled(ros):
     ros.remove(node)
 
 
-def polled_burst(ros, topic, depth, bursts, publishers=1, publisher_of=lambda k: 0):
+def polled_burst(ros, topic, depth, bursts, publishers=1, publisher_of=lambda k: 0,
+                 **options):
     """A PolledSubscription of ``topic`` keeping ``depth`` messages (reliable), fed by
     ``publishers`` publishers, message k by ``publisher_of(k)``; each burst of ``bursts`` is
     published whole, then polled. Returns the subscription and how many messages each poll
@@ -299,7 +300,7 @@ def polled_burst(ros, topic, depth, bursts, publishers=1, publisher_of=lambda k:
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                      reliability=ReliabilityPolicy.RELIABLE)
     got = []
-    source = PolledSubscription(node, JointState, topic, got.extend, qos)
+    source = PolledSubscription(node, JointState, topic, got.extend, qos, **options)
     pubs = [ros.client.create_publisher(JointState, topic, RELIABLE) for _ in range(publishers)]
     assert wait_for(lambda: node.count_publishers(topic) == publishers and all(
         p.get_subscription_count() for p in pubs), 10)
@@ -325,7 +326,8 @@ def test_polled_input_counts_what_its_queue_dropped(ros):
     source, taken = polled_burst(ros, '/overflow/joint_states', 10, [1, 300, 5])
     assert taken == [1, 10, 5]
     assert source.lost == 290
-    assert source.sequence_numbers and source.events
+    # without the middleware's message-lost event (it can deadlock rmw_fastrtps)
+    assert source.sequence_numbers and not source.events
 
 
 def test_polled_input_from_two_publishers_counts_no_loss(ros):
@@ -345,7 +347,8 @@ def test_polled_input_without_message_lost_events(ros, monkeypatch):
         def create_event_handlers(self, *args):
             raise UnsupportedEventTypeError('message lost')
     monkeypatch.setattr(conversions, 'SubscriptionEventCallbacks', lambda **_: Unsupported())
-    source, taken = polled_burst(ros, '/no_events/joint_states', 10, [1, 50])
+    source, taken = polled_burst(ros, '/no_events/joint_states', 10, [1, 50],
+                                 message_lost_event=True)
     assert (taken, source.lost, source.events) == ([1, 10], 40, False)
 
 

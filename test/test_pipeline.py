@@ -457,9 +457,12 @@ def test_bad_configuration_names_the_parameter(field, value):
         IdentificationPipeline(ROBOT, PipelineConfig(**{field: value}), BASE)
 
 
-def test_non_finite_rows_raise_through_the_checked_path():
+@pytest.mark.parametrize('bad', [np.nan, 1e200])
+def test_non_finite_or_overflowing_rows_are_dropped_and_counted(bad):
     p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
     rows = np.ones((60, ROBOT.dof, BASE.num_base + 1))
-    rows[7, 1, 2] = np.nan
-    with pytest.raises(IdentificationError, match='NaN or inf'):
-        p.estimator.add(rows, np.arange(60) * 1e-3, np.ones((60, 3)), np.zeros((60, 3)))
+    rows[7, 1, 2] = bad
+    p.estimator.add(rows, np.arange(60) * 1e-3, np.ones((60, 3)), np.zeros((60, 3)))
+    p.estimator.apply()
+    assert p.rejected['regressor_overflow'] == 1
+    assert p.rls.num_samples == 59 and np.isfinite(p.rls.theta).all()

@@ -2,12 +2,14 @@
 
 Each verb lives in its own module of this package with ``add_arguments(parser)`` and
 ``run(args) -> int``; heavy imports happen inside ``run`` so ``--help`` stays fast.
-User mistakes (IdentificationError) print one line and exit 2, never a traceback.
+User mistakes (IdentificationError) print one line and exit 2, never a traceback; so does
+any other failure (numerical ones on absurd data), unless IDENTIFICATION_DEBUG is set.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from typing import Sequence
 
@@ -94,6 +96,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:   # noqa: BLE001 - numerical failure or a bug: one line, exit 2
+        if os.environ.get('IDENTIFICATION_DEBUG'):
+            raise
+        print(f'error: {args.verb} failed: {type(exc).__name__}: {exc} '
+              '(IDENTIFICATION_DEBUG=1 shows the traceback)', file=sys.stderr)
+        return 2
     except BrokenPipeError:  # output piped into head and the like
         sys.stderr.close()
         return 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 
@@ -64,13 +65,19 @@ def result_document(result, validation=None) -> dict:
     ident = result if isinstance(result, Identification) else from_replay(result)
     robot, base = ident.robot, ident.base
     problems = ident.consistency_problems()
+    unexcited = ident.unexcited
+    # parameters in an unexcited direction: the data say nothing about them, so no estimate
+    blind = {name for _, names in unexcited for name in names}
     doc = {
         'bag': ident.bag, 'robot': robot.name, 'joints': robot.joint_names,
         'method': ident.method, 'processing': ident.details,
         'num_samples': ident.num_samples, 'messages': ident.messages,
         'base_parameters': [
-            {'name': n, 'expression': e, 'terms': t, 'estimate': float(v), 'stddev': float(s),
-             'rel_stddev': float(r), 'model': float(m)}
+            {'name': n, 'expression': e, 'terms': t,
+             'estimate': None if n in blind else float(v),
+             'stddev': None if n in blind else float(s),
+             'rel_stddev': None if n in blind else float(r), 'model': float(m),
+             'excited': n not in blind}
             for n, e, t, v, s, r, m in zip(base.names, base.expressions, base.terms,
                                            ident.theta, ident.stddev, ident.rel_stddev,
                                            ident.theta_model)],
@@ -80,7 +87,9 @@ def result_document(result, validation=None) -> dict:
         'residual_rms': dict(zip(robot.joint_names, ident.residual_rms.tolist())),
         'noise_std': dict(zip(robot.joint_names, np.sqrt(ident.noise_variance).tolist())),
         'condition_number': ident.condition_number,
-        'converged': ident.converged,
+        'excited': not unexcited,
+        'unexcited_directions': [text for text, _ in unexcited],
+        'converged': ident.converged and not unexcited,
         'smoother_delay_samples': (int(ident.pipeline.delay) if ident.pipeline is not None
                                    else None),
         'rejected': ident.rejected,
@@ -107,13 +116,20 @@ def format_report(doc: dict) -> str:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in doc['rejected'].items()))
     rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['stddev']:.3g}" if b['stddev'] is not None
              else 'inf', f"{b['rel_stddev']:.2f}" if b['rel_stddev'] is not None else 'inf',
-             f"{b['model']:.6g}", b['expression']) for b in doc['base_parameters']]
+             f"{b['model']:.6g}", b['expression']) if b['estimate'] is not None else
+            (b['name'], 'not excited', '', '', f"{b['model']:.6g}", b['expression'])
+            for b in doc['base_parameters']]
     lines += ['', 'base parameters (SI units):'] + _table(
         ('name', 'estimate', 'stddev', 'rel %', 'model', 'expression'), rows)
     lines += ['', 'relative torque error, percent: ' + _per_joint(doc['relative_error']),
               'with the model\'s own parameters: ' + _per_joint(doc['model_relative_error']),
-              f"excitation condition number: {doc['condition_number']:.4g}"
-              f"   converged: {'yes' if doc['converged'] else 'no'}"]
+              'excitation condition number: ' + _number(doc['condition_number'])
+              + f"   converged: {'yes' if doc['converged'] else 'no'}"]
+    if not doc['excited']:
+        lines += [f"not excited: the motion does not determine {len(doc['unexcited_directions'])}"
+                  ' direction(s) of the base parameters (no estimate for the parameters in '
+                  'them; excite the arm more):'] + [
+                      f'  {d}' for d in doc['unexcited_directions']]
     if not doc['physically_consistent']:
         lines.append('closest full parameter set is not physically consistent: '
                      + '; '.join(doc['consistency_problems']))
@@ -126,15 +142,23 @@ def format_report(doc: dict) -> str:
                   'error, percent: ' + _per_joint(v['relative_error']),
                   'with the model\'s own parameters: ' + _per_joint(v['model_relative_error'])]
     lines += ['', 'convergence (estimate change to final, in final standard deviations):']
-    final = np.array([b['estimate'] for b in doc['base_parameters']])
+    final = np.array([np.nan if b['estimate'] is None else b['estimate']
+                      for b in doc['base_parameters']])
     sd = np.array([b['stddev'] if b['stddev'] else np.inf for b in doc['base_parameters']])
     picks = _spread(len(doc['convergence']), 8)
     rows = []
     for c in (doc['convergence'][k] for k in picks):
         dev = np.abs(np.array(c['estimate'], dtype=float) - final) / sd
-        rows.append((str(c['num_samples']), f'{np.max(dev):.2f}', f'{np.median(dev):.2f}'))
+        dev = dev[np.isfinite(dev)]   # not the unexcited parameters
+        rows.append((str(c['num_samples']),
+                     *(f'{f(dev):.2f}' if len(dev) else '-' for f in (np.max, np.median))))
     lines += _table(('samples', 'max', 'median'), rows)
     return '\n'.join(lines)
+
+
+def _number(value: float | None) -> str:
+    """A JSON number of the document (None: inf or NaN)."""
+    return 'inf' if value is None else f'{value:.4g}'
 
 
 def _per_joint(errors: dict) -> str:
@@ -215,6 +239,15 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.report)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
+    from ..bagio import open_bag
+    from ..prior import safe_prior
+    for note in safe_prior(robot)[1]:
+        print(f'warning: {note}', file=sys.stderr)
+    for bag in [args.bag] + ([args.validate] if args.validate else []):
+        with open_bag(bag) as reader:   # its chunk CRCs verified
+            if reader.unverified_chunks:
+                print(f'warning: bag {bag}: {reader.unverified_chunks} mcap chunk(s) carry no '
+                      'CRC, so corruption in them cannot be detected', file=sys.stderr)
     topics = (args.joint_states_topic, args.currents_topic)
     options = None
     if method == 'rls':

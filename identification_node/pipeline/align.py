@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from ..plausibility import PlausibilityBounds
 from ..torque import TorqueConverter
 from .samples import Samples
 from .validate import Counters
@@ -23,8 +24,9 @@ class CurrentAlignment:
     torque."""
 
     def __init__(self, converter: TorqueConverter, dof: int, align_tolerance: float,
-                 hold_time: float, counters: Counters):
+                 hold_time: float, counters: Counters, bounds: PlausibilityBounds | None = None):
         self.converter, self.dof, self.counters = converter, dof, counters
+        self.bounds = bounds   # torques from currents beyond them: 'implausible'
         self.align_tolerance, self.hold_time = float(align_tolerance), float(hold_time)
         self._all_measured = len(converter.measured_joints) == dof
         self.reset()
@@ -112,7 +114,11 @@ class CurrentAlignment:
             return s
         s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)
         ok = np.isfinite(s.tau).all(axis=1)
-        if ok.all():
+        if not ok.all():
+            self.counters.reject('non_finite', np.count_nonzero(~ok))
+            s = s.select(ok)
+        plausible = self.bounds.ok(tau=s.tau) if self.bounds is not None else None
+        if plausible is None or plausible.all():
             return s
-        self.counters.reject('non_finite', np.count_nonzero(~ok))
-        return s.select(ok)
+        self.counters.reject('implausible', np.count_nonzero(~plausible))
+        return s.select(plausible)

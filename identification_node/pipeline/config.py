@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 from ..errors import IdentificationError
+from ..plausibility import PlausibilitySettings
+from ..robust import RobustSettings
 from ..settings import CONFIG_FIELD_PARAMETERS, PARAMETERS
 from ..torque import JointTorqueConfig
 
@@ -35,6 +37,10 @@ class PipelineConfig:
     converged_ratio: float = _default('converged_ratio')
     max_condition: float = _default('max_condition')
     min_samples: int = _default('min_samples')
+    plausibility: PlausibilitySettings = field(default_factory=PlausibilitySettings)
+    robust: RobustSettings = field(default_factory=RobustSettings)
+    max_names: int = _default('max_names')     # more names in a message: rejected
+    layout_cache_bytes: int = _default('layout_cache_bytes')   # bound of the layout caches
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""
@@ -56,8 +62,12 @@ class PipelineConfig:
             ('converged_ratio', self.converged_ratio > 0, '> 0'),
             ('max_condition', self.max_condition > 1, '> 1'),
             ('min_samples', int(self.min_samples) >= 0, '>= 0'),
+            ('max_names', int(self.max_names) >= 1, '>= 1'),
+            ('layout_cache_bytes', int(self.layout_cache_bytes) >= 0, '>= 0'),
         ]
         for name, ok, expected in checks:
             value = getattr(self, name)
             if not ok or (isinstance(value, float) and not math.isfinite(value)):
                 raise IdentificationError(f'parameter {name} = {value!r} must be {expected}')
+        self.plausibility.validate(dof)
+        self.robust.validate()

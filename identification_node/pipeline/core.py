@@ -11,6 +11,7 @@ import numpy as np
 from ..errors import IdentificationError
 from ..estimators import RecursiveLeastSquares, ResidualStatistics
 from ..identifiability import BaseParameters
+from ..prior import safe_prior
 from ..records import JointStateRecord
 from ..robot import RobotModel
 from .config import PipelineConfig
@@ -56,7 +57,11 @@ class IdentificationPipeline:
         self.row_builder = RowBuilder(robot, self.base, c.half_window, c.smoother_order,
                                       c.max_gap)
         self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
-                                        'fc' in robot.extras)
+                                        'fc' in robot.extras, self.samples.counters.reject)
+        self.gate = self.estimator.gate    # robust.InnovationGate: listeners, events, counts
+        self.bounds = self.samples.bounds  # plausibility.PlausibilityBounds
+        # the model's parameters, degenerate inertials replaced (prior.py); notes say which
+        self.prior, self.prior_notes = safe_prior(robot)
         self.frozen = False
         self.reset()
 
@@ -101,12 +106,21 @@ class IdentificationPipeline:
     epoch_ns = property(lambda self: self.samples.counters.epoch_ns,
                         doc='the first stamp (ns): time zero of the float stamps')
     velocity_measured = property(lambda self: self.samples.velocity_measured)
+    numerical_failures = property(lambda self: self.estimator.numerical_failures,
+                                  doc='estimator updates rolled back to the last finite state')
+    smoother_edge = property(lambda self: self.row_builder.smoother_edge,
+                             doc='valid samples the smoother never output (rows.RowBuilder)')
+    layout_cache_bytes = property(
+        lambda self: sum(v.cache.bytes for v in (self.samples.validate,
+                                                 self.samples.validate_currents)),
+        doc='estimated bytes of the decoded message layouts kept')
 
     # -- state ----------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the estimate and all buffered data; counters restart too."""
         self.samples.reset()
         self.row_builder.reset()
+        self.row_builder.reset_counts()
         self.estimator.reset()
         self.used = 0
         self._restarts_seen = 0
@@ -134,6 +148,15 @@ class IdentificationPipeline:
         if len(r.t) == 0:
             return PipelineOutput.empty(self.robot.dof)
         predicted = r.rows[:, :, :self.base.num_base] @ est.theta
+        # the smoothed motion and torque within bounds too (accelerations are checked here
+        # only; a spike that passed the raw gates spreads over the smoothing window)
+        plausible = self.bounds.ok(r.q, r.qd, r.qdd, r.tau) & np.isfinite(predicted).all(axis=1)
+        if not plausible.all():
+            self.samples.counters.reject('implausible', np.count_nonzero(~plausible))
+            r = type(r)(*(a[plausible] for a in r))
+            predicted = predicted[plausible]
+            if len(r.t) == 0:
+                return PipelineOutput.empty(self.robot.dof)
         if not self.frozen:
             est.add(r.rows, r.t, r.qd, r.qdd)
             self.used += len(r.t)
@@ -218,4 +241,4 @@ class IdentificationPipeline:
     def standard_parameters(self) -> np.ndarray:
         """The full standard parameter vector closest to the model's own that reproduces the
         base estimate (for the identified URDF)."""
-        return self.base.closest_standard(self.rls.theta, self.robot.phi_model)
+        return self.base.closest_standard(self.rls.theta, self.prior)

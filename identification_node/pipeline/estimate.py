@@ -6,17 +6,28 @@ every ``update_batch`` samples in one batch (what sample-by-sample updates give)
 smoothed, so residuals are correlated over the window: the covariance uses their long-run
 variance (ResidualStatistics' block sums); until there are enough blocks, white raw noise is
 assumed (signals.smoothing_noise_gain).
+
+Before an update, samples whose rows would overflow are dropped ('regressor_overflow') and,
+once the estimate has converged, the robust gate (robust.py) holds outliers back
+('outlier'); an update that fails or turns non-finite is rolled back to the last finite
+state ('numerical_failure', ``numerical_failures``).
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import IdentificationError
 from ..estimators import RecursiveLeastSquares, ResidualStatistics, row_information
+from ..robust import InnovationGate
 from ..signals import smoothing_noise_gain
 from .config import PipelineConfig
+
+# What the numerical update may raise on absurd data: caught, the estimator rolled back.
+NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, IdentificationError)
 
 
 @dataclass
@@ -51,8 +62,11 @@ def converged(covariance: np.ndarray, gram: np.ndarray, count: float,
 class OnlineEstimate:
     """RLS and residual statistics of ``num_base`` parameters over ``dof`` joints' rows."""
 
-    def __init__(self, num_base: int, dof: int, config: PipelineConfig, coulomb: bool):
+    def __init__(self, num_base: int, dof: int, config: PipelineConfig, coulomb: bool,
+                 reject=lambda reason, count: None):
         self.num_base, self.dof, self.config, self.coulomb = num_base, dof, config, coulomb
+        self._reject = reject    # reject(reason, count): where dropped samples are counted
+        self.gate = InnovationGate(config.robust)
         self._block = 8 * (2 * int(config.half_window) + 1)   # residual blocks: 8 windows
         self._white_scale = 1.0 / smoothing_noise_gain(int(config.half_window),
                                                        int(config.smoother_order))
@@ -67,6 +81,11 @@ class OnlineEstimate:
         self._updates: list[tuple] = []
         self._pending_samples = 0
         self.excluded_rows = 0
+        self.numerical_failures = 0
+        self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
+        self._next_arm = 0                       # samples at which arming is asked next
+        self._last_t = math.nan
+        self.gate.reset()
 
     @property
     def theta(self) -> np.ndarray:
@@ -82,6 +101,7 @@ class OnlineEstimate:
         """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n):
         weighted (in place) and queued; applied once ``update_batch`` samples are gathered."""
         w = self._row_weights(t, qd, qdd)
+        self._last_t = float(t[-1]) if len(t) else self._last_t
         used = None
         if w is not None:
             root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
@@ -101,14 +121,57 @@ class OnlineEstimate:
         rows = parts[0][0] if len(parts) == 1 else np.concatenate([u[0] for u in parts])
         used = None if all(u[1] is None for u in parts) else np.concatenate([
             np.ones(u[0].shape[:2], dtype=bool) if u[1] is None else u[1] for u in parts])
-        b = self.num_base
-        information = row_information(rows)
-        if not np.isfinite(information).all():  # the checked path names the culprit
-            self._rls.update(rows[:, :, :b], rows[:, :, b], used)  # (rows weighted already)
-            self._residuals.add(rows[:, :, :b], rows[:, :, b])
+        rows, used = self._screened(rows, used)
+        if len(rows) == 0:
             return
-        self._rls.update_rows(rows, used, information)
-        self._residuals.add_rows(rows, information)
+        saved = _state(self._rls), _state(self._residuals)
+        try:
+            with np.errstate(over='ignore', invalid='ignore'):
+                information = row_information(rows)
+            self._rls.update_rows(rows, used, information)
+            self._residuals.add_rows(rows, information)
+            ok = np.isfinite(self._rls.theta).all() and np.isfinite(self._rls.information).all()
+        except NUMERICAL_ERRORS:
+            ok = False
+        if not ok:   # back to the last finite state; the batch is counted and dropped
+            self._rls, self._residuals = saved
+            self.numerical_failures += 1
+            self._reject('numerical_failure', len(rows))
+            return
+        self._rows_used += len(rows) if used is None else used.sum(axis=0)
+
+    def _screened(self, rows: np.ndarray, used: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The rows of a batch the estimator may take: samples whose sums would overflow
+        dropped, and, once the estimate has converged, the robust gate's decision."""
+        with np.errstate(over='ignore', invalid='ignore'):
+            finite = np.isfinite(np.square(rows).sum(axis=(1, 2)))
+        if not finite.all():
+            self._reject('regressor_overflow', np.count_nonzero(~finite))
+            rows, used = rows[finite], None if used is None else used[finite]
+        gate, b = self.gate, self.num_base
+        # armed once converged: asked every gate window of samples (the test is not cheap)
+        if (gate.settings.enabled and not gate.armed
+                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm)):
+            self._next_arm = self._rls.num_samples + int(gate.settings.window)
+            gate.armed = self.converged(self.excitation()[0], self.covariance)
+        if not gate.armed or len(rows) == 0:
+            return rows, used
+        theta = self._rls.theta
+        before = gate.outliers
+        # the residual variance per used row (rows left out, weight 0, hold no residual)
+        sigma = np.sqrt(self._residuals.rss(theta) / np.maximum(self._rows_used, 1))
+        keep, back = gate.screen(
+            rows[:, :, b] - rows[:, :, :b] @ theta, sigma,
+            lambda gated: (rows[gated], None if used is None else used[gated]), self._last_t)
+        self._reject('outlier', gate.outliers - before)   # negative: given back on a shift
+        if keep.all() and not back:
+            return rows, used
+        parts = [(rows[keep], None if used is None else used[keep])] + back
+        if any(u is not None for _, u in parts):
+            used = np.concatenate([np.ones(r.shape[:2], dtype=bool) if u is None else u
+                                   for r, u in parts])
+        return np.concatenate([r for r, _ in parts]), used
 
     def end_stream(self) -> None:
         """The stream ended (a restart): its rows applied, its unfinished residual block left
@@ -174,7 +237,10 @@ class OnlineEstimate:
     def excitation(self) -> tuple[float, float]:
         """(condition number, smallest eigenvalue) of the information the data brought, without
         the forgetting regulariser."""
-        ev = np.linalg.eigvalsh(self.rls.data_information)
+        information = self.rls.data_information
+        if not np.isfinite(information).all():
+            return math.inf, 0.0
+        ev = np.linalg.eigvalsh(information)
         if ev[-1] <= 0:
             return math.inf, 0.0
         return (float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf), float(max(ev[0], 0.0))
@@ -183,3 +249,13 @@ class OnlineEstimate:
         r = self.residuals
         return converged(covariance, r.gram, r.count, self.noise_variance(),
                          self.rls.num_samples, condition, self.config)
+
+
+def _state(obj: object) -> object:
+    """A copy of ``obj`` to roll back to: its attributes, arrays copied (the estimators
+    update some in place)."""
+    saved = copy.copy(obj)
+    for name, value in vars(obj).items():
+        if isinstance(value, np.ndarray):
+            setattr(saved, name, value.copy())
+    return saved

@@ -40,12 +40,29 @@ class RowBuilder:
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._columns = np.append(base.base_index, robot.num_params)
         self._work: dict[str, np.ndarray] = {}
+        self.reset_counts()
         self.reset()
 
     def reset(self) -> None:
         """Forget the smoother's window (a new stream): it is made on first use, when the
-        channels (with or without measured velocity) are known."""
+        channels (with or without measured velocity) are known. What it held and never output
+        is counted in ``smoother_edge``."""
+        self._count_edges(restart=True)
         self._smoother: FixedLagSmoother | None = None
+
+    def reset_counts(self) -> None:
+        self._in = self._out = 0    # samples into / out of the smoother
+        # valid samples the smoother never outputs: half a window at the stream's start, at
+        # either side of a stamp gap, and what a restart drops (not rejections: apart)
+        self.smoother_edge = 0
+
+    def _count_edges(self, restart: bool = False) -> None:
+        """All that went in and did not come out, but the newest half window (the delay);
+        on a restart all of it."""
+        waiting = self._in - self._out
+        lost = waiting if restart else max(waiting - self.half_window, 0)
+        self.smoother_edge += lost
+        self._out += lost
 
     def __call__(self, s: Samples, measured_velocity: bool, reuse_at: int | None = None
                  ) -> Rows:
@@ -59,6 +76,9 @@ class RowBuilder:
                                               order=self.order, max_gap=self.max_gap)
         # stamps increasing and values finite: checked by the stages before
         t, x, xd, xdd = self._smoother.push_checked(s.stamps, x)
+        self._in += len(s.stamps)
+        self._out += len(t)
+        self._count_edges()
         q = x[:, :n]
         qd, qdd = (x[:, n:2 * n], xd[:, n:2 * n]) if measured_velocity else (xd[:, :n],
                                                                              xdd[:, :n])

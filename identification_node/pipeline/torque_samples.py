@@ -6,6 +6,7 @@ collects it. Both run exactly this.
 """
 from __future__ import annotations
 
+from ..plausibility import PlausibilityBounds
 from ..records import JointStateRecord
 from ..robot import RobotModel
 from ..torque import JointTorqueConfig, TorqueConverter
@@ -27,12 +28,16 @@ class TorqueSamples:
         configs = [config.torque.get(j, JointTorqueConfig()) for j in robot.joint_names]
         self.converter = TorqueConverter(robot.joint_names, configs)
         self.counters = Counters()
+        self.bounds = PlausibilityBounds.from_robot(
+            robot, config.plausibility, [c.gear_ratio for c in configs], [c.kt for c in configs])
         self.joint_states, self.motor_currents = Intake(self.counters), Intake(self.counters)
+        limits = (config.max_names, config.layout_cache_bytes)
         self.validate = JointStateValidator(robot, self.converter, config.velocity,
-                                            self.counters)
-        self.validate_currents = CurrentValidator(robot, self.converter, self.counters)
+                                            self.counters, self.bounds, *limits)
+        self.validate_currents = CurrentValidator(robot, self.converter, self.counters,
+                                                  self.bounds, *limits)
         self.alignment = CurrentAlignment(self.converter, robot.dof, config.align_tolerance,
-                                          config.hold_time, self.counters)
+                                          config.hold_time, self.counters, self.bounds)
         self.order = StampOrder(
             config.restart_jump, self.counters,
             lambda newest: self.alignment.restart(newest, config.restart_jump))

@@ -3,13 +3,19 @@
 A block (messages sharing names and array lengths) is decided at once; every rejected message
 is counted by reason (``REJECT_REASONS``), never an exception or a NaN passed on. Accepted
 rows come out as Samples in the robot's joint order, stamps in seconds since the stream's
-epoch (its first stamp).
+epoch (its first stamp). Values beyond the physical bounds (plausibility.py) are rejected as
+'implausible'; a message with more than ``max_names`` names as 'too_many_names', before any
+layout is made of it.
 """
 from __future__ import annotations
+
+import math
+import sys
 
 import numpy as np
 
 from ..records import JointStateRecord
+from ..plausibility import PlausibilityBounds
 from ..robot import RobotModel
 from ..torque import TorqueConverter
 from .samples import Samples, stack_records
@@ -18,8 +24,8 @@ REJECT_REASONS = (
     'empty', 'length_mismatch', 'duplicate_names', 'missing_joints', 'non_finite',
     'missing_velocity', 'missing_effort', 'out_of_order', 'repeated_stamp', 'no_current',
     'unmatched_current', 'unknown_channels', 'stream_restart', 'malformed',
+    'too_many_names', 'implausible', 'outlier', 'regressor_overflow', 'numerical_failure',
 )
-_MAX_LAYOUTS = 256   # layouts (name tuples) remembered per stream
 
 
 class Counters:
@@ -50,17 +56,37 @@ class Counters:
         return self.epoch_ns + np.round(seconds * 1e9).astype(np.int64)
 
 
-def _layout(cache: dict, names: tuple, build):
-    """``build(pos)`` for messages with ``names`` (pos: name -> message column), or
-    'duplicate_names'; kept in ``cache`` per names."""
-    layout = cache.get(names)
-    if layout is None:
-        pos = {name: i for i, name in enumerate(names)}
-        layout = 'duplicate_names' if len(pos) != len(names) else build(pos)
-        if len(cache) > _MAX_LAYOUTS:
-            cache.clear()
-        cache[names] = layout
-    return layout
+class LayoutCache:
+    """Message layouts per name tuple, the oldest forgotten beyond ``limit`` bytes
+    (estimated: the tuple, its strings, the name -> column map and the column arrays)."""
+
+    def __init__(self, limit: int):
+        self.limit, self.bytes = int(limit), 0
+        self._layouts: dict[tuple, object] = {}
+
+    def __len__(self) -> int:
+        return len(self._layouts)
+
+    @staticmethod
+    def size(names: tuple) -> int:
+        return sys.getsizeof(names) + sum(sys.getsizeof(x) + 100 for x in names)
+
+    def get(self, names: tuple, build):
+        """``build(pos)`` for messages with ``names`` (pos: name -> message column), or
+        'duplicate_names'."""
+        layout = self._layouts.get(names)
+        if layout is None:
+            pos = {name: i for i, name in enumerate(names)}
+            layout = 'duplicate_names' if len(pos) != len(names) else build(pos)
+            size = self.size(names)
+            while self._layouts and self.bytes + size > self.limit:
+                oldest = next(iter(self._layouts))
+                self.bytes -= self.size(oldest)
+                del self._layouts[oldest]
+            if size <= self.limit:
+                self._layouts[names] = layout
+                self.bytes += size
+        return layout
 
 
 class JointStateValidator:
@@ -69,13 +95,15 @@ class JointStateValidator:
     every rejection counted. ``velocity`` 'auto' is decided by the first accepted block."""
 
     def __init__(self, robot: RobotModel, converter: TorqueConverter, velocity: str,
-                 counters: Counters):
-        self.robot, self.counters = robot, counters
+                 counters: Counters, bounds: PlausibilityBounds, max_names: int = 256,
+                 cache_bytes: int = 4 << 20):
+        self.robot, self.counters, self.bounds = robot, counters, bounds
+        self.max_names = int(max_names)
         self._auto = velocity == 'auto'
         self.velocity_mode: str | None = None if self._auto else velocity
         self._measured_columns = np.array([robot.joint_names.index(j)
                                            for j in converter.measured_joints], dtype=int)
-        self._cache: dict[tuple, np.ndarray | slice | str] = {}
+        self.cache = LayoutCache(cache_bytes)
 
     def reset(self) -> None:
         if self._auto:
@@ -88,7 +116,7 @@ class JointStateValidator:
     def columns(self, names: tuple) -> np.ndarray | slice | str:
         """Message columns in the robot's joint order (a plain slice when the message has
         exactly the robot's joints in its order), or the reason to reject the layout."""
-        return _layout(self._cache, names, self._columns)
+        return self.cache.get(names, self._columns)
 
     def _columns(self, pos: dict) -> np.ndarray | slice | str:
         if any(j not in pos for j in self.robot.joint_names):
@@ -108,6 +136,8 @@ class JointStateValidator:
         reason = idx = None
         if not k or not pos:
             reason = 'empty'
+        elif k > self.max_names:
+            reason = 'too_many_names'
         elif pos != k or vel not in (0, k) or eff not in (0, k):
             reason = 'length_mismatch'
         else:
@@ -135,6 +165,13 @@ class JointStateValidator:
         if not finite.all():
             self.counters.reject('non_finite', np.count_nonzero(~finite))
             s = s.select(finite)
+        measured = self._measured_columns
+        plausible = self.bounds.ok(s.q, s.qd if self.velocity_measured else None,
+                                   tau=s.eff[:, measured] if len(measured) else None,
+                                   columns=measured)
+        if not plausible.all():
+            self.counters.reject('implausible', np.count_nonzero(~plausible))
+            s = s.select(plausible)
         return s
 
 
@@ -142,16 +179,23 @@ class CurrentValidator:
     """Motor current records to Samples of currents (M, n, 3) and electrical angles (M, n)
     (NaN where not given), in stamp order; rejects counted."""
 
-    def __init__(self, robot: RobotModel, converter: TorqueConverter, counters: Counters):
-        self.robot, self.counters = robot, counters
+    def __init__(self, robot: RobotModel, converter: TorqueConverter, counters: Counters,
+                 bounds: PlausibilityBounds, max_names: int = 256, cache_bytes: int = 4 << 20):
+        self.robot, self.counters, self.bounds = robot, counters, bounds
+        self.max_names = int(max_names)
         self._channels = {name: (i, k) for name, i, k in converter.current_channel_slots()}
-        self._cache: dict[tuple, tuple | str] = {}
+        self.cache = LayoutCache(cache_bytes)
+        # |electrical angle| that positions within bounds can give (rad)
+        configs = converter.configs
+        reach = np.maximum(np.abs(bounds.position_lower), np.abs(bounds.position_upper))
+        self._angle_bound = (np.array([abs(c.pole_pairs * c.gear_ratio) for c in configs])
+                             * reach + np.abs([c.angle_offset for c in configs]) + 2 * math.pi)
 
     def layout(self, names: tuple) -> tuple | str:
         """For current messages with ``names``: the message columns of the configured channels
         and their flat slots joint * 3 + phase, the columns of each joint's electrical angle
         (its last channel) and those joints; or the reason to reject the layout."""
-        return _layout(self._cache, names, self._layout)
+        return self.cache.get(names, self._layout)
 
     def _layout(self, pos: dict) -> tuple | str:
         known = sum(name in pos for name in self._channels)
@@ -170,6 +214,8 @@ class CurrentValidator:
             eff, pos = b.effort.shape[1], b.position.shape[1]
             if not k or not eff:
                 layout = 'empty'
+            elif k > self.max_names:
+                layout = 'too_many_names'
             elif eff != k or pos not in (0, k):
                 layout = 'length_mismatch'
             else:
@@ -185,10 +231,16 @@ class CurrentValidator:
             if pos:
                 theta[:, angle_joints] = np.asarray(b.position, dtype=float)[:, angle_cols]
             part = (self.counters.seconds(b.stamp_ns), cur.reshape(M, n, 3), theta)
-            finite = np.isfinite(values).all(axis=1)
+            # an electrical angle is NaN where not given, but never infinite
+            finite = np.isfinite(values).all(axis=1) & ~np.isinf(theta).any(axis=1)
             if not finite.all():
                 self.counters.reject('non_finite', np.count_nonzero(~finite))
                 part = tuple(a[finite] for a in part)
+            plausible = (self.bounds.currents_ok(part[1])
+                         & ~(np.abs(part[2]) > self._angle_bound).any(axis=1))
+            if not plausible.all():
+                self.counters.reject('implausible', np.count_nonzero(~plausible))
+                part = tuple(a[plausible] for a in part)
             parts.append(part)
         if not parts:
             return Samples.empty(n, with_currents=True)

@@ -70,13 +70,20 @@ class PolledSubscription:
     ``lost`` counts the messages that never reached ``handle``. While the topic has one
     publisher: the gaps in the publication sequence numbers of the messages taken, which
     include what this subscription's own KEEP_LAST queue dropped between two polls (no
-    middleware event reports that). With several publishers (their numbers interleave) or a
-    middleware without sequence numbers: the messages the middleware reports lost (the
-    message_lost event: transport and writer-side losses). None if it can do neither.
+    middleware event reports that). With ``message_lost_event``, also with several publishers
+    (their numbers interleave) or a middleware without sequence numbers: the messages the
+    middleware reports lost (the message_lost event: transport and writer-side losses). None
+    if it can do neither.
+
+    The event is off by default: rmw_fastrtps takes its sample-lost status under a lock that
+    its shared-memory receive thread takes in the other order, and under bursts the two
+    deadlock (the node hangs, signals included). The sequence-number gaps need no middleware
+    call; the price is that losses while a topic has several publishers go uncounted.
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str,
-                 handle: Callable[[list[bytes]], None], qos: Any, **kwargs: Any) -> None:
+                 handle: Callable[[list[bytes]], None], qos: Any,
+                 message_lost_event: bool = False, **kwargs: Any) -> None:
         self.handle, self.node, self.topic = handle, node, topic
         self.sequence_numbers: bool | None = None    # known from the first message taken
         self._last_seq: int | None = None
@@ -84,13 +91,17 @@ class PolledSubscription:
         create = partial(node.create_subscription, msg_type, topic,
                          lambda raw: handle([raw]), qos, raw=True,
                          callback_group=PolledGroup(), **kwargs)
-        try:
-            self.subscription: Subscription = create(event_callbacks=SubscriptionEventCallbacks(
-                message_lost=self._on_message_lost))
-            self.events = True
-        except UnsupportedEventTypeError:
+        self.events = False
+        if message_lost_event:
+            try:
+                self.subscription: Subscription = create(
+                    event_callbacks=SubscriptionEventCallbacks(
+                        message_lost=self._on_message_lost))
+                self.events = True
+            except UnsupportedEventTypeError:
+                pass
+        if not self.events:
             self.subscription = create()   # the QoS override parameters are declared once
-            self.events = False
 
     @property
     def lost(self) -> int | None:

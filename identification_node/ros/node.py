@@ -18,7 +18,9 @@ and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``.
 """
 from __future__ import annotations
 
+import collections
 import copy
+import functools
 import json
 import math
 import sys
@@ -103,6 +105,9 @@ class IdentificationNode(Node):
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
 
+        self.callback_errors: collections.Counter = collections.Counter()
+        self.watchdog_timeout = self.settings['watchdog_timeout']
+        self.pipeline.gate.listeners.append(self._on_residual_shift)
         self._inputs = [self._subscribe('joint_states', self.pipeline.add_joint_state_cdr)]
         if self.pipeline.converter.needs_currents:
             self._inputs.append(self._subscribe('motor_currents', self.pipeline.add_currents_cdr))
@@ -111,10 +116,10 @@ class IdentificationNode(Node):
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
         self._pub_urdf = self.create_publisher(String, '~/robot_description', LATCHED_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_service(Trigger, '~/reset', self._srv_reset)
-        self.create_service(SetBool, '~/freeze', self._srv_freeze)
-        self.create_service(Trigger, '~/save', self._srv_save)
-        self.create_service(Trigger, '~/get_estimate', self._srv_get_estimate)
+        self.create_service(Trigger, '~/reset', self._guarded(self._srv_reset))
+        self.create_service(SetBool, '~/freeze', self._guarded(self._srv_freeze))
+        self.create_service(Trigger, '~/save', self._guarded(self._srv_save))
+        self.create_service(Trigger, '~/get_estimate', self._guarded(self._srv_get_estimate))
 
         s = self.settings
         self._effort_rate = s['publish.effort_rate']
@@ -125,14 +130,21 @@ class IdentificationNode(Node):
         self._urdf_samples = 0
         self._received_at_last_diag = 0
         self._last_diag_time = self.get_clock().now()
-        self.create_timer(1.0 / s['publish.estimate_rate'], self.refresh_estimate)
-        self.create_timer(1.0 / s['publish.diagnostics_rate'], self._publish_diagnostics)
+        self.create_timer(1.0 / s['publish.estimate_rate'], self._guarded(self.refresh_estimate))
+        self.create_timer(1.0 / s['publish.diagnostics_rate'],
+                          self._guarded(self._publish_diagnostics))
         # The pipeline is shared by the processing thread and the executor's callbacks.
         self._lock = threading.Lock()
         self._processing = PeriodicThread(s['process_period'], self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
+        # Wall clock: with use_sim_time and no /clock the node's timers stand still.
+        self._ros_now = (-1, 0)     # (last ROS time seen, checks it stood still)
+        self._clock_check = PeriodicThread(1.0, self._check_clock, 'identification_clock',
+                                           self._on_processing_error, alive=self.context.ok)
         warn_unknown_parameters(self)
+        for note in self.pipeline.prior_notes:
+            self.get_logger().warning(note)
         self.get_logger().info(
             f'identifying {base.num_base} base parameters of {self.robot.name} '
             f'(joints {", ".join(self.robot.joint_names)}); smoother delay '
@@ -141,8 +153,56 @@ class IdentificationNode(Node):
     def _subscribe(self, topic: str, handle: Callable[[list[bytes]], None]) -> PolledSubscription:
         # A copy each: the QoS override parameters are applied to the profile in place.
         overrides = QoSOverridingOptions.with_default_policies()
-        return PolledSubscription(self, JointState, topic, handle, copy.copy(INPUT_QOS),
-                                  qos_overriding_options=overrides)
+        return PolledSubscription(
+            self, JointState, topic, handle, copy.copy(INPUT_QOS),
+            message_lost_event=self.settings['lost_messages.middleware_event'],
+            qos_overriding_options=overrides)
+
+    # -- robustness -------------------------------------------------------------------------------
+    def _guarded(self, callback: Callable) -> Callable:
+        """``callback`` (a timer's or a service's) that never raises: a failure is counted
+        (diagnostics ``callback_errors``) and logged in one line; a service answers
+        success false with the reason."""
+        name = callback.__name__.lstrip('_')
+
+        @functools.wraps(callback)
+        def guarded(*args: Any) -> Any:
+            try:
+                return callback(*args)
+            except Exception as exc:   # noqa: BLE001 - counted and logged, never raised
+                self.callback_errors[name] += 1
+                text = f'{name} failed: {type(exc).__name__}: {exc}'
+                self.get_logger().error(text, throttle_duration_sec=5.0)
+                if len(args) == 2 and hasattr(args[1], 'success'):   # a service's response
+                    args[1].success, args[1].message = False, text
+                    return args[1]
+                return None
+        return guarded
+
+    def heartbeats(self) -> dict[str, Callable[[], float]]:
+        """What the watchdog watches besides the executor (spin.Watchdog)."""
+        return {'the processing thread': lambda: self._processing.beat}
+
+    def _on_residual_shift(self, event: Any) -> None:
+        self.get_logger().warning(
+            f'residual shift: {100 * event.fraction:.0f} % of the last {event.window} samples '
+            'beyond the robust gate of the estimate (a payload change?); gating stopped, the '
+            'estimate follows the new data')
+
+    def _check_clock(self) -> None:
+        """Warn when use_sim_time is on but ROS time stands still (no /clock): the estimate
+        and diagnostics timers then stop."""
+        if not self.get_parameter('use_sim_time').value:
+            self._ros_now = (-1, 0)
+            return
+        now = self.get_clock().now().nanoseconds
+        still = self._ros_now[1] + 1 if now == self._ros_now[0] else 0
+        self._ros_now = (now, still)
+        if still == 3:
+            self.get_logger().warning(
+                'use_sim_time is true but ROS time has not advanced for 3 s (nothing on '
+                '/clock?): the estimate, robot_description and diagnostics timers are stopped '
+                'until it does; processing goes on')
 
     # -- parameters -------------------------------------------------------------------------------
     def _declare_estimate_parameters(self, names: list[str]) -> None:
@@ -178,8 +238,11 @@ class IdentificationNode(Node):
         self._publish_efforts(out)
 
     def _on_processing_error(self, exc: BaseException) -> None:
-        self.get_logger().error('processing failed: ' + ''.join(
-            traceback.format_exception(exc)), throttle_duration_sec=5.0)
+        self.callback_errors['processing'] += 1
+        where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+        at = f' (at {where.filename}:{where.lineno})' if where else ''
+        self.get_logger().error(f'processing failed: {type(exc).__name__}: {exc}{at}',
+                                throttle_duration_sec=5.0)
 
     def _publish_efforts(self, out: PipelineOutput) -> None:
         if len(out.stamps_ns) == 0:
@@ -242,6 +305,11 @@ class IdentificationNode(Node):
         with self._lock:
             est = p.estimate()
             received, used, restarts, rejected = p.received, p.used, p.restarts, dict(p.rejected)
+            gate, failures, edges = p.gate, p.numerical_failures, p.smoother_edge
+            robust = ('residual shift: not gating' if gate.suspended else
+                      'gating' if gate.armed else 'waiting for convergence'
+                      ) if gate.settings.enabled else 'off'
+            shifts, cache = gate.shifts, p.layout_cache_bytes
         now = self.get_clock().now()
         dt = (now - self._last_diag_time).nanoseconds * 1e-9
         rate = (received - self._received_at_last_diag) / dt if dt > 0 else 0.0
@@ -252,6 +320,9 @@ class IdentificationNode(Node):
             status.level, status.message = DiagnosticStatus.OK, 'converged'
         else:
             status.level, status.message = DiagnosticStatus.WARN, 'not converged'
+        if p.gate.suspended:
+            status.level = DiagnosticStatus.WARN
+            status.message += '; residual shift (payload change?)'
         if self._consistency:
             status.level = DiagnosticStatus.WARN
             status.message += '; identified parameters not physically consistent'
@@ -263,6 +334,9 @@ class IdentificationNode(Node):
             'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
             'smoother_delay_samples': int(p.delay),
             'physically_consistent': not self._consistency,
+            'robust_gate': robust, 'residual_shifts': shifts, 'numerical_failures': failures,
+            'smoother_edge_samples': edges, 'layout_cache_bytes': cache,
+            'callback_errors': sum(self.callback_errors.values()),
         }
         values.update({f'lost_messages.{s.topic}': 'not known with this middleware'
                        if s.lost is None else s.lost for s in self._inputs})
@@ -315,6 +389,7 @@ class IdentificationNode(Node):
         return res
 
     def destroy_node(self) -> None:
+        self._clock_check.stop()
         self._processing.stop()
         for source in self._inputs:
             source.destroy()

@@ -6,11 +6,21 @@ another thread deadlocks, and its ``spin()`` starves timers), so processes here 
 own handlers and spin on the main thread in 0.1 s slices of ``spin_until_future_complete``
 (many events per call: about half the per-message cost of ``spin_once``), checking for a
 signal between slices.
+
+A watchdog thread (:class:`Watchdog`) makes two promises a supervisor can rely on: SIGINT and
+SIGTERM end the process within ``STOP_GRACE`` s whatever state it is in (even with the main
+thread stuck in the middleware, where no Python signal handler runs: it learns of the signal
+through ``signal.set_wakeup_fd``), and a node whose executor or processing thread stops making
+progress for ``watchdog_timeout`` s logs it and exits with status 3 instead of hanging.
 """
 from __future__ import annotations
 
 import contextlib
+import os
+import re
+import select
 import signal
+import socket
 import sys
 import threading
 import time
@@ -55,6 +65,97 @@ def stop_signals() -> Iterator[StopSignals]:
             signal.signal(sig, old)
 
 
+STOP_GRACE = 1.5     # s from SIGINT/SIGTERM to a forced exit when the shutdown hangs
+STALLED_EXIT = 3     # exit status of a stalled node (the watchdog's)
+
+
+class Watchdog:
+    """A daemon thread watching ``beats`` (name: callable returning the monotonic time of
+    that part's last progress): one older than ``timeout`` s (0: never) is a stall, logged
+    by ``log`` and ended by ``os._exit(STALLED_EXIT)``. Once SIGINT/SIGTERM has come (told
+    through the wakeup fd, which the C-level handler writes even while the main thread is
+    blocked), the process is ended by ``os._exit(1)`` if it is still there ``grace`` s later.
+    Create and ``close`` it on the main thread."""
+
+    def __init__(self, timeout: float, beats: dict[str, Callable[[], float]],
+                 log: Callable[[str], None], grace: float = STOP_GRACE) -> None:
+        self.timeout, self.beats, self._log, self.grace = timeout, dict(beats), log, grace
+        self.watching = True        # stall checks on (off for the shutdown)
+        self._signalled: float | None = None
+        self._stop = threading.Event()
+        self._read, self._write = socket.socketpair()
+        for sock in (self._read, self._write):
+            sock.setblocking(False)
+        self._old_fd = signal.set_wakeup_fd(self._write.fileno(), warn_on_full_buffer=False)
+        self._thread = threading.Thread(target=self._run, name='watchdog', daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._read], [], [], 0.1)
+            now = time.monotonic()
+            if ready:
+                with contextlib.suppress(OSError):
+                    self._read.recv(64)
+                if self._signalled is None:
+                    self._signalled = now
+            if self._signalled is not None and now - self._signalled > self.grace:
+                self._exit(1, f'shutdown did not finish within {self.grace} s of the signal; '
+                           'exiting')
+            if self.watching and self.timeout > 0 and self._signalled is None:
+                for name, beat in self.beats.items():
+                    idle = now - beat()
+                    if idle > self.timeout:
+                        self._exit(STALLED_EXIT, f'{name} made no progress for {idle:.1f} s '
+                                   f'(watchdog_timeout {self.timeout} s): exiting with status '
+                                   f'{STALLED_EXIT} so that a supervisor can restart the node')
+
+    def _exit(self, code: int, text: str) -> None:
+        with contextlib.suppress(Exception):
+            print(f'[watchdog] {text}', file=sys.stderr, flush=True)
+            self._log(text)
+        os._exit(code)
+
+    def close(self) -> None:
+        """Stop watching (main thread; a pending forced exit after a signal stays armed until
+        here)."""
+        self._stop.set()
+        self._thread.join()
+        signal.set_wakeup_fd(self._old_fd)
+        self._read.close()
+        self._write.close()
+
+
+def check_parameter_files(args: list[str] | None) -> None:
+    """IdentificationError naming the file when a ``--params-file`` of the ROS arguments is
+    missing, unreadable or not a YAML mapping (rcl's own message is a multi-line trace)."""
+    import yaml
+    args = list(args or [])
+    for flag, path in zip(args, args[1:]):
+        if flag != '--params-file':
+            continue
+        try:
+            with open(path, encoding='utf-8') as f:
+                data = yaml.safe_load(f)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise IdentificationError(f'cannot read parameter file {path}: '
+                                      f'{exc.strerror or exc}') from None
+        except yaml.YAMLError as exc:
+            where = getattr(exc, 'problem_mark', None)
+            at = f' (line {where.line + 1})' if where is not None else ''
+            raise IdentificationError(f'parameter file {path} is not valid YAML{at}: '
+                                      f'{getattr(exc, "problem", None) or exc}') from None
+        if not isinstance(data, dict):
+            raise IdentificationError(f'parameter file {path} does not hold a mapping of '
+                                      'node names to ros__parameters')
+
+
+def _one_line(exc: BaseException) -> str:
+    """An rcl error as one line (without its C source locations)."""
+    text = ' '.join(str(exc).split())
+    return re.sub(r',? at /\S+:\d+', '', text)
+
+
 class PeriodicThread:
     """Calls ``func()`` every ``period`` seconds of wall-clock time on a daemon thread of its
     own, on a fixed schedule (a late call moves the schedule instead of bursting to catch up),
@@ -70,12 +171,14 @@ class PeriodicThread:
                  alive: Callable[[], bool] = lambda: True) -> None:
         self.period, self._func, self._on_error, self._alive = period, func, on_error, alive
         self._stop = threading.Event()
+        self.beat = time.monotonic()    # last progress (monotonic s), for a Watchdog
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         due = time.monotonic()
         while True:
+            self.beat = time.monotonic()
             due += self.period
             wait = due - time.monotonic()
             if wait < 0:
@@ -113,30 +216,46 @@ def run_node(factory: Callable[[], Any], name: str, args: list[str] | None = Non
              polled: bool = False) -> int:
     """Create the node with ``factory`` and spin it until SIGINT/SIGTERM or ``done(node)``,
     then ``linger`` seconds more (``polled``: see make_executor). Returns the exit code: 0, or
-    2 when the factory refuses its parameters (IdentificationError, printed as one line)."""
+    2 when the parameter files or the factory refuse (printed as one line). The node may
+    offer ``watchdog_timeout`` (s) and ``heartbeats()`` (name: callable, see Watchdog)
+    besides the executor's own."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     from rclpy.task import Future
 
     with stop_signals() as signals:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            check_parameter_files(args)
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        except (IdentificationError, RuntimeError) as exc:
+            print(f'{name}: error: {_one_line(exc)}', file=sys.stderr)
+            return 2
         try:
             node = factory()
-        except IdentificationError as exc:
-            print(f'{name}: error: {exc}', file=sys.stderr)
+        except Exception as exc:   # noqa: BLE001 - one line, never a traceback
+            print(f'{name}: error: {_one_line(exc)}', file=sys.stderr)
             rclpy.try_shutdown()
             return 2
         executor = make_executor(polled)
         executor.add_node(node)
         never = Future()
+        spun = [time.monotonic()]
+        beats = {'the executor': lambda: spun[0]}
+        beats.update(getattr(node, 'heartbeats', dict)())
+        watchdog = Watchdog(float(getattr(node, 'watchdog_timeout', 0.0)), beats,
+                            node.get_logger().fatal)
         try:
             while not signals.received and rclpy.ok() and not (done and done(node)):
                 executor.spin_until_future_complete(never, timeout_sec=0.1)
+                spun[0] = time.monotonic()
             end = time.monotonic() + linger
             while not signals.received and rclpy.ok() and time.monotonic() < end:
                 executor.spin_until_future_complete(never, timeout_sec=0.05)
+                spun[0] = time.monotonic()
         finally:
+            watchdog.watching = False
             executor.shutdown()
             node.destroy_node()
             rclpy.try_shutdown()
+            watchdog.close()
     return 0
