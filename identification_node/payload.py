@@ -81,9 +81,7 @@ def attachment(robot: RobotModel, link: str | None = None) -> Attachment:
     frame (e.g. a flange) moves with its parent joint at its placement. Unknown names, and
     frames that no identified joint moves, raise IdentificationError naming payload.link."""
     link = robot.link_names[-1] if not link else str(link).strip()
-    frames = [f for f in robot.model.frames
-              if f.name == link and f.type in (pin.FrameType.BODY, pin.FrameType.FIXED_JOINT,
-                                               pin.FrameType.OP_FRAME)]
+    frames = [f for f in robot.model.frames if f.name == link and f.type == pin.FrameType.BODY]
     if not frames:
         raise IdentificationError(
             f"parameter payload.link: '{link}' is not a link or fixed frame of robot "
@@ -219,23 +217,24 @@ def consistent_payload(phi: np.ndarray, information: np.ndarray) -> np.ndarray:
     Gs = information / np.outer(d, d)
     w, V = np.linalg.eigh(0.5 * (Gs + Gs.T))
     w = np.maximum(w, 0.0) + 1e-9 * max(w.max(), 1.0)
-    R = np.sqrt(w)[:, None] * V.T
+    M = (np.sqrt(w)[:, None] * V.T) * d[None, :]    # ||M (x - phi)||^2 = the metric
+    M /= np.abs(M).max()
     x = cp.Variable(10)
-    par = cp.multiply(x, 1.0 / d) + 0.0
-    m, h = par[0], par[1:4]
-    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = (par[k] for k in range(4, 10))
+    m, h = x[0], x[1:4]
+    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = (x[k] for k in range(4, 10))
     tr = 0.5 * (Ixx + Iyy + Izz)
     J = cp.bmat([[tr - Ixx, -Ixy, -Ixz, h[0]], [-Ixy, tr - Iyy, -Iyz, h[1]],
                  [-Ixz, -Iyz, tr - Izz, h[2]], [h[0], h[1], h[2], m]])
-    problem = cp.Problem(cp.Minimize(cp.sum_squares(R @ (x - d * phi))),
+    problem = cp.Problem(cp.Minimize(cp.sum_squares(M @ (x - phi))),
                          [0.5 * (J + J.T) >> PSEUDO_INERTIA_EPS * np.eye(4)])
-    try:
-        problem.solve(solver=cp.CLARABEL)
-    except cp.error.SolverError:
-        problem.solve(solver=cp.SCS)
-    if x.value is None:
-        raise IdentificationError(f'payload consistency solve failed: {problem.status}')
-    return np.asarray(x.value) / d
+    for solver in (cp.CLARABEL, cp.SCS):
+        try:
+            problem.solve(solver=solver)
+        except cp.error.SolverError:
+            continue
+        if x.value is not None and problem.status in ('optimal', 'optimal_inaccurate'):
+            return np.asarray(x.value, dtype=float)
+    raise IdentificationError(f'payload consistency solve failed: {problem.status}')
 
 
 def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
@@ -385,3 +384,30 @@ def true_parameter_changes(robot: RobotModel, phi_arm: np.ndarray,
             phi = with_payload(robot, attachment(robot, c.link), phi, c.parameters())
         out.append((c.time, phi))
     return out
+
+
+PAYLOAD_LINK = 'payload'
+
+
+def urdf_with_payload(urdf: str, estimate: PayloadEstimate, name: str = PAYLOAD_LINK) -> str:
+    """``urdf`` with the payload as a link ``name`` on a fixed joint ``<name>_joint`` at the
+    origin of its link (or frame): <inertial> at the centre of mass, the inertia about it
+    (the consistent fit's values, also where not excited; none without a positive mass)."""
+    import xml.etree.ElementTree as ET
+    root = ET.fromstring(urdf)
+    if root.find(f"link[@name='{name}']") is not None:
+        raise IdentificationError(f'the robot description has a link {name!r} already')
+    link = ET.SubElement(root, 'link', name=name)
+    m, c, Ic = link_inertia(estimate.phi)
+    if m > 0:
+        inertial = ET.SubElement(link, 'inertial')
+        ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
+        ET.SubElement(inertial, 'mass', value=f'{m:.9g}')
+        ET.SubElement(inertial, 'inertia', **{
+            k: f'{Ic[a, b]:.9g}' for k, (a, b) in zip(INERTIA_KEYS, _SYM)})
+    joint = ET.SubElement(root, 'joint', name=f'{name}_joint', type='fixed')
+    ET.SubElement(joint, 'parent', link=estimate.link)
+    ET.SubElement(joint, 'child', link=name)
+    ET.SubElement(joint, 'origin', xyz='0 0 0', rpy='0 0 0')
+    ET.indent(root, space='  ')
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding='unicode') + '\n'

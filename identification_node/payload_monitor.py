@@ -253,3 +253,30 @@ class PayloadMonitor:
         if self._stats.count and not self._given:
             self._fit()
         return [s for s in self.segments if not math.isnan(s.stamp)]
+
+
+def segments_document(segments: list[Segment]) -> list[dict]:
+    """The ``payload_changes`` of the JSON output: per segment its start ``stamp`` (s; the
+    first at the data's start), when the change was ``detected`` (None for the first) and
+    the payload fitted over it (payload.PayloadEstimate.document)."""
+    return [{'stamp': s.stamp, 'detected': s.detected,
+             'payload': None if s.payload is None else s.payload.document()}
+            for s in segments]
+
+
+def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
+    """The PayloadMonitor of the ``payload.*`` parameters (settings.Settings), for the
+    pipeline's smoother; errors name the parameter."""
+    from .payload import arm_parameters, attachment
+    v = settings.values
+    config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
+        'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change')},
+        max_gap=v['smoother.max_gap'],
+        tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
+    attach = attachment(robot, v['payload.link'])
+    try:
+        phi_arm = arm_parameters(robot, v['payload.arm'])
+    except IdentificationError as exc:
+        raise IdentificationError(f'parameter payload.arm: {exc}') from None
+    return PayloadMonitor(robot, attach, phi_arm, config, v['smoother.half_window'],
+                          v['smoother.order'])
