@@ -195,9 +195,9 @@ def pseudo_inertia(phi: np.ndarray) -> np.ndarray:
     Slotine 2017): phi is physically consistent iff J > 0."""
     m, h = phi[0], phi[1:4]
     Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi[4:]
-    I = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
+    inertia = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
     J = np.empty((4, 4))
-    J[:3, :3] = 0.5 * np.trace(I) * np.eye(3) - I
+    J[:3, :3] = 0.5 * np.trace(inertia) * np.eye(3) - inertia
     J[:3, 3] = J[3, :3] = h
     J[3, 3] = m
     return J
@@ -294,10 +294,10 @@ def payload_parameters(mass: float, com: Sequence[float], inertia: Sequence[floa
             and np.isfinite(c).all() and np.isfinite(Ic).all()):
         raise IdentificationError('a payload needs mass >= 0 (kg), com (3 values, m) and '
                                   'inertia (6 values ixx ixy ixz iyy iyz izz, kg m^2), finite')
-    I = np.empty((3, 3))
+    Icom = np.empty((3, 3))
     for k, (a, b) in enumerate(_SYM):
-        I[a, b] = I[b, a] = Ic[k]
-    Io = I + mass * (c @ c * np.eye(3) - np.outer(c, c))
+        Icom[a, b] = Icom[b, a] = Ic[k]
+    Io = Icom + mass * (c @ c * np.eye(3) - np.outer(c, c))
     return np.concatenate([[mass], mass * c, [Io[a, b] for a, b in _SYM]])
 
 
@@ -317,7 +317,6 @@ def with_payload(robot: RobotModel, attach: Attachment, phi_arm: np.ndarray,
     phi = np.array(phi_arm, dtype=float)
     phi[attach.columns] += attach.transform @ np.asarray(payload, dtype=float)
     return phi
-
 
 
 @dataclass(frozen=True)

@@ -51,10 +51,11 @@ class MonitorConfig:
         for name in ('fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change',
                      'max_gap'):
             value = getattr(self, name)
-            ok = value >= 0 if name in ('settle', 'min_change') else value > 0
+            zero_ok = name in ('settle', 'min_change')
+            ok = value >= 0 if zero_ok else value > 0
             if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
                 raise IdentificationError(f'parameter payload.{name} = {value!r} must be a '
-                                          f'finite number {">=" if name in ("settle", "min_change") else ">"} 0')
+                                          f'finite number {">=" if zero_ok else ">"} 0')
         for key, value in self.tolerance.items():
             if key not in ('mass', 'com', 'inertia') or not (
                     isinstance(value, (int, float)) and value > 0):

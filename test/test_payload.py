@@ -12,9 +12,9 @@ import yaml
 from identification_node.errors import IdentificationError
 from identification_node.normal_equations import NormalEquations
 from identification_node.payload import (
-    PayloadChange, QUANTITIES, attachment, fit_payload, frame_transform, payload_regressor,
-    pseudo_inertia, read_payload_changes, true_parameter_changes, urdf_with_payload,
-    given_payload)
+    INERTIA_KEYS, PayloadChange, QUANTITIES, attachment, fit_payload, frame_transform,
+    given_payload, payload_regressor, pseudo_inertia, read_payload_changes,
+    true_parameter_changes, urdf_with_payload)
 from identification_node.payload_monitor import MonitorConfig, PayloadMonitor
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.records import JointStateRecord
@@ -101,8 +101,7 @@ def test_payload_identified_within_targets(urdf, link, mass, com, inertia):
     assert abs(est.mass - mass) <= 0.02 * mass
     assert np.abs(est.com - com).max() <= 0.005
     assert set(est.excited) == set(QUANTITIES)
-    sd = np.array([est.stddev[f'inertia.{k}'] for k in ('ixx', 'ixy', 'ixz', 'iyy', 'iyz',
-                                                          'izz')])
+    sd = np.array([est.stddev[f'inertia.{k}'] for k in INERTIA_KEYS])
     assert np.all(np.abs(est.inertia - inertia) <= 3 * sd), (est.inertia, inertia, sd)
     assert est.consistent and np.linalg.eigvalsh(pseudo_inertia(est.phi))[0] > 0
     doc = est.document()
