@@ -1,18 +1,25 @@
 """Sequential detection of a payload change in the torque residual of the current model.
 
 A generalised likelihood ratio on a moving window (a matched-subspace test): over the last
-``window`` seconds, the residual e = tau - Y phi_arm - Y_p phi_payload (N m), each joint
-normalised by its long-run noise variance (weights w_j), is fitted by a change delta of the
-payload's leading parameters (the columns X: mass and first moments, whose gravity torque
-dominates),
+``window`` seconds, the residual e = tau - Y phi_arm - Y_p phi_payload (N m) is fitted by a
+change delta of the payload's leading parameters (the columns X: mass and first moments,
+whose gravity torque dominates), each joint j weighted by 1 / its noise variance s_j^2:
 
-    G = sum_k sum_j w_j X_kj' X_kj,  b = sum_k sum_j w_j X_kj' e_kj,  delta = G^+ b,
-    T = b' G^+ b   (chi-square with rank G degrees of freedom while nothing changed).
+    G = sum_k sum_j X_kj' X_kj / s_j^2,  b = sum_k sum_j X_kj' e_kj / s_j^2,
+    delta = G^+ b,  T = b' G^+ b   (chi-square, rank G degrees of freedom, while nothing
+    changed),  z = delta_0 / sqrt(G^+_00)  (the mass change in its standard deviations).
 
-A change is declared when T exceeds ``threshold`` and the window's mass change |delta_0|
-exceeds ``min_change`` (kg): significance alone would flag any small mismatch of the arm
-model, so ``min_change`` is the detection threshold in kg. A gap in the samples (a dropped
-joint-state stream, > ``max_gap`` s) restarts the window; it is not a change.
+s_j^2 is the window's own mean square residual (scaled from the smoothed samples' variance to
+the long-run variance the sums average), never below the segment's noise level: the noise
+grows with the motion (errors in variables, model errors), and a test normalised by a quiet
+segment's noise would flag every faster move. The change itself is in it too, which costs
+little power (T can reach the window's samples times that scale, far above the threshold)
+but keeps a model error from fitting itself a small noise.
+
+A change is declared when T exceeds ``threshold``, z exceeds ``min_z`` and the mass change
+|delta_0| exceeds ``min_change`` (kg): significance alone would flag any small mismatch of
+the arm model, so ``min_change`` is the detection threshold in kg. A gap in the samples (a
+dropped joint-state stream, > ``max_gap`` s) restarts the window; it is not a change.
 """
 from __future__ import annotations
 
@@ -25,6 +32,7 @@ from .errors import IdentificationError
 
 DEFAULT_WINDOW = 0.25       # s
 DEFAULT_THRESHOLD = 50.0    # chi-square statistic (4 dof: p ~ 4e-10 per window)
+DEFAULT_MIN_Z = 8.0         # standard deviations of the mass change
 DEFAULT_MIN_CHANGE = 0.2    # kg
 DEFAULT_MIN_FILL = 0.5      # fraction of the window needed before testing
 
@@ -40,43 +48,51 @@ class Detection:
 
 
 class WindowedGLR:
-    """The moving-window GLR of the module docstring. ``push`` samples in time order;
+    """The moving-window GLR of the module docstring. ``noise_scale``: long-run over sample
+    variance of the residuals (1 / the smoother's noise gain). ``push`` samples in time order;
     after a detection it stays silent until ``reset``."""
 
     def __init__(self, window: float = DEFAULT_WINDOW, threshold: float = DEFAULT_THRESHOLD,
                  min_change: float = DEFAULT_MIN_CHANGE, max_gap: float = 0.05,
-                 min_fill: float = DEFAULT_MIN_FILL):
+                 min_fill: float = DEFAULT_MIN_FILL, min_z: float = DEFAULT_MIN_Z,
+                 noise_scale: float = 1.0):
         for name, value, ok in (('window', window, window > 0),
                                 ('threshold', threshold, threshold > 0),
                                 ('min_change', min_change, min_change >= 0),
                                 ('max_gap', max_gap, max_gap > 0),
-                                ('min_fill', min_fill, 0 <= min_fill <= 1)):
+                                ('min_fill', min_fill, 0 <= min_fill <= 1),
+                                ('min_z', min_z, min_z >= 0),
+                                ('noise_scale', noise_scale, noise_scale > 0)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
                 raise IdentificationError(f'change detection {name} = {value!r} is out of range')
         self.window, self.threshold = float(window), float(threshold)
         self.min_change, self.max_gap, self.min_fill = float(min_change), float(max_gap), min_fill
+        self.min_z, self.noise_scale = float(min_z), float(noise_scale)
         self.statistic = 0.0      # the latest T, for diagnostics
+        self.gaps = 0
         self.reset()
 
     def reset(self) -> None:
         """Empty the window and arm the detector."""
-        self._t = np.empty(0)
-        self._A: np.ndarray | None = None
-        self._c: np.ndarray | None = None
-        self._d0 = np.empty(0)
+        self._clear()
         self.armed = True
-        self.gaps = 0
 
-    def push(self, t: np.ndarray, X: np.ndarray, e: np.ndarray, w: np.ndarray
+    def _clear(self) -> None:
+        self._t = np.empty(0)
+        self._rows: np.ndarray | None = None   # per sample: X'X, X'e, e^2 of every joint
+        self._d0 = np.empty(0)
+
+    def push(self, t: np.ndarray, X: np.ndarray, e: np.ndarray, noise_variance: np.ndarray
              ) -> Detection | None:
-        """Samples at stamps t (N,) s with columns X (N, n, k), residuals e (N, n) and joint
-        weights w (n,): the first change detected among them, if any."""
+        """Samples at stamps t (N,) s with columns X (N, n, k), residuals e (N, n) and the
+        segment's noise variance per joint (n,): the first change detected, if any."""
         t = np.asarray(t, dtype=float)
         if not self.armed or len(t) == 0:
             return None
-        w = np.asarray(w, dtype=float)
-        A = np.einsum('snk,n,snl->skl', X, w, X)
-        c = np.einsum('snk,n,sn->sk', X, w, e)
+        N, n, k = X.shape
+        rows = np.concatenate([np.einsum('snk,snl->snkl', X, X).reshape(N, -1),
+                               np.einsum('snk,sn->snk', X, e).reshape(N, -1), e * e], axis=1)
+        floor = np.asarray(noise_variance, dtype=float)
         prev = self._t[-1] if len(self._t) else -math.inf
         # a gap restarts the window: new segments start at the cuts
         cuts = np.flatnonzero(np.diff(np.concatenate([[prev], t])) > self.max_gap)
@@ -86,30 +102,36 @@ class WindowedGLR:
         for a, b in zip(bounds[:-1], bounds[1:]):
             if a in cuts:
                 self.gaps += 1
-                self._t, self._A, self._c, self._d0 = np.empty(0), None, None, np.empty(0)
-            found = self._segment(t[a:b], A[a:b], c[a:b])
+                self._clear()
+            found = self._segment(t[a:b], rows[a:b], n, k, floor)
             if found is not None:
                 return found
         return None
 
-    def _segment(self, t: np.ndarray, A: np.ndarray, c: np.ndarray) -> Detection | None:
+    def _segment(self, t: np.ndarray, rows: np.ndarray, n: int, k: int, floor: np.ndarray
+                 ) -> Detection | None:
         if len(t) == 0:
             return None
         nb = len(self._t)
         tt = np.concatenate([self._t, t])
-        AA = A if self._A is None else np.concatenate([self._A, A])
-        cc = c if self._c is None else np.concatenate([self._c, c])
-        k = A.shape[1]
-        SA = np.concatenate([np.zeros((1, k, k)), np.cumsum(AA, axis=0)])
-        Sc = np.concatenate([np.zeros((1, k)), np.cumsum(cc, axis=0)])
+        allrows = rows if self._rows is None else np.concatenate([self._rows, rows])
+        S = np.concatenate([np.zeros((1, allrows.shape[1])), np.cumsum(allrows, axis=0)])
         idx = np.arange(nb, len(tt))
         first = np.searchsorted(tt, tt[idx] - self.window, side='right')
-        G = SA[idx + 1] - SA[first]
-        b = Sc[idx + 1] - Sc[first]
-        delta, T = _solve(G, b)
+        W = S[idx + 1] - S[first]
+        M = len(idx)
+        G = W[:, :n * k * k].reshape(M, n, k, k)
+        b = W[:, n * k * k:n * k * (k + 1)].reshape(M, n, k)
+        ss = W[:, n * k * (k + 1):]
+        count = (idx + 1 - first)[:, None].astype(float)
+        w = 1.0 / np.maximum(ss / count * self.noise_scale, floor)
+        delta, T, sd0 = _solve(np.einsum('mj,mjkl->mkl', w, G), np.einsum('mj,mjk->mk', w, b))
         d0 = delta[:, 0]
         filled = tt[idx] - tt[0] >= self.min_fill * self.window
-        alarm = filled & (T > self.threshold) & (np.abs(d0) > self.min_change)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            z = np.where(sd0 > 0, np.abs(d0) / sd0, 0.0)
+        alarm = (filled & (T > self.threshold) & (z > self.min_z)
+                 & (np.abs(d0) > self.min_change))
         self.statistic = float(T[-1])
         d0_all = np.concatenate([self._d0, d0])
         if alarm.any():
@@ -124,20 +146,25 @@ class WindowedGLR:
             return Detection(ti, onset, float(T[i]), delta[i].copy())
         keep = np.searchsorted(tt, tt[-1] - self.window, side='right')
         keep = max(0, min(keep, len(tt) - 1))
-        self._t, self._A, self._c, self._d0 = tt[keep:], AA[keep:], cc[keep:], d0_all[keep:]
+        self._t, self._rows, self._d0 = tt[keep:], allrows[keep:], d0_all[keep:]
         return None
 
 
 def _solve(G: np.ndarray, b: np.ndarray, rcond: float = 1e-9
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """delta = G^+ b and T = b' G^+ b for a stack of symmetric PSD G (M, k, k), b (M, k),
-    in diagonally scaled coordinates with eigenvalues below rcond * the largest dropped."""
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """delta = G^+ b, T = b' G^+ b and sqrt(G^+_00) for a stack of symmetric PSD G (M, k, k),
+    b (M, k), in diagonally scaled coordinates with eigenvalues below rcond * the largest
+    dropped (sqrt(G^+_00) inf where the first parameter is in the dropped directions)."""
     d = np.sqrt(np.maximum(np.einsum('mkk->mk', G), 0.0))
     d = np.where(d > 0, d, 1.0)
     Gs = G / (d[:, :, None] * d[:, None, :])
     lam, V = np.linalg.eigh(Gs)
-    inv = np.where(lam > rcond * lam[:, -1:], 1.0 / np.where(lam > 0, lam, 1.0), 0.0)
+    kept = lam > rcond * lam[:, -1:]
+    inv = np.where(kept, 1.0 / np.where(lam > 0, lam, 1.0), 0.0)
     bs = b / d
     proj = np.einsum('mkl,mk->ml', V, bs) * inv
     xs = np.einsum('mkl,ml->mk', V, proj)
-    return xs / d, np.einsum('mk,mk->m', bs, xs)
+    var0 = np.einsum('ml,ml->m', V[:, 0, :] ** 2, inv) / d[:, 0] ** 2
+    dropped = np.einsum('ml,ml->m', V[:, 0, :] ** 2, ~kept) > 1e-6
+    sd0 = np.where(dropped, np.inf, np.sqrt(var0))
+    return xs / d, np.einsum('mk,mk->m', bs, xs), sd0

@@ -22,8 +22,8 @@ from typing import Mapping
 
 import numpy as np
 
-from .change_detection import (DEFAULT_MIN_CHANGE, DEFAULT_THRESHOLD, DEFAULT_WINDOW,
-                               Detection, WindowedGLR)
+from .change_detection import (DEFAULT_MIN_CHANGE, DEFAULT_MIN_Z, DEFAULT_THRESHOLD,
+                               DEFAULT_WINDOW, Detection, WindowedGLR)
 from .errors import IdentificationError
 from .estimators import ResidualStatistics
 from .payload import (Attachment, PayloadEstimate, fit_payload, given_payload,
@@ -44,14 +44,15 @@ class MonitorConfig:
     window: float = DEFAULT_WINDOW
     threshold: float = DEFAULT_THRESHOLD
     min_change: float = DEFAULT_MIN_CHANGE
+    min_z: float = DEFAULT_MIN_Z
     max_gap: float = 0.05
     tolerance: Mapping[str, float] = field(default_factory=dict)
 
     def validate(self) -> None:
         for name in ('fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change',
-                     'max_gap'):
+                     'min_z', 'max_gap'):
             value = getattr(self, name)
-            zero_ok = name in ('settle', 'min_change')
+            zero_ok = name in ('settle', 'min_change', 'min_z')
             ok = value >= 0 if zero_ok else value > 0
             if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
                 raise IdentificationError(f'parameter payload.{name} = {value!r} must be a '
@@ -97,9 +98,10 @@ class PayloadMonitor:
         self.config = config or MonitorConfig()
         self.config.validate()
         c = self.config
-        self.detector = WindowedGLR(c.window, c.threshold, c.min_change, c.max_gap)
         self._block = 4 * (2 * int(half_window) + 1)
         self._white_scale = 1.0 / smoothing_noise_gain(int(half_window), int(order))
+        self.detector = WindowedGLR(c.window, c.threshold, c.min_change, c.max_gap,
+                                    min_z=c.min_z, noise_scale=self._white_scale)
         self.segments: list[Segment] = []
         self.changes = 0
         self.reset()
@@ -108,7 +110,7 @@ class PayloadMonitor:
     def reset(self) -> None:
         """Forget the payload: a new segment (no change event) starts at the next sample."""
         self.current: PayloadEstimate | None = None
-        self._weights: np.ndarray | None = None
+        self._noise: np.ndarray | None = None   # the segment's noise variance, (N m)^2
         self._given = False
         self._new_segment(None, None, 0.0)
 
@@ -116,9 +118,7 @@ class PayloadMonitor:
         """A payload known to the user (10 parameters, attachment frame): watched from now on,
         not refitted until a change is detected."""
         est = given_payload(self.attach.link, phi)
-        weights = self._weights
         self._new_segment(stamp, None, 0.0)
-        self._weights = weights
         self.current, self._given = est, True
         self.segments[-1].payload = est
         self._state = 'watching'
@@ -177,11 +177,10 @@ class PayloadMonitor:
         return j
 
     def _watching(self, t, Yp, r, i: int, events: list) -> int:
-        if self._weights is None:   # a given payload, and no noise level known yet
+        if self._noise is None:   # a given payload, and no noise level known yet
             return self._noise_level(t, Yp, r, i)
         e = r[i:] - Yp[i:] @ self.current.phi
-        w = self._weights
-        found = self.detector.push(t[i:], Yp[i:, :, :DETECTOR_COLUMNS], e, w)
+        found = self.detector.push(t[i:], Yp[i:, :, :DETECTOR_COLUMNS], e, self._noise)
         stop = len(t) if found is None else i + int(np.searchsorted(t[i:], found.stamp,
                                                                     side='right'))
         self._pending.append((t[i:stop], Yp[i:stop], r[i:stop]))
@@ -207,7 +206,7 @@ class PayloadMonitor:
         j = i + int(np.searchsorted(t[i:], self._fit_due, side='left'))
         self._stats.add(Yp[i:j], r[i:j])
         if j < len(t):
-            self._weights = 1.0 / self._noise_variance(self.current.phi)
+            self._noise = self._noise_variance(self.current.phi)
             self._stats = ResidualStatistics(10, self.robot.dof, self._block)
         return j
 
@@ -237,7 +236,7 @@ class PayloadMonitor:
         est = fit_payload(ne, self._noise_variance(np.zeros(10)), self.attach.link, tol)
         var = self._noise_variance(est.phi)
         est = fit_payload(ne, var, self.attach.link, tol)
-        self._weights = 1.0 / self._noise_variance(est.phi)
+        self._noise = self._noise_variance(est.phi)
         self.current = est
         self.segments[-1].payload = est
         return est
@@ -271,7 +270,7 @@ def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
     from .payload import arm_parameters, attachment
     v = settings.values
     config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
-        'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change')},
+        'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change', 'min_z')},
         max_gap=v['smoother.max_gap'],
         tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
     attach = attachment(robot, v['payload.link'])
