@@ -9,16 +9,17 @@ whose gravity torque dominates), each joint j weighted by 1 / its noise variance
     delta = G^+ b,  T = b' G^+ b   (chi-square, rank G degrees of freedom, while nothing
     changed),  z = delta_0 / sqrt(G^+_00)  (the mass change in its standard deviations).
 
-s_j^2 is the window's own mean square residual (scaled from the smoothed samples' variance to
-the long-run variance the sums average), never below the segment's noise level: the noise
-grows with the motion (errors in variables, model errors), and a test normalised by a quiet
-segment's noise would flag every faster move. The change itself is in it too, which costs
-little power (T can reach the window's samples times that scale, far above the threshold)
-but keeps a model error from fitting itself a small noise.
+s_j^2 is the mean square residual of the window before (scaled from the smoothed samples'
+variance to the long-run variance the sums average; a change inside the tested window has
+not reached it), never below the segment's noise level: the residual grows with the motion
+(errors in variables, model errors), and a test normalised by a quiet segment's noise would
+flag every faster move.
 
-A change is declared when T exceeds ``threshold``, z exceeds ``min_z`` and the mass change
-|delta_0| exceeds ``min_change`` (kg): significance alone would flag any small mismatch of
-the arm model, so ``min_change`` is the detection threshold in kg. A gap in the samples (a
+A change is declared when T exceeds ``threshold``, z exceeds ``min_z``, the mass change
+|delta_0| exceeds ``min_change`` (kg) and the window determines it to DETERMINED *
+``min_change`` (a model error can masquerade as a large change of a nearly unobservable
+mass: the MIT arm's last link). Significance alone would flag any small mismatch of the arm
+model, so ``min_change`` is the detection threshold in kg. A gap in the samples (a
 dropped joint-state stream, > ``max_gap`` s) restarts the window; it is not a change.
 """
 from __future__ import annotations
@@ -35,6 +36,7 @@ DEFAULT_THRESHOLD = 50.0    # chi-square statistic (4 dof: p ~ 4e-10 per window)
 DEFAULT_MIN_Z = 8.0         # standard deviations of the mass change
 DEFAULT_MIN_CHANGE = 0.2    # kg
 DEFAULT_MIN_FILL = 0.5      # fraction of the window needed before testing
+DETERMINED = 0.25           # the window must know the mass change to this * min_change
 
 
 @dataclass(frozen=True)
@@ -122,16 +124,20 @@ class WindowedGLR:
         M = len(idx)
         G = W[:, :n * k * k].reshape(M, n, k, k)
         b = W[:, n * k * k:n * k * (k + 1)].reshape(M, n, k)
-        ss = W[:, n * k * (k + 1):]
-        count = (idx + 1 - first)[:, None].astype(float)
-        w = 1.0 / np.maximum(ss / count * self.noise_scale, floor)
+        # the noise of the window before (which a change inside this one has not reached)
+        before = np.searchsorted(tt, tt[idx] - 2 * self.window, side='right')
+        count = (first - before)[:, None].astype(float)
+        ss = (S[first] - S[before])[:, n * k * (k + 1):]
+        with np.errstate(divide='ignore', invalid='ignore'):
+            var = np.where(count > 0, ss / np.maximum(count, 1.0) * self.noise_scale, 0.0)
+        w = 1.0 / np.maximum(var, floor)
         delta, T, sd0 = _solve(np.einsum('mj,mjkl->mkl', w, G), np.einsum('mj,mjk->mk', w, b))
         d0 = delta[:, 0]
         filled = tt[idx] - tt[0] >= self.min_fill * self.window
         with np.errstate(divide='ignore', invalid='ignore'):
             z = np.where(sd0 > 0, np.abs(d0) / sd0, 0.0)
         alarm = (filled & (T > self.threshold) & (z > self.min_z)
-                 & (np.abs(d0) > self.min_change))
+                 & (np.abs(d0) > self.min_change) & (sd0 <= DETERMINED * self.min_change))
         self.statistic = float(T[-1])
         d0_all = np.concatenate([self._d0, d0])
         if alarm.any():
@@ -144,7 +150,7 @@ class WindowedGLR:
             onset = min(ti, max(ti - self.window, 2.0 * half - ti))
             self.armed = False
             return Detection(ti, onset, float(T[i]), delta[i].copy())
-        keep = np.searchsorted(tt, tt[-1] - self.window, side='right')
+        keep = np.searchsorted(tt, tt[-1] - 2 * self.window, side='right')
         keep = max(0, min(keep, len(tt) - 1))
         self._t, self._rows, self._d0 = tt[keep:], allrows[keep:], d0_all[keep:]
         return None

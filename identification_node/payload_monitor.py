@@ -46,13 +46,14 @@ class MonitorConfig:
     min_change: float = DEFAULT_MIN_CHANGE
     min_z: float = DEFAULT_MIN_Z
     max_gap: float = 0.05
+    batch: float = 0.02          # s of samples gathered per run (numpy calls cost per run)
     tolerance: Mapping[str, float] = field(default_factory=dict)
 
     def validate(self) -> None:
         for name in ('fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change',
-                     'min_z', 'max_gap'):
+                     'min_z', 'max_gap', 'batch'):
             value = getattr(self, name)
-            zero_ok = name in ('settle', 'min_change', 'min_z')
+            zero_ok = name in ('settle', 'min_change', 'min_z', 'batch')
             ok = value >= 0 if zero_ok else value > 0
             if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
                 raise IdentificationError(f'parameter payload.{name} = {value!r} must be a '
@@ -103,6 +104,7 @@ class PayloadMonitor:
         self.detector = WindowedGLR(c.window, c.threshold, c.min_change, c.max_gap,
                                     min_z=c.min_z, noise_scale=self._white_scale)
         self.segments: list[Segment] = []
+        self._queued: list[tuple] = []
         self.changes = 0
         self.reset()
 
@@ -138,9 +140,19 @@ class PayloadMonitor:
     # -- samples ----------------------------------------------------------------------------------
     def add(self, stamps_ns: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
             tau: np.ndarray) -> list[PayloadEvent]:
-        """Samples in time order (the pipeline's outputs): the events they bring."""
+        """Samples in time order (the pipeline's outputs): the events they bring, once
+        ``batch`` s of samples are gathered."""
         if len(stamps_ns) == 0:
             return []
+        self._queued.append((stamps_ns, q, qd, qdd, tau))
+        if (int(stamps_ns[-1]) - int(self._queued[0][0][0])) * 1e-9 < self.config.batch:
+            return []
+        parts, self._queued = self._queued, []
+        return self._run(*(np.concatenate(a) for a in zip(*parts)) if len(parts) > 1
+                         else parts[0])
+
+    def _run(self, stamps_ns: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+             tau: np.ndarray) -> list[PayloadEvent]:
         t = np.asarray(stamps_ns, dtype=np.int64) * 1e-9
         Y = self.robot.regressor(q, qd, qdd, checked=True)
         r = np.asarray(tau, dtype=float) - Y @ self.phi_arm
@@ -248,6 +260,9 @@ class PayloadMonitor:
     def finish(self) -> list[Segment]:
         """At the end of the data: the last segment fitted with everything pending; the
         segments (with a payload where one could be fitted)."""
+        if self._queued:
+            parts, self._queued = self._queued, []
+            self._run(*(np.concatenate(a) for a in zip(*parts)))
         if self._pending:
             self._flush(math.inf, inclusive=False)
         if self._stats.count and not self._given:
