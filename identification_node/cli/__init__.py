@@ -22,6 +22,8 @@ VERBS = {
     'identify': ('identify', 'identify the base parameters from a bag (offline replay)'),
     'sim': ('sim', 'run the simulated arm node (real-time joint states and currents)'),
     'node': ('node', 'run the identification node'),
+    'forward_payload': ('forward_payload', 'forward the identified payload to a controller '
+                        'service (UR set_payload, Franka SetLoad, any Inertia-shaped request)'),
 }
 
 
