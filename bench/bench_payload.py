@@ -25,8 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from identification_node.offline import identify_bag  # noqa: E402
-from identification_node.payload import (PayloadChange, attachment,  # noqa: E402
-                                         true_parameter_changes)
+from identification_node.payload import PayloadChange, attachment  # noqa: E402
+from identification_node.payload import true_parameter_changes  # noqa: E402
 from identification_node.payload_monitor import (PayloadMonitor,  # noqa: E402
                                                   monitor_from_settings)
 from identification_node.pipeline import IdentificationPipeline  # noqa: E402
@@ -93,15 +93,15 @@ def delays(robot, seeds: int) -> None:
                                                changes=true_parameter_changes(robot, phi, events))
             run = Runner(robot)
             run.feed(sim.t, sim.q_meas, sim.tau_meas)
+            seen = [False, False]
             for e in run.changes():
-                if PICK <= e.detected < PLACE and not found[0]:
-                    found[0] += 1
-                    d_pick.append(e.detected - PICK)
-                elif e.detected >= PLACE and not found[1]:
-                    found[1] += 1
-                    d_place.append(e.detected - PLACE)
-                else:
+                k = 0 if PICK <= e.detected < PLACE else 1 if e.detected >= PLACE else None
+                if k is None or seen[k]:
                     others += 1
+                    continue
+                seen[k] = True
+                found[k] += 1
+                (d_pick if k == 0 else d_place).append(e.detected - (PICK, PLACE)[k])
         print(f'{mass:8.2f} {found[0]:>3}/{seeds:<2} {found[1]:>4}/{seeds:<2} '
               f'{_ms(d_pick):>29} {_ms(d_place):>15} {others:>7}')
 

@@ -76,8 +76,8 @@ def test_forwarder_calls_a_stand_in_service(ros):
         Parameter('service', value='/stand_in/set_load'),
         Parameter('service_type', value='sensor_msgs/srv/SetCameraInfo'),
         Parameter('fields', value=['camera_info.k=inertia_matrix', 'camera_info.d=com']),
-        Parameter('frame', value='link7')], cli_args=['--ros-args', '-r',
-                                                       'payload:=/arm/payload']))
+        Parameter('frame', value='link7')],
+        cli_args=['--ros-args', '-r', 'payload:=/arm/payload']))
     pub = ros.client.create_publisher(InertiaStamped, '/arm/payload', LATCHED)
     wrong = InertiaStamped(inertia=inertia())
     wrong.header.frame_id = 'link6'
