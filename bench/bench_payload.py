@@ -27,8 +27,8 @@ sys.path.insert(0, str(ROOT))
 from identification_node.offline import identify_bag  # noqa: E402
 from identification_node.payload import PayloadChange, attachment  # noqa: E402
 from identification_node.payload import true_parameter_changes  # noqa: E402
-from identification_node.payload_monitor import (PayloadMonitor,  # noqa: E402
-                                                  monitor_from_settings)
+from identification_node.payload_monitor import PayloadMonitor  # noqa: E402
+from identification_node.payload_monitor import monitor_from_settings  # noqa: E402
 from identification_node.pipeline import IdentificationPipeline  # noqa: E402
 from identification_node.records import JointStateRecord  # noqa: E402
 from identification_node.robot import load_robot  # noqa: E402
