@@ -31,6 +31,7 @@ from .payload import (Attachment, PayloadEstimate, fit_payload, given_payload,
 from .robot import RobotModel
 from .signals import smoothing_noise_gain
 
+ARM_ESTIMATE = 'estimate'   # payload.arm: the node's running estimate, taken at each reset
 NOISE_FLOOR = 1e-4   # N m: the smallest noise standard deviation a joint is weighted by
 DETECTOR_COLUMNS = 4  # m, mx, my, mz
 
@@ -136,6 +137,11 @@ class PayloadMonitor:
         self._fit_due = math.nan       # set from the first sample used
         self.detector.reset()
         self.segments.append(Segment(math.nan if stamp is None else stamp, detected))
+
+    @property
+    def state(self) -> str:
+        """'fitting' (gathering samples for the segment's first fit) or 'watching'."""
+        return self._state
 
     # -- samples ----------------------------------------------------------------------------------
     def add(self, stamps_ns: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
@@ -290,7 +296,8 @@ def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
         tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
     attach = attachment(robot, v['payload.link'])
     try:
-        phi_arm = arm_parameters(robot, v['payload.arm'])
+        arm = v['payload.arm']
+        phi_arm = arm_parameters(robot, '' if arm == ARM_ESTIMATE else arm)
     except IdentificationError as exc:
         raise IdentificationError(f'parameter payload.arm: {exc}') from None
     return PayloadMonitor(robot, attach, phi_arm, config, v['smoother.half_window'],

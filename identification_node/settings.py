@@ -59,7 +59,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'payload.link': ('', 'link or fixed frame carrying the payload (empty: the last '
                      'identified link)'),
     'payload.arm': ('', "the arm's parameters the payload is fitted against: an estimate.yaml "
-                    "(~/save) of the arm without payload; empty: the model's own"),
+                    "(~/save) of the arm without payload; 'estimate': the running estimate, "
+                    "taken at each ~/payload/reset; empty: the model's own"),
     'payload.fit_time': (1.0, 's of samples after a change before the payload is fitted'),
     'payload.settle': (0.1, 's after a detection before samples are used'),
     'payload.refresh': (5.0, 's between refits while the payload stays'),

@@ -135,3 +135,35 @@ def test_drop_in_the_stream_is_not_a_change(ros, tmp_path):
         payload.close()
         node.terminate()
         node.wait(10)
+
+
+def test_arm_from_the_running_estimate_taken_at_reset(ros):
+    """payload.arm: estimate: each ~/payload/reset takes the node's running estimate of the
+    arm (the full parameter set reproducing it) as the model the payload is fitted against."""
+    from rclpy.parameter import Parameter as P
+
+    from identification_node.payload import PayloadChange, true_parameter_changes
+    from identification_node.records import JointStateRecord
+    from identification_node.ros.node import IdentificationNode
+    from identification_node.simulation import simulate_kinematic
+    from identification_node.trajectories import load_trajectory
+    node = ros.add(IdentificationNode('payload_arm', context=ros.context, parameter_overrides=[
+        P('robot', value=URDF), P('payload.enabled', value=True),
+        P('payload.arm', value='estimate')]))
+    try:
+        robot = node.robot
+        truth = true_parameter_changes(robot, robot.phi_model, [PayloadChange(0, None, 2.0)])
+        sim = simulate_kinematic(robot, truth[0][1], load_trajectory('fourier', robot),
+                                 np.arange(2000) / 1000.0)
+        with node._lock:   # an arm estimate that differs from the model's own
+            node.pipeline.add_joint_states(JointStateRecord(
+                np.round(sim.t * 1e9).astype(np.int64), tuple(robot.joint_names), sim.q,
+                sim.qd, sim.tau))
+            node.pipeline.process(flush=True)
+            expected = node.pipeline.standard_parameters()
+        assert not np.allclose(node.payload.monitor.phi_arm, expected)
+        assert ros.call(Trigger, '/payload_arm/payload/reset', Trigger.Request()).success
+        np.testing.assert_allclose(node.payload.monitor.phi_arm, expected)
+    finally:
+        ros.remove(node)
+        node.destroy_node()

@@ -8,7 +8,8 @@
 - ``~/payload_changed`` (std_msgs/Header): a detected change, stamp = its estimated onset,
   frame_id = the payload link (the new payload follows on ``~/payload``).
 - ``~/payload/reset`` (std_srvs/Trigger): forget the payload (e.g. after a tool change);
-  it is identified afresh from the next samples.
+  it is identified afresh from the next samples (with ``payload.arm: estimate``, against
+  the arm's running estimate taken now).
 - ``~/payload/set`` (rcl_interfaces/SetParameters): a known payload, as parameters ``mass``
   (double), ``com`` (double array, 3) and ``inertia`` (double array ixx ixy ixz iyy iyz izz);
   watched from then on, not refitted until a change is detected.
@@ -29,7 +30,7 @@ from std_srvs.srv import Trigger
 
 from ..errors import IdentificationError
 from ..payload import PayloadEstimate, payload_parameters
-from ..payload_monitor import PayloadEvent, monitor_from_settings
+from ..payload_monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
@@ -65,6 +66,8 @@ class PayloadOutputs:
     def __init__(self, node: Node, settings, pipeline):
         self.node = node
         self.monitor = monitor_from_settings(settings, pipeline.robot)
+        self.pipeline = pipeline
+        self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
         self.link = self.monitor.attach.link
         self.version = 0
         self.last_change: PayloadEvent | None = None
@@ -106,7 +109,7 @@ class PayloadOutputs:
         values = {'payload.link': self.link, 'payload.changes': m.changes,
                   'payload.detector_statistic': f'{m.detector.statistic:.3g}',
                   'payload.stream_gaps': m.detector.gaps,
-                  'payload.state': m._state if est is not None else 'fitting'}
+                  'payload.state': m.state}
         if self.last_change is not None:
             values['payload.last_change'] = f'{self.last_change.stamp:.6f}'
             values['payload.last_change_detected'] = f'{self.last_change.detected:.6f}'
@@ -120,9 +123,12 @@ class PayloadOutputs:
 
     def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         with self.node._lock:
+            if self._arm_from_estimate:
+                self.monitor.phi_arm = self.pipeline.standard_parameters()
             self.monitor.reset()
             self.version += 1
-        res.success, res.message = True, 'payload forgotten; identified afresh from now'
+        res.success, res.message = True, 'payload forgotten; identified afresh from now' + (
+            ' against the running estimate of the arm' if self._arm_from_estimate else '')
         return res
 
     def _srv_set(self, req: SetParameters.Request,
