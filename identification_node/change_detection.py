@@ -81,7 +81,7 @@ class WindowedGLR:
 
     def _clear(self) -> None:
         self._t = np.empty(0)
-        self._rows: np.ndarray | None = None   # per sample: X'X, X'e, e^2 of every joint
+        self._S: np.ndarray | None = None   # prefix sums of X'X, X'e, e^2 of every joint
         self._d0 = np.empty(0)
 
     def push(self, t: np.ndarray, X: np.ndarray, e: np.ndarray, noise_variance: np.ndarray
@@ -116,8 +116,9 @@ class WindowedGLR:
             return None
         nb = len(self._t)
         tt = np.concatenate([self._t, t])
-        allrows = rows if self._rows is None else np.concatenate([self._rows, rows])
-        S = np.concatenate([np.zeros((1, allrows.shape[1])), np.cumsum(allrows, axis=0)])
+        # prefix sums of the rows: S[i] sums the samples before i (kept from call to call)
+        base = np.zeros((1, rows.shape[1])) if self._S is None else self._S
+        S = np.concatenate([base, base[-1] + np.cumsum(rows, axis=0)])
         idx = np.arange(nb, len(tt))
         first = np.searchsorted(tt, tt[idx] - self.window, side='right')
         W = S[idx + 1] - S[first]
@@ -152,7 +153,7 @@ class WindowedGLR:
             return Detection(ti, onset, float(T[i]), delta[i].copy())
         keep = np.searchsorted(tt, tt[-1] - 2 * self.window, side='right')
         keep = max(0, min(keep, len(tt) - 1))
-        self._t, self._rows, self._d0 = tt[keep:], allrows[keep:], d0_all[keep:]
+        self._t, self._S, self._d0 = tt[keep:], S[keep:] - S[keep], d0_all[keep:]
         return None
 
 

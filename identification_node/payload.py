@@ -12,7 +12,9 @@ and given no value.
 """
 from __future__ import annotations
 
+import functools
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -203,14 +205,56 @@ def pseudo_inertia(phi: np.ndarray) -> np.ndarray:
     return J
 
 
+class _ConsistencyProblem:
+    """min ||M x - z||^2 s.t. J(x) - eps 1 >= 0 as a parametrised cvxpy problem (M, z
+    parameters), canonicalised once: each re-solve costs the solver only (milliseconds, not
+    the quarter of a second of building it)."""
+
+    def __init__(self):
+        import cvxpy as cp
+        self.cp = cp
+        self.x = cp.Variable(10)
+        self.M, self.z = cp.Parameter((10, 10)), cp.Parameter(10)
+        m, h = self.x[0], self.x[1:4]
+        Ixx, Ixy, Ixz, Iyy, Iyz, Izz = (self.x[k] for k in range(4, 10))
+        tr = 0.5 * (Ixx + Iyy + Izz)
+        J = cp.bmat([[tr - Ixx, -Ixy, -Ixz, h[0]], [-Ixy, tr - Iyy, -Iyz, h[1]],
+                     [-Ixz, -Iyz, tr - Izz, h[2]], [h[0], h[1], h[2], m]])
+        self.problem = cp.Problem(cp.Minimize(cp.sum_squares(self.M @ self.x - self.z)),
+                                  [0.5 * (J + J.T) >> PSEUDO_INERTIA_EPS * np.eye(4)])
+        self.lock = threading.Lock()
+        self.solve(np.eye(10), np.zeros(10))   # the first solve canonicalises: seconds
+
+    def solve(self, M: np.ndarray, target: np.ndarray) -> np.ndarray:
+        cp = self.cp
+        with self.lock:
+            self.M.value, self.z.value = M, M @ target
+            for solver in (cp.CLARABEL, cp.SCS):
+                try:
+                    self.problem.solve(solver=solver)
+                except cp.error.SolverError:
+                    continue
+                if self.x.value is not None and self.problem.status in (
+                        'optimal', 'optimal_inaccurate'):
+                    return np.asarray(self.x.value, dtype=float)
+            raise IdentificationError(
+                f'payload consistency solve failed: {self.problem.status}')
+
+
+@functools.lru_cache(maxsize=1)
+def consistency_problem() -> _ConsistencyProblem:
+    """The shared parametrised problem (built on first use: importing cvxpy takes seconds,
+    so the node builds it at start-up)."""
+    return _ConsistencyProblem()
+
+
 def consistent_payload(phi: np.ndarray, information: np.ndarray) -> np.ndarray:
     """The physically consistent parameters nearest to ``phi`` in the metric of
     ``information`` (10, 10): min (x - phi)' G (x - phi) s.t. J(x) - eps 1 >= 0, by cvxpy
     (Clarabel). ``phi`` itself when it is consistent already."""
     if np.linalg.eigvalsh(pseudo_inertia(phi))[0] >= PSEUDO_INERTIA_EPS:
         return phi
-    import cvxpy as cp
-    # Scaled variables (unit information diagonal); a small ridge keeps the unexcited
+    # The metric in diagonally scaled coordinates; a small ridge keeps the unexcited
     # directions where the least-squares solution put them, as far as the constraint allows.
     d = np.sqrt(np.maximum(np.diag(information), 0.0))
     d = np.where(d > 0, d, 1.0)
@@ -219,22 +263,7 @@ def consistent_payload(phi: np.ndarray, information: np.ndarray) -> np.ndarray:
     w = np.maximum(w, 0.0) + 1e-9 * max(w.max(), 1.0)
     M = (np.sqrt(w)[:, None] * V.T) * d[None, :]    # ||M (x - phi)||^2 = the metric
     M /= np.abs(M).max()
-    x = cp.Variable(10)
-    m, h = x[0], x[1:4]
-    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = (x[k] for k in range(4, 10))
-    tr = 0.5 * (Ixx + Iyy + Izz)
-    J = cp.bmat([[tr - Ixx, -Ixy, -Ixz, h[0]], [-Ixy, tr - Iyy, -Iyz, h[1]],
-                 [-Ixz, -Iyz, tr - Izz, h[2]], [h[0], h[1], h[2], m]])
-    problem = cp.Problem(cp.Minimize(cp.sum_squares(M @ (x - phi))),
-                         [0.5 * (J + J.T) >> PSEUDO_INERTIA_EPS * np.eye(4)])
-    for solver in (cp.CLARABEL, cp.SCS):
-        try:
-            problem.solve(solver=solver)
-        except cp.error.SolverError:
-            continue
-        if x.value is not None and problem.status in ('optimal', 'optimal_inaccurate'):
-            return np.asarray(x.value, dtype=float)
-    raise IdentificationError(f'payload consistency solve failed: {problem.status}')
+    return consistency_problem().solve(M, phi)
 
 
 def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
