@@ -96,8 +96,9 @@ class WindowedGLR:
                                np.einsum('snk,sn->snk', X, e).reshape(N, -1), e * e], axis=1)
         floor = np.asarray(noise_variance, dtype=float)
         prev = self._t[-1] if len(self._t) else -math.inf
-        # a gap restarts the window: new segments start at the cuts
-        cuts = np.flatnonzero(np.diff(np.concatenate([[prev], t])) > self.max_gap)
+        # a gap (or a restarted stream) restarts the window: new segments start at the cuts
+        dt = np.diff(np.concatenate([[prev], t]))
+        cuts = np.flatnonzero((dt > self.max_gap) | (dt <= 0))
         if prev == -math.inf:
             cuts = cuts[cuts > 0]
         bounds = sorted({0, *cuts.tolist(), len(t)})

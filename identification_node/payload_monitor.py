@@ -106,6 +106,7 @@ class PayloadMonitor:
                                     min_z=c.min_z, noise_scale=self._white_scale)
         self.segments: list[Segment] = []
         self._queued: list[tuple] = []
+        self._last_t = -math.inf
         self.changes = 0
         self.reset()
 
@@ -160,6 +161,12 @@ class PayloadMonitor:
     def _run(self, stamps_ns: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
              tau: np.ndarray) -> list[PayloadEvent]:
         t = np.asarray(stamps_ns, dtype=np.int64) * 1e-9
+        if t[0] <= self._last_t:   # a restarted stream: keep the payload, restart the clocks
+            self._settle_until = -math.inf
+            if self._state == 'fitting':
+                self._fit_due = math.nan
+            self._next_refresh = float(t[0]) + self.config.refresh
+        self._last_t = float(t[-1])
         Y = self.robot.regressor(q, qd, qdd, checked=True)
         r = np.asarray(tau, dtype=float) - Y @ self.phi_arm
         Yp = payload_regressor(self.attach, Y)
@@ -186,7 +193,7 @@ class PayloadMonitor:
             self._stats.add(Yp[use:j], r[use:j])
         if j >= len(t):
             return len(t)
-        first = not self.segments[-1].detected
+        first = self.segments[-1].detected is None
         est = self._fit()
         events.append(PayloadEvent('start' if first else 'estimate', self.segments[-1].stamp,
                                    self.segments[-1].detected, est))

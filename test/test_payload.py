@@ -210,3 +210,27 @@ def test_given_payload_is_watched():
     mon = PayloadMonitor(robot, attachment(robot), robot.phi_model, MonitorConfig())
     est = mon.set_payload(_params(0.5, (0, 0, 0.04), (0.0003, 0, 0, 0.0003, 0, 0.0002)))
     assert math.isclose(est.document()['mass'], 0.5)
+
+
+def test_restarted_stream_is_not_a_change():
+    """A bag played twice (stamps jump back): the payload stays, no change is declared."""
+    robot = load_robot(SEVEN)
+    phi = robot.phi_model
+    changes = true_parameter_changes(robot, phi, [PayloadChange(0.0, None, 0.8, (0, 0, 0.05))])
+    sim = ArmSimulator(robot, phi).run(load_trajectory('fourier', robot), 4.0, NOISE, 5,
+                                       changes=changes)
+    ns = np.round(sim.t * 1e9).astype(np.int64)
+    pipe = IdentificationPipeline(robot, PipelineConfig())
+    mon = PayloadMonitor(robot, attachment(robot), phi)
+    events = []
+    for _ in range(2):
+        for a in range(0, len(ns), 500):
+            s = slice(a, a + 500)
+            pipe.add_joint_states(JointStateRecord(ns[s], tuple(robot.joint_names),
+                                                   sim.q_meas[s], np.zeros((len(ns[s]), 0)),
+                                                   sim.tau_meas[s]))
+            out = pipe.process()
+            events += mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+    assert pipe.restarts == 1
+    assert [e.kind for e in events if e.kind != 'refresh'] == ['start']
+    assert abs(mon.finish()[0].payload.mass - 0.8) <= 0.016
