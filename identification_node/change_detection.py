@@ -19,8 +19,12 @@ A change is declared when T exceeds ``threshold``, z exceeds ``min_z``, the mass
 |delta_0| exceeds ``min_change`` (kg) and the window determines it to DETERMINED *
 ``min_change`` (a model error can masquerade as a large change of a nearly unobservable
 mass: the MIT arm's last link). Significance alone would flag any small mismatch of the arm
-model, so ``min_change`` is the detection threshold in kg. A gap in the samples (a
-dropped joint-state stream, > ``max_gap`` s) restarts the window; it is not a change.
+model, so ``min_change`` is the detection threshold in kg. The conditions must hold for
+``confirm`` s, and the latest ``recent`` s alone must show a mass change beyond
+``min_change`` of the same sign, at ``min_z / 2`` of its standard deviations: a glitch (a
+stalled stream bursting out with compressed stamps, a knock) moves the window's estimate
+for as long as it is inside the window, but not a sub-window after it. A gap in the samples
+(a dropped joint-state stream, > ``max_gap`` s) restarts the window; it is not a change.
 """
 from __future__ import annotations
 
@@ -36,6 +40,8 @@ DEFAULT_THRESHOLD = 50.0    # chi-square statistic (4 dof: p ~ 4e-10 per window)
 DEFAULT_MIN_Z = 8.0         # standard deviations of the mass change
 DEFAULT_MIN_CHANGE = 0.2    # kg
 DEFAULT_MIN_FILL = 0.5      # fraction of the window needed before testing
+DEFAULT_CONFIRM = 0.1      # s the conditions must hold
+DEFAULT_RECENT = 0.05      # s: the latest sub-window that must show the change alone
 DETERMINED = 0.25           # the window must know the mass change to this * min_change
 
 
@@ -57,19 +63,23 @@ class WindowedGLR:
     def __init__(self, window: float = DEFAULT_WINDOW, threshold: float = DEFAULT_THRESHOLD,
                  min_change: float = DEFAULT_MIN_CHANGE, max_gap: float = 0.05,
                  min_fill: float = DEFAULT_MIN_FILL, min_z: float = DEFAULT_MIN_Z,
-                 noise_scale: float = 1.0):
+                 noise_scale: float = 1.0, confirm: float = DEFAULT_CONFIRM,
+                 recent: float = DEFAULT_RECENT):
         for name, value, ok in (('window', window, window > 0),
                                 ('threshold', threshold, threshold > 0),
                                 ('min_change', min_change, min_change >= 0),
                                 ('max_gap', max_gap, max_gap > 0),
                                 ('min_fill', min_fill, 0 <= min_fill <= 1),
                                 ('min_z', min_z, min_z >= 0),
-                                ('noise_scale', noise_scale, noise_scale > 0)):
+                                ('noise_scale', noise_scale, noise_scale > 0),
+                                ('confirm', confirm, confirm >= 0),
+                                ('recent', recent, 0 < recent <= window)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
                 raise IdentificationError(f'change detection {name} = {value!r} is out of range')
         self.window, self.threshold = float(window), float(threshold)
         self.min_change, self.max_gap, self.min_fill = float(min_change), float(max_gap), min_fill
         self.min_z, self.noise_scale = float(min_z), float(noise_scale)
+        self.confirm, self.recent = float(confirm), float(recent)
         self.statistic = 0.0      # the latest T, for diagnostics
         self.gaps = 0
         self.reset()
@@ -83,6 +93,7 @@ class WindowedGLR:
         self._t = np.empty(0)
         self._S: np.ndarray | None = None   # prefix sums of X'X, X'e, e^2 of every joint
         self._d0 = np.empty(0)
+        self._since = -math.inf   # since when the change conditions have held
 
     def push(self, t: np.ndarray, X: np.ndarray, e: np.ndarray, noise_variance: np.ndarray
              ) -> Detection | None:
@@ -138,20 +149,40 @@ class WindowedGLR:
         filled = tt[idx] - tt[0] >= self.min_fill * self.window
         with np.errstate(divide='ignore', invalid='ignore'):
             z = np.where(sd0 > 0, np.abs(d0) / sd0, 0.0)
-        alarm = (filled & (T > self.threshold) & (z > self.min_z)
-                 & (np.abs(d0) > self.min_change) & (sd0 <= DETERMINED * self.min_change))
+        held = (filled & (T > self.threshold) & (z > self.min_z)
+                & (np.abs(d0) > self.min_change) & (sd0 <= DETERMINED * self.min_change))
+        # since when each sample's condition has held without a break (carried across calls)
+        carried = np.isfinite(self._since)
+        begins = held & ~np.concatenate([[carried], held[:-1]])
+        marks = np.where(begins, tt[idx], -np.inf)
+        if carried and held[0]:
+            marks[0] = self._since
+        start = np.maximum.accumulate(marks)
+        start = np.where(held, start, np.nan)
+        # the latest sub-window alone must show the change too: a glitch (a stalled and
+        # bursting stream, a knock) moves the whole window's estimate while it is inside it
+        recent = np.searchsorted(tt, tt[idx] - self.recent, side='right')
+        Wr = S[idx + 1] - S[recent]
+        Gr = Wr[:, :n * k * k].reshape(M, n, k, k)
+        br = Wr[:, n * k * k:n * k * (k + 1)].reshape(M, n, k)
+        dr, _, sdr = _solve(np.einsum('mj,mjkl->mkl', w, Gr), np.einsum('mj,mjk->mk', w, br))
+        alarm = (held & (tt[idx] - start >= self.confirm)
+                 & (np.sign(dr[:, 0]) == np.sign(d0)) & (np.abs(dr[:, 0]) > self.min_change)
+                 & (np.abs(dr[:, 0]) > 0.5 * self.min_z * sdr))
         self.statistic = float(T[-1])
         d0_all = np.concatenate([self._d0, d0])
         if alarm.any():
             i = int(np.argmax(alarm))
-            ti = float(tt[idx[i]])
+            ti, crossed = float(tt[idx[i]]), float(start[i])
             # The window's estimate ramps up from the onset: it crossed half the threshold
-            # halfway there.
-            below = np.flatnonzero(np.abs(d0_all[:nb + i]) <= 0.5 * self.min_change)
-            half = float(tt[below[-1] + 1]) if len(below) else ti - self.window
-            onset = min(ti, max(ti - self.window, 2.0 * half - ti))
+            # halfway to crossing it.
+            j = int(np.searchsorted(tt, crossed))
+            below = np.flatnonzero(np.abs(d0_all[:j]) <= 0.5 * self.min_change)
+            half = float(tt[below[-1] + 1]) if len(below) else crossed - self.window
+            onset = min(crossed, max(crossed - self.window, 2.0 * half - crossed))
             self.armed = False
             return Detection(ti, onset, float(T[i]), delta[i].copy())
+        self._since = float(start[-1]) if held[-1] else -math.inf
         keep = np.searchsorted(tt, tt[-1] - 2 * self.window, side='right')
         keep = max(0, min(keep, len(tt) - 1))
         self._t, self._S, self._d0 = tt[keep:], S[keep:] - S[keep], d0_all[keep:]

@@ -19,7 +19,7 @@ from identification_node.payload_monitor import MonitorConfig, PayloadMonitor
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.records import JointStateRecord
 from identification_node.robot import PIN_ORDER, load_robot
-from identification_node.simulation import ArmSimulator, SensorNoise
+from identification_node.simulation import ArmSimulator, SensorNoise, simulate_kinematic
 from identification_node.trajectories import load_trajectory
 
 SIX = 'test/fixtures/six_dof_arm.urdf'
@@ -234,3 +234,31 @@ def test_restarted_stream_is_not_a_change():
     assert pipe.restarts == 1
     assert [e.kind for e in events if e.kind != 'refresh'] == ['start']
     assert abs(mon.finish()[0].payload.mass - 0.8) <= 0.016
+
+
+def test_stalled_and_bursting_stream_is_not_a_change():
+    """A publisher stalls for 5-40 ms every 3 s and then sends the held samples at once with
+    compressed stamps (as a loaded machine does): the smoothed accelerations go wild for a
+    moment, the payload does not change, and no change is declared."""
+    robot = load_robot(SEVEN)
+    N = 12000
+    t = np.arange(N) / 1000.0
+    sim = simulate_kinematic(robot, None, load_trajectory('fourier', robot), t,
+                             SensorNoise(torque_std=0.2), seed=6)
+    rng = np.random.default_rng(6)
+    stamp = t.copy()
+    for k0 in range(2000, N, 3000):
+        stall = rng.uniform(0.005, 0.04)
+        m = int(stall * 1000)
+        stamp[k0:k0 + m] = t[k0] + stall + np.arange(m) * 2e-5
+    ns = np.round(np.maximum.accumulate(stamp + np.arange(N) * 1e-9) * 1e9).astype(np.int64)
+    pipe = IdentificationPipeline(robot, PipelineConfig())
+    mon = PayloadMonitor(robot, attachment(robot), robot.phi_model)
+    events = []
+    for a in range(0, N, 20):
+        s = slice(a, a + 20)
+        pipe.add_joint_states(JointStateRecord(ns[s], tuple(robot.joint_names), sim.q_meas[s],
+                                               sim.qd_meas[s], sim.tau_meas[s]))
+        out = pipe.process()
+        events += mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+    assert [e.kind for e in events if e.kind != 'refresh'] == ['start']

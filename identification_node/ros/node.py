@@ -108,6 +108,9 @@ class IdentificationNode(Node):
         self._internal_update = False
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
+        # before the inputs: its start-up (cvxpy) takes seconds
+        self.payload = (PayloadOutputs(self, self.settings, self.pipeline)
+                        if self.settings['payload.enabled'] else None)
 
         self._inputs = [self._subscribe('joint_states', self.pipeline.add_joint_state_cdr)]
         if self.pipeline.converter.needs_currents:
@@ -121,8 +124,6 @@ class IdentificationNode(Node):
         self.create_service(SetBool, '~/freeze', self._srv_freeze)
         self.create_service(Trigger, '~/save', self._srv_save)
         self.create_service(Trigger, '~/get_estimate', self._srv_get_estimate)
-        self.payload = (PayloadOutputs(self, self.settings, self.pipeline)
-                        if self.settings['payload.enabled'] else None)
 
         s = self.settings
         self._effort_rate = s['publish.effort_rate']
