@@ -22,8 +22,8 @@ from typing import Mapping
 
 import numpy as np
 
-from .change_detection import (DEFAULT_MIN_CHANGE, DEFAULT_MIN_Z, DEFAULT_THRESHOLD,
-                               DEFAULT_WINDOW, Detection, WindowedGLR)
+from .change_detection import (DEFAULT_CONFIRM, DEFAULT_MIN_CHANGE, DEFAULT_MIN_Z,
+                               DEFAULT_THRESHOLD, DEFAULT_WINDOW, Detection, WindowedGLR)
 from .errors import IdentificationError
 from .estimators import ResidualStatistics
 from .payload import (Attachment, PayloadEstimate, fit_payload, given_payload,
@@ -46,15 +46,16 @@ class MonitorConfig:
     threshold: float = DEFAULT_THRESHOLD
     min_change: float = DEFAULT_MIN_CHANGE
     min_z: float = DEFAULT_MIN_Z
+    confirm: float = DEFAULT_CONFIRM
     max_gap: float = 0.05
     batch: float = 0.02          # s of samples gathered per run (numpy calls cost per run)
     tolerance: Mapping[str, float] = field(default_factory=dict)
 
     def validate(self) -> None:
         for name in ('fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change',
-                     'min_z', 'max_gap', 'batch'):
+                     'min_z', 'max_gap', 'batch', 'confirm'):
             value = getattr(self, name)
-            zero_ok = name in ('settle', 'min_change', 'min_z', 'batch')
+            zero_ok = name in ('settle', 'min_change', 'min_z', 'batch', 'confirm')
             ok = value >= 0 if zero_ok else value > 0
             if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
                 raise IdentificationError(f'parameter payload.{name} = {value!r} must be a '
@@ -103,7 +104,8 @@ class PayloadMonitor:
         self._block = 4 * (2 * int(half_window) + 1)
         self._white_scale = 1.0 / smoothing_noise_gain(int(half_window), int(order))
         self.detector = WindowedGLR(c.window, c.threshold, c.min_change, c.max_gap,
-                                    min_z=c.min_z, noise_scale=self._white_scale)
+                                    min_z=c.min_z, noise_scale=self._white_scale,
+                                    confirm=c.confirm)
         self.segments: list[Segment] = []
         self._queued: list[tuple] = []
         self._last_t = -math.inf
@@ -298,7 +300,8 @@ def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
     from .payload import arm_parameters, attachment
     v = settings.values
     config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
-        'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change', 'min_z')},
+        'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change', 'min_z',
+        'confirm')},
         max_gap=v['smoother.max_gap'],
         tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
     attach = attachment(robot, v['payload.link'])
