@@ -50,6 +50,7 @@ setup(
         'console_scripts': [
             'identification_node = identification_node.programs:identification_node',
             'simulated_arm = identification_node.programs:simulated_arm',
+            'payload_forwarder = identification_node.programs:payload_forwarder',
             'identification_cli = identification_node.programs:identification_cli',
         ],
     },

@@ -651,11 +651,20 @@ def _periodic_history(stream: Stream, robot: RobotModel, base: BaseParameters,
 # -- the streaming pipeline as an Identification -------------------------------------------------
 def replay_identify(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                     joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
-                    series_points: int = SERIES_POINTS) -> Identification:
-    """identify_bag (the node's pipeline, streaming) with a bounded torque series kept."""
+                    series_points: int = SERIES_POINTS,
+                    on_output: Callable[[PipelineOutput], None] | None = None
+                    ) -> Identification:
+    """identify_bag (the node's pipeline, streaming) with a bounded torque series kept;
+    ``on_output`` sees every batch too."""
     sampler = SeriesSampler(series_points)
+    sample = _sampling(sampler)
+
+    def outputs(out: PipelineOutput) -> None:
+        sample(out)
+        if on_output is not None:
+            on_output(out)
     result = identify_bag(bag, settings, robot, joint_states, motor_currents,
-                          on_output=_sampling(sampler))
+                          on_output=outputs)
     return from_replay(result, _series(sampler, result.pipeline))
 
 

@@ -26,6 +26,13 @@ def simulated_arm() -> int:
     return main()
 
 
+def payload_forwarder() -> int:
+    """``ros2 run identification_node payload_forwarder``: ~/payload to a controller."""
+    _environment()
+    from .ros.payload_forwarder import main
+    return main()
+
+
 def identification_cli() -> int:
     """``identification_cli VERB ...`` / ``python -m identification_node VERB ...``."""
     _environment()

@@ -42,10 +42,15 @@ def estimate_document(pipeline: IdentificationPipeline) -> dict:
     return plain(doc)
 
 
-def save_results(pipeline: IdentificationPipeline, directory: str | os.PathLike) -> list[Path]:
-    """Write estimate.yaml and identified.urdf into ``directory`` atomically; return the paths."""
+def save_results(pipeline: IdentificationPipeline, directory: str | os.PathLike,
+                 payload=None) -> list[Path]:
+    """Write estimate.yaml and identified.urdf into ``directory`` atomically; return the paths.
+    ``payload`` (payload.PayloadEstimate): carried as ``payload`` in estimate.yaml and as a
+    fixed link in the URDF."""
     directory = Path(directory)
     doc = estimate_document(pipeline)
+    if payload is not None:
+        doc['payload'] = plain(payload.document())
     paths = [atomic_write_yaml(directory / ESTIMATE_FILE, doc)]
     if pipeline.robot.kind == 'urdf':
         note = ('identified by identification_node; ' + (
@@ -53,6 +58,9 @@ def save_results(pipeline: IdentificationPipeline, directory: str | os.PathLike)
             'NOT physically consistent: ' + '; '.join(doc['consistency_problems'])))
         phi = np.array(list(doc['standard_parameters'].values()))  # in param_names order
         urdf = identified_urdf(pipeline.robot, phi, note)
+        if payload is not None:
+            from .payload import urdf_with_payload
+            urdf = urdf_with_payload(urdf, payload)
         paths.append(atomic_write_text(directory / URDF_FILE, urdf))
     return paths
 

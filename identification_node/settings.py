@@ -78,6 +78,23 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'lost_messages.middleware_event': (False, "count lost messages also by the middleware's "
                                        'message-lost event (several publishers); off: it can '
                                        'deadlock rmw_fastrtps under bursts'),
+    'payload.enabled': (False, 'identify a payload and detect its changes (pick, place)'),
+    'payload.link': ('', 'link or fixed frame carrying the payload (empty: the last '
+                     'identified link)'),
+    'payload.arm': ('', "the arm's parameters the payload is fitted against: an estimate.yaml "
+                    "(~/save) of the arm without payload; 'estimate': the running estimate, "
+                    "taken at each ~/payload/reset; empty: the model's own"),
+    'payload.fit_time': (1.0, 's of samples after a change before the payload is fitted'),
+    'payload.settle': (0.1, 's after a detection before samples are used'),
+    'payload.refresh': (5.0, 's between refits while the payload stays'),
+    'payload.window': (0.25, 's, moving window of the change detector'),
+    'payload.threshold': (50.0, 'change detector chi-square threshold (4 dof)'),
+    'payload.min_change': (0.2, 'kg; the smallest mass change declared (detection threshold)'),
+    'payload.min_z': (8.0, 'a mass change is declared at this many of its standard deviations'),
+    'payload.confirm': (0.1, 's the change conditions must hold before a change is declared'),
+    'payload.tolerance.mass': (0.02, 'kg; mass stddev above this: not excited'),
+    'payload.tolerance.com': (0.005, 'm; centre of mass stddev above this: not excited'),
+    'payload.tolerance.inertia': (0.002, 'kg m^2; inertia stddev above this: not excited'),
 }
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
 # PipelineConfig fields whose parameter has another name.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -284,10 +285,18 @@ class ArmSimulator:
         return start, qdd0
 
     # -- batch ------------------------------------------------------------------------------------
+    def set_true_parameters(self, phi_true: np.ndarray) -> None:
+        """Change the true arm from now on (a payload picked or placed); the controller's
+        model stays."""
+        self._true = _Dynamics(self.robot, phi_true)
+        self.phi_true = np.array(phi_true, dtype=float)
+
     def run(self, trajectory: Trajectory, duration: float | None = None,
-            noise: SensorNoise | None = None, seed: int = 0, converter=None) -> SimResult:
+            noise: SensorNoise | None = None, seed: int = 0, converter=None,
+            changes: Sequence[tuple[float, np.ndarray]] = ()) -> SimResult:
         """Simulate ``duration`` s (default: the trajectory's duration, or one period) at
-        ``rate``: samples t = 0, 1/rate, ... <= duration."""
+        ``rate``: samples t = 0, 1/rate, ... <= duration. ``changes``: (time s, true
+        parameters) the arm switches to at that time (payload events)."""
         self.reset(trajectory)
         duration = self.trajectory.horizon() if duration is None else float(duration)
         if not (math.isfinite(duration) and duration >= 0):
@@ -297,7 +306,11 @@ class ArmSimulator:
         q_r, qd_r, qdd_r = self.trajectory.sample(t)
         n = self.robot.dof
         q, qd, qdd, tau = (np.empty((N, n)) for _ in range(4))
+        switch = {int(math.ceil(time * self.rate - 1e-9)): phi
+                  for time, phi in sorted(changes, key=lambda c: c[0])}
         for k in range(N):
+            if k in switch:
+                self.set_true_parameters(switch[k])
             q[k], qd[k] = self.q, self.qd
             tau[k], qdd[k] = self._advance(q_r[k], qd_r[k], qdd_r[k])
         return measure(self.robot, t, q, qd, qdd, tau, noise, np.random.default_rng(seed),

@@ -25,6 +25,8 @@ VERBS = {
     'fleet': ('fleet', 'identify many bags of many robots on a Dask cluster, with drift flags'),
     'sim': ('sim', 'run the simulated arm node (real-time joint states and currents)'),
     'node': ('node', 'run the identification node'),
+    'forward_payload': ('forward_payload', 'forward the identified payload to a controller '
+                        'service (UR set_payload, Franka SetLoad, any Inertia-shaped request)'),
 }
 
 

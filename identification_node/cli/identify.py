@@ -51,6 +51,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--validate', metavar='TEST_BAG',
                         help='a held-out bag of the same robot: relative torque error of the '
                         'estimate on it')
+    payload = parser.add_argument_group('payload')
+    payload.add_argument('--payload', action='store_true',
+                         help='identify the payload and detect its changes: payload_changes')
+    payload.add_argument('--payload-link', metavar='L',
+                         help='link or fixed frame carrying the payload (default: the last '
+                         'identified link)')
+    payload.add_argument('--arm', metavar='ESTIMATE_YAML',
+                         help="the arm's parameters without payload (estimate.yaml, ~/save); "
+                         "default: the model's own")
     parser.add_argument('--report', metavar='DIR',
                         help='write report.md and PNG figures into DIR')
 
@@ -161,6 +170,26 @@ def _number(value: float | None) -> str:
     return 'inf' if value is None else f'{value:.4g}'
 
 
+def format_payload_changes(changes: list) -> str:
+    """The payload segments as text: values with stddev, 'not excited' where unknown."""
+    def show(v, sd, unit):
+        return 'not excited' if v is None else f'{v:.4g} +- {sd:.2g} {unit}'
+    lines = ['', 'payload changes (link frame; inertia about the centre of mass):']
+    for c in changes:
+        p = c['payload']
+        when = (f"at {c['stamp']:.3f} s" + (f" (detected {c['detected']:.3f} s)"
+                                            if c['detected'] is not None else ' (start)'))
+        if p is None:
+            lines.append(f'  {when}: no fit (too few samples)')
+            continue
+        sd = p['stddev']
+        lines.append(f"  {when}, {p['link']}: mass {show(p['mass'], sd['mass'], 'kg')}")
+        lines.append('    com ' + ', '.join(show(v, s, 'm') for v, s in zip(p['com'], sd['com'])))
+        lines.append('    inertia ' + ', '.join(show(v, s, 'kg m^2') for v, s in zip(
+            p['inertia'], sd['inertia'])))
+    return '\n'.join(lines)
+
+
 def _per_joint(errors: dict) -> str:
     return ', '.join(f'{j} {e:.2f}' for j, e in errors.items())
 
@@ -228,6 +257,23 @@ def batch_options(args: argparse.Namespace, robot):
     return options
 
 
+def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
+    """The PayloadMonitor of --payload (None without it)."""
+    from ..errors import IdentificationError
+    if not args.payload:
+        if args.payload_link or args.arm:
+            raise IdentificationError('--payload-link and --arm need --payload')
+        return None
+    if method != 'rls':
+        raise IdentificationError('--payload streams the bag: not with --method batch')
+    from ..payload_monitor import monitor_from_settings
+    from ..settings import Settings
+    values = dict(settings.values)
+    values.update({'payload.link': args.payload_link or values['payload.link'],
+                   'payload.arm': args.arm or values['payload.arm']})
+    return monitor_from_settings(Settings(values, settings.given), robot)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..offline import offline_identify, replay_identify, validate
     from ..replay import bag_robot
@@ -250,14 +296,21 @@ def run(args: argparse.Namespace) -> int:
                       'CRC, so corruption in them cannot be detected', file=sys.stderr)
     topics = (args.joint_states_topic, args.currents_topic)
     options = None
+    monitor = payload_monitor(args, settings, robot, method)
     if method == 'rls':
-        ident = replay_identify(args.bag, settings, robot, *topics)
+        ident = replay_identify(args.bag, settings, robot, *topics, on_output=None if (
+            monitor is None) else lambda out: monitor.add(
+                out.stamps_ns, out.q, out.qd, out.qdd, out.measured))
     else:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics)
     validation = (validate(ident, args.validate, settings, options, *topics)
                   if args.validate else None)
     doc = result_document(ident, validation)
+    if monitor is not None:
+        from ..payload_monitor import segments_document
+        from ..results import plain
+        doc['payload_changes'] = plain(segments_document(monitor.finish()))
     if args.report:
         from ..report import write_report
         report = write_report(args.report, ident, validation)
@@ -268,6 +321,8 @@ def run(args: argparse.Namespace) -> int:
         print(format_report(doc))
         if args.paper_tables:
             print(paper_table3(ident))
+        if 'payload_changes' in doc:
+            print(format_payload_changes(doc['payload_changes']))
         if args.report:
             print(f"\nreport: {doc['report']['report']}")
     return 0

@@ -4,7 +4,8 @@ Writes /joint_states (position, velocity, effort), /motor_currents when the sett
 sources use currents (channels ``<joint>/ia`` ..., amperes in effort, electrical angle in
 position), /robot_description (latched) and /clock, with header stamps and log times at the
 simulated sample times plus ``--stamp-offset``; and ``true_parameters.yaml`` in the bag
-directory with the parameters the arm was simulated with.
+directory with the parameters the arm was simulated with (``--payload-events``: the payloads
+attached at given times, under ``payload_events``, with their stamps).
 """
 from __future__ import annotations
 
@@ -38,6 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--true-parameters', metavar='FILE',
                         help='YAML mapping of standard parameter names to the values to '
                         'simulate instead of the model\'s own (e.g. joint1.fv: 0.5)')
+    parser.add_argument('--payload-events', metavar='YAML',
+                        help='payloads attached at given times: a YAML file or inline list '
+                        'of {time: s, mass: kg, com: [x, y, z], inertia: [ixx, ixy, ixz, iyy, '
+                        'iyz, izz], link: L} (com in the link frame, inertia about the com; '
+                        'mass 0 detaches; default link the last identified one)')
 
 
 def true_parameters(robot, path: str | None):
@@ -67,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from ..bagio import BagWriter, JOINT_STATE
     from ..fileio import atomic_write_yaml
     from ..identifiability import BaseParameters
+    from ..payload import attachment, read_payload_changes, true_parameter_changes
     from ..simulation import ArmSimulator, SensorNoise
     from ..torque import TorqueConverter
     from ..trajectories import load_trajectory
@@ -78,8 +85,10 @@ def run(args: argparse.Namespace) -> int:
                         args.torque_std, args.current_std)
     trajectory = load_trajectory(args.trajectory, robot)
     phi = true_parameters(robot, args.true_parameters)
-    sim = ArmSimulator(robot, phi, rate=args.rate).run(trajectory, args.duration, noise,
-                                                       args.seed, converter)
+    payloads = read_payload_changes(args.payload_events) if args.payload_events else []
+    sim = ArmSimulator(robot, phi, rate=args.rate).run(
+        trajectory, args.duration, noise, args.seed, converter,
+        changes=true_parameter_changes(robot, phi, payloads))
     names = list(robot.joint_names)
     slots = converter.current_channel_slots()
     stamps = np.round((sim.t + args.stamp_offset) * 1e9).astype(np.int64)
@@ -109,6 +118,10 @@ def run(args: argparse.Namespace) -> int:
         'base_parameters': {n: float(v) for n, v in zip(base.names,
                                                         base.to_base(phi))},
     }
+    if payloads:
+        truth['payload_events'] = [dict(
+            c.document(), link=attachment(robot, c.link).link, stamp=c.time + args.stamp_offset,
+            parameters=c.parameters().tolist()) for c in payloads]
     path = atomic_write_yaml(f'{args.out}/true_parameters.yaml', truth)
     print(f'wrote {len(sim)} samples ({sim.t[-1]:.2f} s) of {robot.name} to {args.out} '
           f'({args.storage}); true parameters in {path}')

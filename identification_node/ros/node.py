@@ -14,7 +14,11 @@ subscribers):
   node took them, e.g. its queue overflowing while processing stalled, or dropped packets);
 
 exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` parameters (read-only from outside)
-and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``.
+and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``. With
+``payload.enabled`` (ros/payload_outputs.py): ``~/payload`` (InertiaStamped, transient
+local), ``~/payload_changed`` (Header: the change's stamp, frame_id the payload link), the
+services ``~/payload/reset`` and ``~/payload/set``, and the payload in diagnostics, in
+``~/robot_description`` and in what ``~/save`` writes.
 """
 from __future__ import annotations
 
@@ -43,7 +47,9 @@ from std_srvs.srv import SetBool, Trigger
 from ..pipeline import EstimateReport, PipelineOutput
 from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
+from ..payload import urdf_with_payload
 from ..urdf_export import consistency_problems, identified_urdf
+from .payload_outputs import PayloadOutputs
 from .spin import PeriodicThread, run_node
 from .conversions import PolledSubscription, publish_joint_states
 
@@ -104,6 +110,9 @@ class IdentificationNode(Node):
         self._internal_update = False
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
+        # before the inputs: its start-up (cvxpy) takes seconds
+        self.payload = (PayloadOutputs(self, self.settings, self.pipeline)
+                        if self.settings['payload.enabled'] else None)
 
         self.callback_errors: collections.Counter = collections.Counter()
         self.watchdog_timeout = self.settings['watchdog_timeout']
@@ -235,7 +244,10 @@ class IdentificationNode(Node):
             if not self.pipeline.pending:
                 return
             out = self.pipeline.process()
+            events = self.payload.add(out) if self.payload is not None else ()
         self._publish_efforts(out)
+        if events:
+            self.payload.publish(events)
 
     def _on_processing_error(self, exc: BaseException) -> None:
         self.callback_errors['processing'] += 1
@@ -292,13 +304,17 @@ class IdentificationNode(Node):
         finally:
             self._internal_update = False
         # The URDF topic is latched: rebuild it only when new samples changed the estimate.
-        if est.num_samples and est.num_samples != self._urdf_samples and \
-                self.robot.kind == 'urdf':
-            self._urdf_samples = est.num_samples
+        version = (est.num_samples, self.payload.version if self.payload else 0)
+        if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
+            self._urdf_samples = version
             with self._lock:
                 phi = self.pipeline.standard_parameters()
+                payload = self.payload.current if self.payload else None
             self._consistency = consistency_problems(self.robot, phi)
-            self._pub_urdf.publish(String(data=identified_urdf(self.robot, phi)))
+            urdf = identified_urdf(self.robot, phi)
+            if payload is not None:
+                urdf = urdf_with_payload(urdf, payload)
+            self._pub_urdf.publish(String(data=urdf))
 
     def _publish_diagnostics(self) -> None:
         p = self.pipeline
@@ -345,6 +361,9 @@ class IdentificationNode(Node):
                        for j, r in zip(self.robot.joint_names, est.residual_rms)})
         if self._consistency:
             values['consistency_problems'] = '; '.join(self._consistency)
+        if self.payload is not None:
+            with self._lock:
+                values.update(self.payload.diagnostics())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = now.to_msg()
@@ -370,7 +389,8 @@ class IdentificationNode(Node):
     def _srv_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
         try:
             with self._lock:
-                paths = save_results(self.pipeline, self.settings.output_directory)
+                paths = save_results(self.pipeline, self.settings.output_directory,
+                                     self.payload.current if self.payload else None)
         except OSError as exc:
             res.success, res.message = False, f'cannot save: {exc}'
             return res

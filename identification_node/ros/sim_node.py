@@ -33,7 +33,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -48,6 +48,7 @@ from std_msgs.msg import String
 from ..errors import IdentificationError
 from ..robot import RobotModel
 from ..settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
+from ..payload import read_payload_changes, true_parameter_changes
 from ..simulation import ArmSimulator, SensorNoise, SimResult
 from ..torque import TorqueConverter
 from ..trajectories import Trajectory, load_trajectory
@@ -78,6 +79,9 @@ SIM_PARAMETERS.update({
     'publish_electrical_angle': (False, 'electrical angles in motor_currents.position'),
     'true_parameters_file': ('', 'YAML of standard parameter name -> true value (default: '
                              'the robot description)'),
+    'payload_events': ('', 'payloads attached at given sample times: YAML file or inline list '
+                       'of {time: s, mass: kg, com: [x, y, z], inertia: [ixx, ixy, ixz, iyy, '
+                       'iyz, izz], link: L} (mass 0 detaches)'),
     'seed': (0, 'seed of the sensor noise'),
     'publish_clock': (False, 'publish /clock with the sample time'),
     'stamp_offset': (0.0, 's; header stamps are stamp_offset + sample time'),
@@ -133,6 +137,7 @@ class SimSetup:
     converter: TorqueConverter
     noise: SensorNoise
     phi_true: np.ndarray
+    changes: list = field(default_factory=list)   # (sample time s, true phi) payload events
 
     @classmethod
     def from_parameters(cls, given: Mapping[str, Any]) -> SimSetup:
@@ -178,7 +183,12 @@ class SimSetup:
         noise = SensorNoise(v['noise.position_std'], v['noise.encoder_counts'],
                             v['noise.velocity_std'], v['noise.torque_std'],
                             v['noise.current_std'])
-        return cls(v, robot, trajectory, converter, noise, phi)
+        try:
+            changes = true_parameter_changes(robot, phi, read_payload_changes(
+                v['payload_events'])) if v['payload_events'].strip() else []
+        except IdentificationError as exc:
+            raise IdentificationError(f'parameter payload_events: {exc}') from None
+        return cls(v, robot, trajectory, converter, noise, phi, changes)
 
     @property
     def num_samples(self) -> int | None:
@@ -204,10 +214,15 @@ class SampleSource:
         self.sim.reset(setup.trajectory, noise=setup.noise, seed=setup.values['seed'],
                        converter=setup.converter)
         self.index = 0   # of the next sample
+        self._changes = list(setup.changes)
 
     def take(self, count: int) -> SimResult:
         """The next ``count`` samples: true values and measurements."""
-        rows = [self.sim.step() for _ in range(count)]
+        rows = []
+        for _ in range(count):
+            while self._changes and self._changes[0][0] <= self.sim.t + 1e-9:
+                self.sim.set_true_parameters(self._changes.pop(0)[1])
+            rows.append(self.sim.step())
         self.index += count
         return SimResult(**{f.name: np.concatenate([getattr(r, f.name) for r in rows])
                             for f in fields(SimResult) if f.name != 'joint_names'},

@@ -1,0 +1,154 @@
+"""The node's payload interfaces (``payload.enabled``), wiring a PayloadMonitor.
+
+- ``~/payload`` (geometry_msgs/InertiaStamped, transient local): published at every fit
+  (after a change, and each refresh); header stamp = since when the payload holds, frame_id =
+  the payload link; m (kg), com (m) and the inertia about the com (kg m^2), in that link's
+  frame. A quantity the motion did not excite is published as 0 (a point mass / a centre of
+  mass on the axis), and named in diagnostics (``payload.not_excited``).
+- ``~/payload_changed`` (std_msgs/Header): a detected change, stamp = its estimated onset,
+  frame_id = the payload link (the new payload follows on ``~/payload``).
+- ``~/payload/reset`` (std_srvs/Trigger): forget the payload (e.g. after a tool change);
+  it is identified afresh from the next samples (with ``payload.arm: estimate``, against
+  the arm's running estimate taken now).
+- ``~/payload/set`` (rcl_interfaces/SetParameters): a known payload, as parameters ``mass``
+  (double), ``com`` (double array, 3) and ``inertia`` (double array ixx ixy ixz iyy iyz izz);
+  watched from then on, not refitted until a change is detected.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from geometry_msgs.msg import InertiaStamped
+from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+from ..errors import IdentificationError
+from ..payload import PayloadEstimate, consistency_problem, payload_parameters
+from ..payload_monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
+
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                    reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def inertia_message(est: PayloadEstimate, stamp: float) -> InertiaStamped:
+    """``est`` as InertiaStamped (unexcited quantities 0; see the module docstring)."""
+    msg = InertiaStamped()
+    msg.header.frame_id = est.link
+    msg.header.stamp.sec, msg.header.stamp.nanosec = _split(stamp)
+    known = set(est.excited)
+    msg.inertia.m = float(est.mass) if 'mass' in known else 0.0
+    for axis, value in zip('xyz', est.com):
+        setattr(msg.inertia.com, axis, float(value) if f'com.{axis}' in known else 0.0)
+    for key, value in zip(('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz'), est.inertia):
+        setattr(msg.inertia, key, float(value) if f'inertia.{key}' in known else 0.0)
+    return msg
+
+
+def _split(stamp: float) -> tuple[int, int]:
+    ns = int(round(stamp * 1e9)) if math.isfinite(stamp) else 0
+    return ns // 1_000_000_000, ns % 1_000_000_000
+
+
+class PayloadOutputs:
+    """Publishers, services and diagnostics of the payload monitor; ``add`` runs on the
+    node's processing thread (under the node's lock), ``publish`` after it."""
+
+    def __init__(self, node: Node, settings, pipeline):
+        self.node = node
+        self.monitor = monitor_from_settings(settings, pipeline.robot)
+        consistency_problem()   # cvxpy's import and canonicalisation: seconds, not in a run
+        self.pipeline = pipeline
+        self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
+        self.link = self.monitor.attach.link
+        self.version = 0
+        self.last_change: PayloadEvent | None = None
+        self._pub = node.create_publisher(InertiaStamped, '~/payload', LATCHED)
+        self._pub_changed = node.create_publisher(Header, '~/payload_changed', EVENTS)
+        node.create_service(Trigger, '~/payload/reset', self._srv_reset)
+        node.create_service(SetParameters, '~/payload/set', self._srv_set)
+        node.get_logger().info(f'payload identification on {self.link}; changes of more '
+                               f'than {self.monitor.config.min_change:g} kg are detected')
+
+    @property
+    def current(self) -> PayloadEstimate | None:
+        return self.monitor.current
+
+    def add(self, out) -> list[PayloadEvent]:
+        events = self.monitor.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+        if events:
+            self.version += 1
+            changes = [e for e in events if e.kind == 'change']
+            if changes:
+                self.last_change = changes[-1]
+        return events
+
+    def publish(self, events: list[PayloadEvent]) -> None:
+        for e in events:
+            if e.kind == 'change':
+                msg = Header(frame_id=self.link)
+                msg.stamp.sec, msg.stamp.nanosec = _split(e.stamp)
+                self._pub_changed.publish(msg)
+                self.node.get_logger().info(
+                    f'payload change at {e.stamp:.3f} s (detected {e.detected:.3f} s, mass '
+                    f'change about {e.detection.delta[0]:+.3g} kg)')
+            elif e.payload is not None:
+                self._pub.publish(inertia_message(e.payload, e.stamp))
+
+    def diagnostics(self) -> dict:
+        m = self.monitor
+        est = m.current
+        values = {'payload.link': self.link, 'payload.changes': m.changes,
+                  'payload.detector_statistic': f'{m.detector.statistic:.3g}',
+                  'payload.stream_gaps': m.detector.gaps,
+                  'payload.state': m.state}
+        if self.last_change is not None:
+            values['payload.last_change'] = f'{self.last_change.stamp:.6f}'
+            values['payload.last_change_detected'] = f'{self.last_change.detected:.6f}'
+        if est is not None:
+            doc = est.document()
+            values['payload.mass'] = doc['mass']
+            values['payload.com'] = doc['com']
+            values['payload.excited'] = ' '.join(doc['excited'])
+            values['payload.not_excited'] = ' '.join(doc['not_excited'])
+        return values
+
+    def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        with self.node._lock:
+            if self._arm_from_estimate:
+                self.monitor.phi_arm = self.pipeline.standard_parameters()
+            self.monitor.reset()
+            self.version += 1
+        res.success, res.message = True, 'payload forgotten; identified afresh from now' + (
+            ' against the running estimate of the arm' if self._arm_from_estimate else '')
+        return res
+
+    def _srv_set(self, req: SetParameters.Request,
+                 res: SetParameters.Response) -> SetParameters.Response:
+        given = {p.name: Parameter.from_parameter_msg(p).value for p in req.parameters}
+        try:
+            unknown = set(given) - {'mass', 'com', 'inertia'}
+            if unknown or 'mass' not in given:
+                raise IdentificationError(f'give mass (and com, inertia) only; got '
+                                          f'{sorted(given)}')
+            phi = payload_parameters(float(given['mass']),
+                                     np.asarray(given.get('com', [0.0] * 3), dtype=float),
+                                     np.asarray(given.get('inertia', [0.0] * 6), dtype=float))
+        except (IdentificationError, TypeError, ValueError) as exc:
+            res.results = [SetParametersResult(successful=False, reason=str(exc))]
+            return res
+        with self.node._lock:
+            est = self.monitor.set_payload(phi)
+            self.version += 1
+        self._pub.publish(inertia_message(est, self.node.get_clock().now().nanoseconds * 1e-9))
+        res.results = [SetParametersResult(successful=True, reason='payload set')]
+        return res
