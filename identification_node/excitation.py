@@ -189,7 +189,7 @@ class ExcitationLimits:
                         DEFAULT_ACCELERATION_RATE * out.velocity_limits[i]):
                     out.acceleration_limits[i] = DEFAULT_ACCELERATION_RATE * float(v)
                     if 'acceleration' in out.assumed.get(joint, {}):
-                        out.assumed[joint]['acceleration'] = out.acceleration_limits[i]
+                        out.assumed[joint]['acceleration'] = float(out.acceleration_limits[i])
                 getattr(out, f'{kind}_limits')[i] = float(v)
             for kind in spec:
                 out.assumed.get(joint, {}).pop(kind, None)
@@ -426,8 +426,11 @@ def criterion_value(robot, traj: Trajectory, criterion: str = 'cond', base=None,
                     num_samples: int = DEFAULT_SAMPLES,
                     noise_std: Sequence[float] | None = None) -> float:
     """``cond`` (condition number) or ``dopt`` (-log det W'W, noise-weighted) of the base
-    regressor stacked over ``num_samples`` equally spaced samples of one pass of ``traj``."""
+    regressor stacked over ``num_samples`` equally spaced samples of one pass of ``traj`` (of
+    one period of the periodic part of a FramedTrajectory)."""
     _check_criterion(criterion)
+    if isinstance(traj, FramedTrajectory):
+        traj = traj.periodic
     base = _base_of(robot, base)
     t = np.arange(int(num_samples)) * (traj.horizon() / int(num_samples))
     q, qd, qdd = traj.sample(t)
@@ -865,7 +868,7 @@ def initial_trajectory(robot, initial: str | FourierTrajectory | None,
 def _ramp(periodic: FourierTrajectory, robot, limits: ExcitationLimits, start: np.ndarray,
           side: str, phis: Sequence[np.ndarray] | None) -> float:
     """The shortest ramp (RAMP_MIN, growing by RAMP_GROWTH up to RAMP_MAX s, in 0.1 s steps)
-    between ``start`` at rest and the periodic motion within every limit (VERIFY_RATIO)."""
+    between ``start`` at rest and the periodic motion within every limit."""
     T = RAMP_MIN
     worst = None
     while T <= RAMP_MAX:
@@ -874,7 +877,7 @@ def _ramp(periodic: FourierTrajectory, robot, limits: ExcitationLimits, start: n
         t0, t1 = framed.periodic_window
         window = (0.0, t0) if side == 'in' else (t1, t1 + T)
         ratios = limit_ratios(framed, robot, limits, 0, 0, phis, window)
-        if _worst(ratios) <= VERIFY_RATIO:
+        if _worst(ratios) <= 1.0:   # the periodic part keeps VERIFY_RATIO: room to blend in
             return T
         worst = max(LIMIT_KINDS, key=lambda k: ratios[k])
         T *= RAMP_GROWTH
@@ -996,7 +999,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     if not np.isfinite(f0):
         raise IdentificationError('the initial trajectory does not excite every base '
                                   'parameter: try another seed or more harmonics')
-    initial_feasible = bool(design.constraint(x0).min() >= -1e-6)
+    # init is inside the limits (shrunk on the fine grid); collisions at the design's samples
+    initial_feasible = checker is None or bool(
+        checker.distances(design.Bc @ x0.reshape(robot.dof, -1).T).min()
+        >= checker.min_distance)
     # SLSQP's first step follows the gradient with a unit Hessian: scale the function so that
     # its gradient has unit norm at the start, or the first steps leave the limits far behind.
     g0 = float(np.linalg.norm(design.jac(x0)))
