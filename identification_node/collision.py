@@ -62,11 +62,12 @@ class CollisionChecker:
         self.robot_geometries = len(geom.geometryObjects)
         geom.addAllCollisionPairs()   # every pair on different joints
         parents = self.model.parents
-        for pair in list(geom.collisionPairs):
-            a = geom.geometryObjects[pair.first].parentJoint
-            b = geom.geometryObjects[pair.second].parentJoint
+        # index pairs first: the elements of geom.collisionPairs refer into its vector
+        for i, k in [(p.first, p.second) for p in geom.collisionPairs]:
+            a = geom.geometryObjects[i].parentJoint
+            b = geom.geometryObjects[k].parentJoint
             if parents[a] == b or parents[b] == a:
-                geom.removeCollisionPair(pair)
+                geom.removeCollisionPair(pin.CollisionPair(i, k))
         if srdf is not None:
             try:
                 text = Path(srdf).read_text()
