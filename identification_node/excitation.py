@@ -23,15 +23,20 @@ Criteria (smaller is better), on the stacked base regressor W (N n rows, b colum
   the Fisher information (phi_tot' Sigma^-1 phi_tot, eq. 5) and the criterion is the log volume
   of the covariance ellipsoid of the estimates.
 
-Limits (:class:`ExcitationLimits`): joint positions (with the offset q0), velocities and
-accelerations on a grid of one period, and joint torques (inverse dynamics with the robot's own
-parameters) at the criterion samples. Each (joint, kind) is one smooth constraint on the
-Kreisselmeier-Steinhauser maximum of its ratios to the limit (see _Design). URDFs carry no
-acceleration limits: the default is ``DEFAULT_ACCELERATION_RATE`` (2 /s) times the velocity
-limit, i.e. full speed reached in 0.5 s (6.3 rad/s^2 on the CRS A465's first three joints;
-Table I's trajectory peaks at 6.1 rad/s^2). Every result is verified on a fine grid after the
-optimisation (torques on EFFORT_POINTS samples) and, where needed, its motion is scaled down
-towards the centre of the position ranges until every ratio is below VERIFY_RATIO.
+Limits (:class:`ExcitationLimits`), each with a margin kept free (default
+DEFAULT_LIMIT_MARGIN, 10 %; ExcitationLimits.with_margin): joint positions (with the offset
+q0), velocities and accelerations on a grid of one period, and joint torques (inverse dynamics
+under the robot's own parameters and, when given, an estimate's) at the criterion samples.
+Each (joint, kind) is one smooth constraint on the Kreisselmeier-Steinhauser maximum of its
+ratios to the limit (see _Design); with a collision.CollisionChecker, one more per checked
+geometry pair on its distances. URDFs carry no acceleration limits: the default is
+``DEFAULT_ACCELERATION_RATE`` (2 /s) times the velocity limit, i.e. full speed reached in 0.5 s
+(6.3 rad/s^2 on the CRS A465's first three joints; Table I's trajectory peaks at 6.1 rad/s^2);
+every limit the description lacks is recorded in ``ExcitationLimits.assumed``. Every result is
+verified on a fine grid after the optimisation (torques on EFFORT_POINTS samples) and, where
+needed, its motion is scaled down towards the centre of the position ranges until every ratio
+is below VERIFY_RATIO; then framed by ramps from and back to rest (frame_excitation,
+trajectories.FramedTrajectory) and its collisions verified densely (clearance_samples).
 
 Initial guess: the paper's least squares on random target velocities (III.A,
 least_squares_guess), or Table I (table1_trajectory, offsets moved to our joint zeros).
@@ -1117,7 +1122,7 @@ def trajectory_to_joint_trajectory(traj: Trajectory, rate: float = 100.0, period
     """A trajectory_msgs/JointTrajectory (rosbags message) of ``traj`` sampled at ``rate``
     (Hz) over ``periods`` passes including the end point: positions, velocities,
     accelerations and time_from_start per point. The motion starts at q(0) with velocity
-    qd(0): bring the robot there first."""
+    qd(0) (at rest for a FramedTrajectory): bring the robot there first."""
     from .bagio import make_joint_trajectory
     names = list(joint_names or traj.joint_names or [])
     if len(names) != traj.dof:
