@@ -215,10 +215,10 @@ class ExcitationLimits:
         pos[limited] = np.stack([centre - keep * half, centre + keep * half], axis=1)[limited]
         return ExcitationLimits(list(self.joint_names), pos, keep * self.velocity_limits,
                                 keep * self.acceleration_limits, keep * self.effort_limits,
-                                self.assumed)
+                                {j: dict(v) for j, v in self.assumed.items()})
 
     def assumed_list(self) -> list[str]:
-        """One line per assumed limit, e.g. 'joint1.acceleration: 4.35 (assumed)'."""
+        """One line per assumed limit, e.g. 'joint1.acceleration: 4.35 rad/s^2'."""
         units = {'position': '', 'velocity': ' rad/s', 'acceleration': ' rad/s^2',
                  'effort': ' N m'}
         return [f'{j}.{k}: ' + ('none' if v is None else f'{v:.4g}{units[k]}')

@@ -139,12 +139,7 @@ class FourierTrajectory(Trajectory):
     @classmethod
     def from_dict(cls, d: Mapping) -> FourierTrajectory:
         """Inverse of to_dict; keys period, q0, a, b, optional joints (and type: fourier)."""
-        if not isinstance(d, Mapping):
-            raise IdentificationError('Fourier trajectory: expected a mapping with keys '
-                                      'period, q0, a, b')
-        missing = [k for k in ('period', 'q0', 'a', 'b') if k not in d]
-        if missing:
-            raise IdentificationError(f'Fourier trajectory: missing keys {missing}')
+        _check_keys(d, ('period', 'q0', 'a', 'b'), 'Fourier trajectory')
         if d.get('type', 'fourier') != 'fourier':
             raise IdentificationError(f"trajectory type {d['type']!r} is not 'fourier'")
         try:
@@ -185,6 +180,14 @@ class FourierTrajectory(Trajectory):
         scale = margin * np.minimum(half / span, vmax / np.abs(qd).max(axis=0))
         q0 = centre - scale * 0.5 * (q.max(axis=0) + q.min(axis=0))
         return cls(a * scale[:, None], b * scale[:, None], q0, period, names)
+
+
+def _check_keys(d: object, keys: Sequence[str], what: str) -> None:
+    if not isinstance(d, Mapping):
+        raise IdentificationError(f'{what}: expected a mapping with keys {", ".join(keys)}')
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise IdentificationError(f'{what}: missing keys {missing}')
 
 
 def _per_move(name: str, value: Sequence[float] | float, m: int) -> np.ndarray:
@@ -472,13 +475,8 @@ class FramedTrajectory(Trajectory):
     @classmethod
     def from_dict(cls, d: Mapping) -> FramedTrajectory:
         """Inverse of to_dict (a Fourier trajectory with a 'framing' mapping)."""
-        f = d.get('framing')
-        if not isinstance(f, Mapping):
-            raise IdentificationError("framed trajectory: 'framing' must be a mapping with "
-                                      'start, ramp_in, ramp_out, periods')
-        missing = [k for k in ('start', 'ramp_in', 'ramp_out', 'periods') if k not in f]
-        if missing:
-            raise IdentificationError(f'framed trajectory: framing misses {missing}')
+        f = d.get('framing') if isinstance(d, Mapping) else None
+        _check_keys(f, ('start', 'ramp_in', 'ramp_out', 'periods'), 'framing')
         periodic = FourierTrajectory.from_dict(d)
         try:
             start = np.array(f['start'], dtype=float)

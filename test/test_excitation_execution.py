@@ -238,6 +238,26 @@ def test_collision_checker_pairs_srdf_obstacles_and_gradients():
             CollisionChecker(robot, **kwargs)
 
 
+def test_design_constraint_jacobian_with_torque_models_and_collisions():
+    robot = load_robot(PANDA)
+    limits = ex.ExcitationLimits.from_robot(robot).with_margin(0.1)
+    base = ex._base_of(robot, None)
+    checker = CollisionChecker(robot, floor=0.0)
+    design = ex._Design(robot, base, limits, 2, 4.0, 40, 'cond', None, 1.0,
+                        [robot.phi_model, 1.5 * robot.phi_model], checker)
+    x = ex._to_x(ex.initial_trajectory(robot, None, limits, 2, 4.0, 1))
+    c, J = design.constraint(x), design.constraint_jac(x)
+    assert c.shape == (7 * 3 + 7 + checker.num_pairs,) and J.shape == (c.size, x.size)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        v, h = rng.normal(size=x.size), 1e-4
+        fd = (design.constraint(x + h * v) - design.constraint(x - h * v)) / (2 * h)
+        k = 7 * 3 + 7   # limits (torques under both models), then the collision pairs
+        np.testing.assert_allclose(fd[:k], (J @ v)[:k], rtol=1e-4, atol=1e-6)
+        # distances come from GJK with a 1e-6 m tolerance: a few per cent at this step
+        np.testing.assert_allclose(fd[k:], (J @ v)[k:], rtol=0.05, atol=0.05)
+
+
 def test_package_dir_resolves_meshes(tmp_path):
     mesh = tmp_path / 'pkg' / 'meshes' / 'part.stl'
     mesh.parent.mkdir(parents=True)
