@@ -116,26 +116,30 @@ class CollisionChecker:
         N, n = Q.shape[0], self.robot.dof
         dist = np.empty((N, self.num_pairs))
         grad = np.zeros((N, self.num_pairs, n))
+        if not self.num_pairs:
+            return dist, grad
         model, data, cols = self.model, self.data, self.robot.idx_v
         world = pin.ReferenceFrame.WORLD
+        joints = np.unique(self._joints)
+        slot = np.searchsorted(joints, self._joints)            # (pairs, 2) into joints
+        J = np.zeros((len(joints), 6, n))
         for k in range(N):
             pin.computeDistances(model, data, self.geometry, self.geometry_data, Q[k])
             pin.computeJointJacobians(model, data, Q[k])
-            jac = {}
-            for i, r in enumerate(self.geometry_data.distanceResults):
-                dist[k, i] = r.min_distance
-                rows = []
-                for joint, point in zip(self._joints[i], (r.getNearestPoint1(),
-                                                          r.getNearestPoint2())):
-                    if joint == 0:
-                        rows.append(np.zeros(n))
-                        continue
-                    if joint not in jac:
-                        jac[joint] = pin.getJointJacobian(model, data, int(joint), world)[:, cols]
-                    J = jac[joint]
-                    # velocity of the world point p carried by the joint: v + w x p
-                    rows.append(J[:3] - pin.skew(point) @ J[3:])
-                grad[k, i] = r.normal @ (rows[1] - rows[0])
+            for s, j in enumerate(joints):
+                if j != 0:   # the world's geometry does not move
+                    J[s] = pin.getJointJacobian(model, data, int(j), world)[:, cols]
+            results = self.geometry_data.distanceResults
+            dist[k] = [r.min_distance for r in results]
+            normal = np.array([r.normal for r in results])                   # (P, 3)
+            grad_k = 0.0
+            for side, get in ((0, 'getNearestPoint1'), (1, 'getNearestPoint2')):
+                p = np.array([getattr(r, get)() for r in results])          # (P, 3) world
+                Jj = J[slot[:, side]]                                        # (P, 6, n)
+                # velocity of the world point p carried by the joint: v + w x p
+                Jp = Jj[:, :3] - np.cross(p[:, :, None], Jj[:, 3:], axisa=1, axisb=1, axisc=1)
+                grad_k = grad_k + (1 if side else -1) * np.einsum('pi,pin->pn', normal, Jp)
+            grad[k] = grad_k
         return dist, grad
 
     def clearance(self, q: np.ndarray) -> dict[str, Any]:

@@ -72,10 +72,13 @@ VERIFY_RATE = 400.0         # Hz: kinematic check of a framed trajectory (torque
 COLLISION_RATE = 100.0      # Hz: collision check of the final trajectory (and 10 ms at most)
 COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's constraints
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
+COLLISION_RHO = 20.0        # KS sharpness over the samples: 2.5 mm of distance, smooth
+COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and between them)
 RAMP_MIN = 0.5              # s: shortest ramp tried; then RAMP_GROWTH times longer each try
 RAMP_GROWTH = 1.15
 RAMP_MAX = 120.0            # s: longest ramp tried
 CANDIDATES = 6              # feasible iterates (best first) verified as final candidates
+BLENDS = (0.9, 0.75, 0.5, 0.3, 0.15)  # fractions of the way from the initial guess tried last
 GRID_PER_HARMONIC = 40      # constraint grid points per period and harmonic
 KS_RHO = 200.0              # sharpness of the smooth maximum of the limit ratios
 INITIAL_MARGIN = 0.95        # the initial guess reaches this fraction of its tightest limit
@@ -610,8 +613,9 @@ class _Design:
     and well posed, where one linear constraint per grid point (thousands of nearly parallel
     rows) made them fail.
 
-    With a CollisionChecker, one more constraint per checked pair: the KS maximum over the
-    criterion samples and the offset configuration q0 (where the ramps start) of
+    With a CollisionChecker, one more constraint per checked pair: the KS maximum
+    (COLLISION_RHO) over the criterion samples, COLLISION_OVERSAMPLE - 1 samples between each
+    two of them, and the offset configuration q0 (where the ramps start) of
     1 + (d_min + COLLISION_PAD - distance) / COLLISION_SCALE.
     """
 
@@ -632,7 +636,9 @@ class _Design:
         self.checker = checker if checker is not None and checker.num_pairs else None
         rest = np.zeros((1, self.k))
         rest[0, -1] = 1.0   # q = q0
-        self.Bc = np.vstack([self.Bq, rest])
+        m = COLLISION_OVERSAMPLE * num_samples
+        self.Bc = np.vstack([fourier_basis(np.arange(m) * (period / m), harmonics, period)[0],
+                             rest])
         self._collision: tuple[bytes, np.ndarray, np.ndarray | None] | None = None
         limited, centre, half = _ranges(limits)
         self.pos = np.flatnonzero(limited)
@@ -756,7 +762,7 @@ class _Design:
             self._collision = cached = (key, d, g)
         _, d, g = cached
         need = self.checker.min_distance + COLLISION_PAD
-        ks, w = _ks(1.0 + (need - d) / COLLISION_SCALE, KS_RHO)       # (P,), (S, P)
+        ks, w = _ks(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if not jac:
             return ks, None
         # d r / d x[i, :] = -g[s, p, i] Bc[s, :] / scale, weighted by w[s, p]
@@ -1015,9 +1021,11 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     # Keep every iterate that satisfies the constraints (SLSQP's own tolerance); the last
     # iterate may violate them slightly, shrink_into_limits then scales it in.
     feasible = [(f0, x0)] if initial_feasible else []
+    last = []   # the iterates, feasible or not
 
     def track(x: np.ndarray) -> None:
         f = design.value(x)[0]
+        last.append(x.copy())
         if np.isfinite(f) and design.constraint(x).min() >= -1e-6:
             feasible.append((f, x.copy()))
 
@@ -1029,46 +1037,67 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                      'jac': design.constraint_jac}],
                        callback=track, options={'maxiter': int(maxiter), 'ftol': 1e-9})
     names = list(robot.joint_names)
-    candidates = [x for _, x in sorted(feasible, key=lambda item: item[0])][:CANDIDATES]
-    if res is not None and np.all(np.isfinite(res.x)):
-        candidates.insert(0, res.x)
-    if not initial_feasible:
-        candidates.append(x0)   # the shrinking may still bring it inside
-    best, reasons = None, []
-    for x in candidates:
+    reasons: list[str] = []
+
+    def verified(x: np.ndarray) -> tuple | None:
+        """(criterion, periodic, framed, scale, clearance) of x brought inside every limit,
+        framed and checked for collisions; None (the reason noted) when it cannot be."""
         try:
             cand, s, _ = shrink_into_limits(_from_x(x, robot.dof, period, names), robot, work,
                                             phis=phis)
             framed = frame_excitation(cand, robot, work, start_q, periods, phis)
         except IdentificationError as exc:   # cannot be brought inside the limits
             reasons.append(str(exc))
-            continue
+            return None
         clearance = None
         if checker is not None:
-            clearance = checker.clearance(framed.sample(clearance_samples(framed, robot))[0])
-            if clearance['distance'] < checker.min_distance:
-                reasons.append(f'collision between {clearance["pair"][0]} and '
-                               f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)')
-                continue
-        v = _report_value(design.value(_to_x(cand))[0], criterion)
-        if best is None or v < best[0]:
-            best = (v, cand, framed, s, clearance, x is x0)
+            for q in (design.Bc @ _to_x(cand).reshape(robot.dof, -1).T,   # cheap check first
+                      framed.sample(clearance_samples(framed, robot))[0]):
+                clearance = checker.clearance(q)
+                if clearance['distance'] < checker.min_distance:
+                    reasons.append(f'collision between {clearance["pair"][0]} and '
+                                   f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)')
+                    return None
+        return (_report_value(design.value(_to_x(cand))[0], criterion), cand, framed, s,
+                clearance)
+
+    f_init = _report_value(f0, criterion)
+    candidates = [x for _, x in sorted(feasible, key=lambda item: item[0])][:CANDIDATES]
+    if res is not None and np.all(np.isfinite(res.x)):
+        candidates.insert(0, res.x)
+    if not initial_feasible:
+        candidates.append(x0)   # the shrinking may still bring it inside
+    best, initial_kept = None, False
+    for x in candidates:
+        found = verified(x)
+        if found is not None and (best is None or found[0] < best[0]):
+            best, initial_kept = found, x is x0
         if best is not None and x is not candidates[0]:
             break   # the feasible iterates come best first
+    if (best is None or best[0] >= f_init) and res is not None and initial_feasible:
+        # SLSQP's iterates approach the constraints from outside: blend the last iterate with
+        # the feasible initial guess, x0 + alpha (x - x0), and keep the first verified blend
+        # that improves on it
+        x_end = last[-1] if last else res.x
+        for alpha in BLENDS:
+            found = verified(x0 + alpha * (x_end - x0))
+            if found is not None and found[0] < f_init:
+                best, initial_kept = found, False
+                break
     if best is None:
         why = reasons[-1] if reasons else 'no iterate met the constraints'
         raise IdentificationError(
             f'no feasible excitation found ({why}): loosen the limits or their margin, lower '
             'the minimum distance, or try another start configuration, seed or fewer '
             'harmonics')
-    value, traj, framed, scale, clearance, is_initial = best
+    value, traj, framed, scale, clearance = best
+    is_initial = initial_kept
     warnings = []
     if res is not None and not res.success:
         advice = ('raise --maxiter' if res.status == 9 else
                   'the constraints may be too tight: loosen the limits or the margin')
         warnings.append(f'SLSQP stopped without converging after {res.nit} iterations '
                         f'({res.message}); kept the best feasible point found ({advice})')
-    f_init = _report_value(f0, criterion)
     if is_initial or value >= f_init:
         warnings.append('no feasible point improved on the initial guess; kept '
                         + ('it' if initial_feasible else 'it, scaled into the constraints'))
