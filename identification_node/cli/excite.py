@@ -281,6 +281,9 @@ def run(args: argparse.Namespace) -> int:
         print(f'collision: {checker.num_pairs} pairs checked ({checker.srdf_removed} disabled '
               f'by the SRDF), smallest distance {c["distance"]:.4g} m ({c["pair"][0]} - '
               f'{c["pair"][1]}), minimum {checker.min_distance:g} m')
+    elif not args.no_collision:
+        print(f'collision: not checked (the description of {robot.name} has no collision '
+              'geometry)')
     for w in result.warnings:
         print(f'warning: {w}', file=sys.stderr)
     print(f'wrote {out}, {csv}, {png}' + (f', {bag}' if bag is not None else ''))
