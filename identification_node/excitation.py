@@ -77,7 +77,8 @@ COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and 
 RAMP_MIN = 0.5              # s: shortest ramp tried; then RAMP_GROWTH times longer each try
 RAMP_GROWTH = 1.15
 RAMP_MAX = 120.0            # s: longest ramp tried
-CANDIDATES = 6              # feasible iterates (best first) verified as final candidates
+CANDIDATES = 8              # iterates (best first) verified as final candidates, at most
+NEAR_FEASIBLE = 0.1         # KS constraint violation of the iterates still tried as candidates
 BLENDS = (0.9, 0.75, 0.5, 0.3, 0.15)  # fractions of the way from the initial guess tried last
 GRID_PER_HARMONIC = 40      # constraint grid points per period and harmonic
 KS_RHO = 200.0              # sharpness of the smooth maximum of the limit ratios
@@ -1020,14 +1021,14 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     fscale = 1.0 / g0 if g0 > 0 else 1.0
     # Keep every iterate that satisfies the constraints (SLSQP's own tolerance); the last
     # iterate may violate them slightly, shrink_into_limits then scales it in.
-    feasible = [(f0, x0)] if initial_feasible else []
-    last = []   # the iterates, feasible or not
+    # (function, worst constraint, x) of the iterates; SLSQP's approach the constraints from
+    # outside, and shrink_into_limits scales small kinematic violations away
+    iterates = [(f0, 0.0, x0)] if initial_feasible else []
 
     def track(x: np.ndarray) -> None:
         f = design.value(x)[0]
-        last.append(x.copy())
-        if np.isfinite(f) and design.constraint(x).min() >= -1e-6:
-            feasible.append((f, x.copy()))
+        if np.isfinite(f):
+            iterates.append((f, float(design.constraint(x).min()), x.copy()))
 
     res = None
     if maxiter > 0:
@@ -1062,23 +1063,26 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 clearance)
 
     f_init = _report_value(f0, criterion)
-    candidates = [x for _, x in sorted(feasible, key=lambda item: item[0])][:CANDIDATES]
+    # best first: the feasible iterates and those within NEAR_FEASIBLE of the constraints
+    near = sorted((it for it in iterates if it[1] >= -NEAR_FEASIBLE),
+                  key=lambda it: (it[0], it[1] < -1e-6))
+    candidates = [x for _, _, x in near]
     if res is not None and np.all(np.isfinite(res.x)):
         candidates.insert(0, res.x)
     if not initial_feasible:
         candidates.append(x0)   # the shrinking may still bring it inside
     best, initial_kept = None, False
-    for x in candidates:
+    for x in candidates[:CANDIDATES]:
         found = verified(x)
         if found is not None and (best is None or found[0] < best[0]):
             best, initial_kept = found, x is x0
         if best is not None and x is not candidates[0]:
-            break   # the feasible iterates come best first
+            break   # the iterates come best first
     if (best is None or best[0] >= f_init) and res is not None and initial_feasible:
-        # SLSQP's iterates approach the constraints from outside: blend the last iterate with
-        # the feasible initial guess, x0 + alpha (x - x0), and keep the first verified blend
-        # that improves on it
-        x_end = last[-1] if last else res.x
+        # blend the best near-feasible iterate (else the last) with the feasible initial
+        # guess, x0 + alpha (x - x0), and keep the first verified blend improving on it
+        x_end = near[0][2] if near and near[0][2] is not x0 else (
+            iterates[-1][2] if iterates else res.x)
         for alpha in BLENDS:
             found = verified(x0 + alpha * (x_end - x0))
             if found is not None and found[0] < f_init:
