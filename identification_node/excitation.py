@@ -74,6 +74,7 @@ COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
 COLLISION_RHO = 20.0        # KS sharpness over the samples: 2.5 mm of distance, smooth
 COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and between them)
+RAMP_BLENDS = (0.25, 0.5, 0.75)  # ramp configurations start + w (motion - start) constrained
 RAMP_MIN = 0.5              # s: shortest ramp tried; then RAMP_GROWTH times longer each try
 RAMP_GROWTH = 1.15
 RAMP_MAX = 120.0            # s: longest ramp tried
@@ -616,13 +617,15 @@ class _Design:
 
     With a CollisionChecker, one more constraint per checked pair: the KS maximum
     (COLLISION_RHO) over the criterion samples, COLLISION_OVERSAMPLE - 1 samples between each
-    two of them, and the offset configuration q0 (where the ramps start) of
+    two of them, the ramps' configurations start + w (q(t) - start) at the criterion samples
+    for w in RAMP_BLENDS, and the start (q0 unless ``start`` is given) of
     1 + (d_min + COLLISION_PAD - distance) / COLLISION_SCALE.
     """
 
     def __init__(self, robot, base, limits: ExcitationLimits, harmonics: int, period: float,
                  num_samples: int, criterion: str, noise_std, margin: float,
-                 phis: Sequence[np.ndarray] | None = None, checker=None):
+                 phis: Sequence[np.ndarray] | None = None, checker=None,
+                 start: np.ndarray | None = None):
         self.robot, self.base, self.limits = robot, base, limits
         self.n, self.H, self.period = robot.dof, harmonics, period
         self.k = 2 * harmonics + 1
@@ -635,11 +638,20 @@ class _Design:
         self.Phi = np.column_stack(_torque_models(robot, phis))    # (p, models)
         self.margin = margin
         self.checker = checker if checker is not None and checker.num_pairs else None
-        rest = np.zeros((1, self.k))
-        rest[0, -1] = 1.0   # q = q0
+        # collision samples q = Bc X + Cc: the motion, then the ramps' blends of the start
+        # (q0, or the given ``start``) and the motion at the criterion samples, then the start
         m = COLLISION_OVERSAMPLE * num_samples
-        self.Bc = np.vstack([fourier_basis(np.arange(m) * (period / m), harmonics, period)[0],
-                             rest])
+        path = fourier_basis(np.arange(m) * (period / m), harmonics, period)[0]
+        e0 = np.zeros((1, self.k))
+        e0[0, -1] = 1.0   # q = q0
+        fixed = start is not None
+        from_start = np.zeros_like(e0) if fixed else e0
+        self.Bc = np.vstack([path] + [w * self.Bq + (1 - w) * from_start for w in RAMP_BLENDS]
+                            + [from_start])
+        weight = np.concatenate([np.zeros(m)] + [np.full(num_samples, 1 - w)
+                                                 for w in RAMP_BLENDS] + [np.ones(1)])
+        self.Cc = (weight[:, None] * np.asarray(start, dtype=float)[None] if fixed
+                   else np.zeros((len(weight), self.n)))
         self._collision: tuple[bytes, np.ndarray, np.ndarray | None] | None = None
         limited, centre, half = _ranges(limits)
         self.pos = np.flatnonzero(limited)
@@ -749,13 +761,17 @@ class _Design:
                 rows.append(dks)
         return np.concatenate(values), (np.vstack(rows) if jac else None)
 
+    def collision_configs(self, x: np.ndarray) -> np.ndarray:
+        """The joint positions (S, n) the collision constraints hold at."""
+        return self.Bc @ x.reshape(self.n, self.k).T + self.Cc
+
     def _collision_ks(self, x: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Per pair, KS over the collision samples of 1 + (d_req - d) / COLLISION_SCALE, and
         its Jacobian (pairs, nx)."""
         key = x.tobytes()
         cached = self._collision
         if cached is None or cached[0] != key or (jac and cached[2] is None):
-            q = self.Bc @ x.reshape(self.n, self.k).T                 # (S, n)
+            q = self.collision_configs(x)                            # (S, n)
             if jac:
                 d, g = self.checker.distances_and_gradients(q)       # (S, P), (S, P, n)
             else:
@@ -1002,7 +1018,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         raise IdentificationError(f'{num_samples} samples x {robot.dof} joints cannot '
                                   f'determine {base.num_base} base parameters')
     design = _Design(robot, base, work, H, period, int(num_samples), criterion, noise_std,
-                     MARGIN, phis, checker)
+                     MARGIN, phis, checker, start_q)
     init = initial_trajectory(robot, initial, work, H, period, seed, phis)
     if checker is not None:
         init = _out_of_collision(init, design, work)
@@ -1013,7 +1029,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                   'parameter: try another seed or more harmonics')
     # init is inside the limits (shrunk on the fine grid); collisions at the design's samples
     initial_feasible = checker is None or bool(
-        checker.distances(design.Bc @ x0.reshape(robot.dof, -1).T).min()
+        checker.distances(design.collision_configs(x0)).min()
         >= checker.min_distance)
     # SLSQP's first step follows the gradient with a unit Hessian: scale the function so that
     # its gradient has unit norm at the start, or the first steps leave the limits far behind.
@@ -1052,7 +1068,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
             return None
         clearance = None
         if checker is not None:
-            for q in (design.Bc @ _to_x(cand).reshape(robot.dof, -1).T,   # cheap check first
+            for q in (design.collision_configs(_to_x(cand)),   # cheap check first
                       framed.sample(clearance_samples(framed, robot))[0]):
                 clearance = checker.clearance(q)
                 if clearance['distance'] < checker.min_distance:
