@@ -1139,7 +1139,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
 def _out_of_collision(traj: FourierTrajectory, design: _Design, limits: ExcitationLimits,
                       steps: int = 20) -> FourierTrajectory:
     """``traj``, or its motion scaled towards the centre of the position ranges (by 0.8 per
-    step) until it meets the collision constraints at the criterion samples; ``traj``
+    step) until it meets the collision constraints (at the design's collision samples); ``traj``
     unchanged when no scaling does (the optimiser then starts infeasible)."""
     cur, scale = traj, 1.0
     for _ in range(steps):
