@@ -1079,9 +1079,16 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 clearance)
 
     f_init = _report_value(f0, criterion)
-    # best first: the feasible iterates and those within NEAR_FEASIBLE of the constraints
-    near = sorted((it for it in iterates if it[1] >= -NEAR_FEASIBLE),
-                  key=lambda it: (it[0], it[1] < -1e-6))
+    # the feasible iterates and those within NEAR_FEASIBLE of the constraints: the best of each
+    # of CANDIDATES stretches of the iterations (consecutive iterates are alike and tend to
+    # fail the dense checks alike), best first
+
+    def rank(it: tuple) -> tuple:
+        return it[0], it[1] < -1e-6
+    close = [it for it in iterates if it[1] >= -NEAR_FEASIBLE]
+    near = sorted((min((close[i] for i in part), key=rank)
+                   for part in np.array_split(np.arange(len(close)), CANDIDATES) if part.size),
+                  key=rank)
     candidates = [x for _, _, x in near]
     if res is not None and np.all(np.isfinite(res.x)):
         candidates.insert(0, res.x)
