@@ -164,8 +164,11 @@ class BatchOptions:
     series fitted to the averaged positions has ``harmonics`` per joint, by default chosen from
     the data (fourier_fit) between ``min_harmonics`` (e.g. a known trajectory's) and
     cutoff * period; ``cutoff`` (Hz) of the zero-phase low-pass of the filtered path;
-    ``decimation`` there defaults to floor(rate / (2 cutoff))."""
+    ``decimation`` there defaults to floor(rate / (2 cutoff)). ``window`` (t0, t1), s after
+    the first sample: periodic averaging uses only the samples in it (the periodic part of a
+    trajectory framed by ramps, trajectories.FramedTrajectory.periodic_window)."""
     period: float | None = None
+    window: tuple[float, float] | None = None
     harmonics: int | None = None
     min_harmonics: int = 1
     cutoff: float = DEFAULT_CUTOFF
@@ -175,6 +178,12 @@ class BatchOptions:
     def validate(self) -> None:
         if self.period is not None and not (math.isfinite(self.period) and self.period > 0):
             raise IdentificationError(f'period must be > 0 s, got {self.period!r}')
+        if self.window is not None:
+            t0, t1 = self.window
+            if not (math.isfinite(t0) and math.isfinite(t1) and 0 <= t0 < t1):
+                raise IdentificationError(f'window must be 0 <= t0 < t1 s, got {self.window}')
+            if self.period is None:
+                raise IdentificationError('a window needs a period (periodic averaging)')
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
             raise IdentificationError(f'cutoff must be > 0 Hz, got {self.cutoff!r}')
         for name in ('harmonics', 'decimation', 'min_harmonics'):
@@ -524,6 +533,19 @@ def _harmonics(options: BatchOptions) -> tuple[float, int | None, int, int]:
     return period, options.harmonics, top, options.min_harmonics
 
 
+def _windowed(stream: Stream, t0: float, t1: float) -> Stream:
+    """The samples of ``stream`` from t0 (inclusive) to t1 (exclusive), s after its first."""
+    t = (stream.stamps_ns - stream.stamps_ns[0]) * 1e-9
+    keep = (t >= t0 - 1e-9) & (t < t1 - 1e-9)
+    if not keep.any():
+        raise IdentificationError(f'no samples between {t0:g} s and {t1:g} s after the first '
+                                  f'(the recording lasts {t[-1]:.6g} s)')
+    if t[-1] < t1 - 2 * float(np.median(np.diff(t))):
+        raise IdentificationError(f'the recording ends {t[-1]:.6g} s after its first sample, '
+                                  f'before the end of the periodic part at {t1:g} s')
+    return Stream(*(a[keep] for a in (stream.stamps_ns, stream.q, stream.qd, stream.tau)))
+
+
 def batch_rows(samples: BagSamples, settings: Settings, robot: RobotModel,
                base: BaseParameters, options: BatchOptions) -> tuple[dict, Iterator[Rows]]:
     """The rows a batch identification fits (periodic or filtered, by ``options``), with a
@@ -534,8 +556,13 @@ def batch_rows(samples: BagSamples, settings: Settings, robot: RobotModel,
             raise IdentificationError(
                 f'{samples.bag}: periodic averaging needs one continuous recording; its stamps '
                 f'restart {len(samples.streams) - 1} time(s)')
-        rows, info = _periodic_rows(samples.streams[0], robot, base, *_harmonics(options),
+        stream = samples.streams[0]
+        if options.window is not None:
+            stream = _windowed(stream, *options.window)
+        rows, info = _periodic_rows(stream, robot, base, *_harmonics(options),
                                     samples.velocity_measured, speed)
+        if options.window is not None:
+            info['window_s'] = list(options.window)
         info['rows'] = len(rows)
         return info, iter([rows])
     segments, info = _plan_filtered(samples, options, settings['smoother.max_gap'])

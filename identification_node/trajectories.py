@@ -139,12 +139,7 @@ class FourierTrajectory(Trajectory):
     @classmethod
     def from_dict(cls, d: Mapping) -> FourierTrajectory:
         """Inverse of to_dict; keys period, q0, a, b, optional joints (and type: fourier)."""
-        if not isinstance(d, Mapping):
-            raise IdentificationError('Fourier trajectory: expected a mapping with keys '
-                                      'period, q0, a, b')
-        missing = [k for k in ('period', 'q0', 'a', 'b') if k not in d]
-        if missing:
-            raise IdentificationError(f'Fourier trajectory: missing keys {missing}')
+        _check_keys(d, ('period', 'q0', 'a', 'b'), 'Fourier trajectory')
         if d.get('type', 'fourier') != 'fourier':
             raise IdentificationError(f"trajectory type {d['type']!r} is not 'fourier'")
         try:
@@ -185,6 +180,14 @@ class FourierTrajectory(Trajectory):
         scale = margin * np.minimum(half / span, vmax / np.abs(qd).max(axis=0))
         q0 = centre - scale * 0.5 * (q.max(axis=0) + q.min(axis=0))
         return cls(a * scale[:, None], b * scale[:, None], q0, period, names)
+
+
+def _check_keys(d: object, keys: Sequence[str], what: str) -> None:
+    if not isinstance(d, Mapping):
+        raise IdentificationError(f'{what}: expected a mapping with keys {", ".join(keys)}')
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise IdentificationError(f'{what}: missing keys {missing}')
 
 
 def _per_move(name: str, value: Sequence[float] | float, m: int) -> np.ndarray:
@@ -378,7 +381,122 @@ class SampledTrajectory(Trajectory):
         if data.shape[1] != len(names):
             raise IdentificationError(f'trajectory CSV {path}: {data.shape[1]} columns, header '
                                       f'names {len(names)}')
+        position = [k for k, h in enumerate(names) if h.endswith('.position')]
+        if position:   # write_motion_csv's layout: the positions, derivatives from the spline
+            return cls(data[:, 0], data[:, position],
+                       [names[k][:-len('.position')] for k in position])
         return cls(data[:, 0], data[:, 1:], names[1:])
+
+
+class FramedTrajectory(Trajectory):
+    """A periodic trajectory run for ``periods`` whole periods between smooth ramps from and
+    back to the configuration ``start`` at rest.
+
+    With p the periodic trajectory, u(t) = p(t - ramp_in) - start and w the quintic
+    smoothstep (0 -> 1 with zero first and second derivatives at both ends):
+
+    - ramp in, 0 <= t < ramp_in: q = start + w(t / ramp_in) u(t);
+    - periodic part, ramp_in <= t <= ramp_in + periods * period: q = p(t - ramp_in), from the
+      periodic trajectory's phase 0;
+    - ramp out, over ramp_out s: q = start + (1 - w(s)) u(t), s the fraction of the ramp.
+
+    q, qd and qdd are continuous; the motion starts and ends at ``start`` with zero velocity
+    and acceleration, and a ramp's positions lie between ``start`` and p(t) (inside any
+    position range holding both). Before 0 and after the end it holds ``start``.
+    """
+
+    def __init__(self, periodic: Trajectory, start: np.ndarray | None = None,
+                 ramp_in: float = 1.0, ramp_out: float | None = None, periods: int = 1):
+        if periodic.period is None:
+            raise IdentificationError('framing needs a periodic trajectory')
+        if isinstance(periods, bool) or not isinstance(periods, (int, np.integer)) \
+                or periods < 1:
+            raise IdentificationError(f'periods must be an integer >= 1, got {periods!r}')
+        ramp_out = ramp_in if ramp_out is None else ramp_out
+        for name, v in (('ramp_in', ramp_in), ('ramp_out', ramp_out)):
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating)) \
+                    or not (math.isfinite(v) and v > 0):
+                raise IdentificationError(f'{name} must be a duration > 0 s, got {v!r}')
+        if start is None:
+            start = getattr(periodic, 'q0', None)
+            if start is None:
+                raise IdentificationError('give the start configuration of the framing')
+        start = _finite('start', np.atleast_1d(np.asarray(start, dtype=float)))
+        if start.shape != (periodic.dof,):
+            raise IdentificationError(f'start configuration has {start.size} values for '
+                                      f'{periodic.dof} joints')
+        self.periodic, self.start = periodic, start
+        self.ramp_in, self.ramp_out = float(ramp_in), float(ramp_out)
+        self.periods = int(periods)
+        self.dof = periodic.dof
+        self.joint_names = periodic.joint_names
+        self.harmonics = getattr(periodic, 'harmonics', None)
+        self.period = None
+        self.duration = self.ramp_in + self.periods * float(periodic.period) + self.ramp_out
+
+    @property
+    def periodic_window(self) -> tuple[float, float]:
+        """(start, end) of the periodic part, s from the start of the trajectory."""
+        return self.ramp_in, self.ramp_in + self.periods * float(self.periodic.period)
+
+    def parts(self) -> dict:
+        """Durations (s) of the ramp in, the periodic part and the ramp out, and the total."""
+        t0, t1 = self.periodic_window
+        return {'ramp_in': self.ramp_in, 'periodic': t1 - t0, 'ramp_out': self.ramp_out,
+                'total': self.duration}
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t = _as_times(t)
+        t0, t1 = self.periodic_window
+        tc = np.clip(t, 0.0, self.duration)
+        p, pd, pdd = self.periodic.sample(tc - t0)
+        s_in = np.clip(tc / self.ramp_in, 0.0, 1.0)
+        s_out = np.clip((tc - t1) / self.ramp_out, 0.0, 1.0)
+        h_in, hd_in, hdd_in = _quintic_shape(s_in)
+        h_out, hd_out, hdd_out = _quintic_shape(s_out)
+        after = tc > t1
+        w = np.where(after, 1.0 - h_out, h_in)[:, None]
+        wd = np.where(after, -hd_out / self.ramp_out, hd_in / self.ramp_in)[:, None]
+        wdd = np.where(after, -hdd_out / self.ramp_out ** 2,
+                       hdd_in / self.ramp_in ** 2)[:, None]
+        u = p - self.start
+        return (self.start + w * u, w * pd + wd * u, w * pdd + 2.0 * wd * pd + wdd * u)
+
+    def to_dict(self) -> dict:
+        """The periodic trajectory's to_dict plus 'framing': start, ramp_in, ramp_out,
+        periods (and the parts' durations)."""
+        if not hasattr(self.periodic, 'to_dict'):
+            raise IdentificationError('the periodic trajectory cannot be written as YAML')
+        return {**self.periodic.to_dict(),
+                'framing': {'start': self.start.tolist(), 'ramp_in': self.ramp_in,
+                            'ramp_out': self.ramp_out, 'periods': self.periods,
+                            'durations': self.parts()}}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> FramedTrajectory:
+        """Inverse of to_dict (a Fourier trajectory with a 'framing' mapping)."""
+        f = d.get('framing') if isinstance(d, Mapping) else None
+        _check_keys(f, ('start', 'ramp_in', 'ramp_out', 'periods'), 'framing')
+        periodic = FourierTrajectory.from_dict(d)
+        try:
+            start = np.array(f['start'], dtype=float)
+        except (TypeError, ValueError):
+            raise IdentificationError(f"framing start must be numbers, got {f['start']!r}") \
+                from None
+        return cls(periodic, start, f['ramp_in'], f['ramp_out'], f['periods'])
+
+
+def write_motion_csv(path: str | os.PathLike, t: np.ndarray, q: np.ndarray, qd: np.ndarray,
+                     qdd: np.ndarray, joint_names: Sequence[str]) -> Path:
+    """Write samples as CSV, header ``t,<joint>.position,...,<joint>.velocity,...,
+    <joint>.acceleration,...`` (s, rad, rad/s, rad/s^2; m for prismatic joints), atomically."""
+    names = [str(j) for j in joint_names]
+    header = ['t'] + [f'{j}.{kind}' for kind in ('position', 'velocity', 'acceleration')
+                      for j in names]
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack([t, q, qd, qdd]), delimiter=',', fmt='%.17g',
+               header=','.join(header), comments='')
+    return atomic_write_text(path, buf.getvalue())
 
 
 def _limits_of(limits: object) -> tuple[np.ndarray, np.ndarray, np.ndarray, list | None]:
@@ -460,6 +578,9 @@ def match_joints(traj: Trajectory, robot: object, source: str = 'trajectory') ->
                                  joints)
     if isinstance(traj, SampledTrajectory):
         return SampledTrajectory(traj.t, traj.q[:, order], joints)
+    if isinstance(traj, FramedTrajectory):
+        return FramedTrajectory(match_joints(traj.periodic, robot, source), traj.start[order],
+                                traj.ramp_in, traj.ramp_out, traj.periods)
     return traj
 
 
@@ -469,7 +590,9 @@ def load_trajectory(spec: str, robot: object) -> Trajectory:
     'paper_moves': the MIT arm's quintic moves (3 joints); 'table1': the CRS A460/A465 Table I
     Fourier series (6 joints); 'fourier': a seeded 5-harmonic Fourier series inside 80 % of the
     robot's position and velocity limits; a .yaml/.yml file of Fourier coefficients (keys period,
-    q0, a, b, optional joints) or a .csv file (t, one column per joint, header with names).
+    q0, a, b, optional joints; with a 'framing' mapping, the FramedTrajectory that ramps
+    in and out of it, as ``excite`` writes) or a .csv file (t, one column per joint, header with
+    names; or write_motion_csv's layout, whose positions are used).
     """
     spec = str(spec).strip()
     n = robot.dof
@@ -497,4 +620,6 @@ def load_trajectory(spec: str, robot: object) -> Trajectory:
         data = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise IdentificationError(f'cannot read trajectory YAML {spec}: {exc}') from None
+    if isinstance(data, Mapping) and 'framing' in data:
+        return match_joints(FramedTrajectory.from_dict(data), robot, f'trajectory {spec}')
     return match_joints(FourierTrajectory.from_dict(data), robot, f'trajectory {spec}')

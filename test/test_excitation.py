@@ -14,8 +14,8 @@ from identification_node.estimators import LeastSquares
 from identification_node.identifiability import BaseParameters
 from identification_node.robot import load_robot
 from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.trajectories import (FourierTrajectory, SampledTrajectory,
-                                              check_limits, load_trajectory)
+from identification_node.trajectories import (FourierTrajectory, FramedTrajectory,
+                                              SampledTrajectory, check_limits, load_trajectory)
 
 FINE = 20001  # kinematic check points over one period
 FINE_TORQUE = 3001
@@ -200,7 +200,7 @@ def test_crs_beats_initial_and_table1(crs, crs_results, criterion):
 def test_crs_from_table1(crs):
     robot, base = crs
     res = ex.optimize_excitation(robot, criterion='cond', base=base, maxiter=10,
-                                 initial='table1')
+                                 initial='table1', margin=0.0)  # Table I fits, not with 10 %
     np.testing.assert_allclose(res.initial.a, FourierTrajectory.crs_table1().a)
     assert res.initial_value == pytest.approx(
         ex.criterion_value(robot, ex.table1_trajectory(robot), 'cond', base))
@@ -288,21 +288,26 @@ def test_cli_writes_yaml_csv_and_bag(crs, tmp_path, capsys):
     assert doc['criterion']['value'] < doc['criterion']['table1']
     assert doc['limits']['joint1']['velocity'] == 1.0
     assert all(doc['limit_ratios'][k]['worst'] <= 1 for k in ex.LIMIT_KINDS)
-    traj = load_trajectory(str(out), robot)
+    framed = load_trajectory(str(out), robot)
+    assert isinstance(framed, FramedTrajectory) and framed.periods == ex.DEFAULT_PERIODS
+    traj = framed.periodic
     assert isinstance(traj, FourierTrajectory) and traj.period == 10.0
     lim = ex.load_limits(limits, robot)
     assert_within_limits(traj, robot, lim)
     assert doc['criterion']['value'] == pytest.approx(
         ex.criterion_value(robot, traj, 'dopt', base))
-    # samples beside the YAML
+    assert doc['durations'] == pytest.approx(framed.parts())
+    # samples beside the YAML, ramps included (positions read back by SampledTrajectory)
     sampled = SampledTrajectory.from_csv(out.with_suffix('.csv'))
-    assert sampled.joint_names == robot.joint_names and sampled.duration == 10.0
-    np.testing.assert_allclose(sampled.q, traj.sample(sampled.t)[0], atol=1e-12)
-    # the bag
+    assert sampled.joint_names == robot.joint_names
+    assert sampled.duration == pytest.approx(framed.duration)
+    np.testing.assert_allclose(sampled.q, framed.sample(sampled.t)[0], atol=1e-12)
+    # the bag: the framed trajectory at 20 Hz
     with BagReader(bag) as reader:
         assert reader.topics == {'/excitation_trajectory': JOINT_TRAJECTORY}
         msgs = [m for *_, m in iter_messages(reader)]
-    assert len(msgs) == 1 and len(msgs[0].points) == 201
+    assert len(msgs) == 1 and len(msgs[0].points) == math.ceil(framed.duration * 20 - 1e-9) + 1
+    traj = framed
     p = msgs[0].points[37]
     t = p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
     np.testing.assert_allclose(p.positions, traj.sample([t])[0][0], atol=1e-12)

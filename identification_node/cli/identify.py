@@ -20,7 +20,8 @@ import numpy as np
 
 from . import add_robot_arguments, add_settings_arguments, settings_from_args
 
-BATCH_OPTIONS = ('period', 'trajectory', 'harmonics', 'cutoff', 'decimate')
+BATCH_OPTIONS = ('period', 'trajectory', 'harmonics', 'cutoff', 'decimate',
+                 'trajectory_start')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,7 +41,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help='periodic motion of this period (s): average over whole periods')
     batch.add_argument('--trajectory', metavar='FILE',
                        help='the periodic (Fourier .yaml) trajectory the bag followed: its '
-                       'period, and its harmonics at least in the position fit')
+                       'period, and its harmonics at least in the position fit; of a framed '
+                       'one (excite\'s output) only the periodic part between the ramps is used')
+    batch.add_argument('--trajectory-start', type=float, metavar='S',
+                       help='s after the bag\'s first sample at which the framed --trajectory '
+                       'started (default 0)')
     batch.add_argument('--harmonics', type=int, metavar='H',
                        help='harmonics of the Fourier fit to the averaged positions '
                        '(default: chosen from the data, up to cutoff x period)')
@@ -225,7 +230,7 @@ def _table(header: tuple, rows: list[tuple]) -> list[str]:
 def _method(args: argparse.Namespace) -> str:
     from ..errors import IdentificationError
 
-    given = [f'--{o}' for o in BATCH_OPTIONS if getattr(args, o) is not None]
+    given = [f"--{o.replace('_', '-')}" for o in BATCH_OPTIONS if getattr(args, o) is not None]
     if args.method == 'rls' and given:
         raise IdentificationError(f"{', '.join(given)} only apply to --method batch")
     return args.method or ('batch' if given else 'rls')
@@ -235,11 +240,22 @@ def batch_options(args: argparse.Namespace, robot):
     """offline.BatchOptions from --period/--trajectory/--harmonics/--cutoff/--decimate."""
     from ..errors import IdentificationError
     from ..offline import DEFAULT_CUTOFF, BatchOptions
-    from ..trajectories import load_trajectory
+    from ..trajectories import FramedTrajectory, load_trajectory
 
-    period, least = args.period, 1
+    period, least, window = args.period, 1, None
+    if args.trajectory_start is not None and not args.trajectory:
+        raise IdentificationError('--trajectory-start needs a framed --trajectory')
     if args.trajectory:
         traj = load_trajectory(args.trajectory, robot)
+        if isinstance(traj, FramedTrajectory):
+            offset = args.trajectory_start or 0.0
+            if not (offset >= 0 and offset < float('inf')):
+                raise IdentificationError(f'--trajectory-start must be >= 0 s, got {offset}')
+            window = tuple(offset + t for t in traj.periodic_window)
+            traj = traj.periodic
+        elif args.trajectory_start is not None:
+            raise IdentificationError(f'--trajectory-start needs a framed --trajectory; '
+                                      f'{args.trajectory} has no ramps')
         if traj.period is None:
             raise IdentificationError(f'trajectory {args.trajectory} is not periodic: batch '
                                       'processing uses it for its period')
@@ -249,7 +265,7 @@ def batch_options(args: argparse.Namespace, robot):
         period, least = traj.period, getattr(traj, 'harmonics', 1)
     if period is None and args.harmonics is not None:
         raise IdentificationError('--harmonics needs --period or a periodic --trajectory')
-    options = BatchOptions(period=period, harmonics=args.harmonics,
+    options = BatchOptions(period=period, window=window, harmonics=args.harmonics,
                            min_harmonics=least,
                            cutoff=DEFAULT_CUTOFF if args.cutoff is None else args.cutoff,
                            decimation=args.decimate)

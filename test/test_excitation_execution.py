@@ -1,0 +1,456 @@
+"""Excitations a real arm can run: ramps from and back to rest, limits with margins checked on
+dense grids (torques by pinocchio's RNEA), self-collision checked with a geometry model of our
+own on dense grids, the floor by the closed-form lowest point of each primitive, the
+optimiser's outcome, the outputs, and identification from a simulated run, ramps included."""
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+
+from identification_node import excitation as ex
+from identification_node.bagio import BagReader, iter_messages
+from identification_node.cli import main
+from identification_node.collision import CollisionChecker, has_collision_geometry
+from identification_node.errors import IdentificationError
+from identification_node.robot import load_robot
+from identification_node.trajectories import (FourierTrajectory, FramedTrajectory,
+                                              SampledTrajectory, load_trajectory, match_joints)
+
+FIXTURES = Path(__file__).resolve().parent / 'fixtures'
+PANDA = str(FIXTURES / 'panda_collision.urdf')
+SRDF = str(FIXTURES / 'panda_collision.srdf')
+DENSE = 1000.0      # Hz: kinematic checks
+DENSE_TORQUE = 200.0
+DENSE_COLLISION = 500.0
+BOX = {'size': [0.3, 0.3, 0.3], 'xyz': [0.6, 0.0, 0.4]}
+CASES = {'mit_dd_arm': dict(harmonics=3, period=2.0, periods=2),
+         'crs_a465': dict(harmonics=3, period=4.0, periods=2),
+         'panda': dict(harmonics=2, period=4.0, periods=2)}
+
+
+@pytest.fixture(scope='module')
+def designs():
+    out = {}
+    for name, kw in CASES.items():
+        robot = load_robot(PANDA if name == 'panda' else name)
+        checker = (CollisionChecker(robot, floor=0.0, boxes=[BOX]) if name == 'panda'
+                   else None)
+        res = ex.optimize_excitation(robot, criterion='cond', maxiter=15, num_samples=60,
+                                     checker=checker, **kw)
+        out[name] = (robot, res)
+    return out
+
+
+def dense_times(framed, rate):
+    return np.append(np.arange(0.0, framed.duration, 1.0 / rate), framed.duration)
+
+
+# -- the framing ----------------------------------------------------------------------------
+def test_framed_trajectory_closed_form():
+    rng = np.random.default_rng(5)
+    p = FourierTrajectory(rng.normal(size=(2, 3)), rng.normal(size=(2, 3)), [0.4, -0.2], 2.0,
+                          ['a', 'b'])
+    start = np.array([1.0, -1.0])
+    f = FramedTrajectory(p, start, 1.5, 2.5, 3)
+    assert f.parts() == pytest.approx({'ramp_in': 1.5, 'periodic': 6.0, 'ramp_out': 2.5,
+                                       'total': 10.0})
+    assert f.periodic_window == (1.5, 7.5) and f.period is None
+    # derivatives by central differences of q and qd
+    t, h = np.linspace(0.01, 9.99, 997), 1e-5
+    q, qd, qdd = f.sample(t)
+    np.testing.assert_allclose((f.sample(t + h)[0] - f.sample(t - h)[0]) / (2 * h), qd,
+                               atol=1e-6)
+    np.testing.assert_allclose((f.sample(t + h)[1] - f.sample(t - h)[1]) / (2 * h), qdd,
+                               atol=1e-5)
+    # the periodic part is p from phase 0; ramps blend start and p: positions between them
+    mid = (t >= 1.5) & (t <= 7.5)
+    np.testing.assert_allclose(q[mid], p.sample(t[mid] - 1.5)[0], atol=1e-12)
+    pq = p.sample(t - 1.5)[0]
+    lo, hi = np.minimum(start, pq), np.maximum(start, pq)
+    assert np.all(q >= lo - 1e-12) and np.all(q <= hi + 1e-12)
+    # at rest at both ends and outside
+    q, qd, qdd = f.sample([-1.0, 0.0, 10.0, 12.0])
+    np.testing.assert_allclose(q, np.tile(start, (4, 1)), atol=1e-12)
+    np.testing.assert_array_equal(qd, 0.0)
+    np.testing.assert_array_equal(qdd, 0.0)
+    # YAML round trip and joint reordering
+    back = FramedTrajectory.from_dict(yaml.safe_load(yaml.safe_dump(f.to_dict())))
+    np.testing.assert_allclose(back.sample(t)[2], f.sample(t)[2], atol=1e-12)
+    swapped = match_joints(back, type('R', (), {'joint_names': ['b', 'a']})())
+    np.testing.assert_allclose(swapped.sample(t)[0], f.sample(t)[0][:, ::-1], atol=1e-12)
+    default = FramedTrajectory(p)
+    np.testing.assert_array_equal(default.start, p.q0)
+    for kwargs, match in [({'periods': 0}, 'periods'), ({'ramp_in': 0.0}, 'ramp_in'),
+                          ({'start': [1.0]}, 'start'), ({'ramp_out': math.nan}, 'ramp_out')]:
+        with pytest.raises(IdentificationError, match=match):
+            FramedTrajectory(p, **kwargs)
+    with pytest.raises(IdentificationError, match='periodic'):
+        FramedTrajectory(SampledTrajectory([0, 1, 2], [[0], [1], [0]]))
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_starts_and_ends_at_rest(designs, name):
+    robot, res = designs[name]
+    f = res.framed
+    assert isinstance(f, FramedTrajectory) and f.periods == CASES[name]['periods']
+    np.testing.assert_array_equal(f.start, res.trajectory.q0)   # default: the offset
+    q, qd, qdd = f.sample([0.0, f.duration])
+    np.testing.assert_allclose(q, np.tile(f.start, (2, 1)), atol=1e-12)
+    np.testing.assert_allclose(qd, 0.0, atol=1e-12)
+    np.testing.assert_allclose(qdd, 0.0, atol=1e-12)
+    # position, velocity and acceleration continuous where the ramps join the motion
+    for tj in f.periodic_window:
+        before, after = f.sample([tj - 1e-9]), f.sample([tj + 1e-9])
+        for a, b in zip(before, after):
+            np.testing.assert_allclose(a, b, atol=1e-6)
+    t0, t1 = f.periodic_window
+    t = np.linspace(t0, t1, 777)
+    np.testing.assert_allclose(f.sample(t)[0], res.trajectory.sample(t - t0)[0], atol=1e-12)
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_within_limits_with_margin_densely(designs, name):
+    robot, res = designs[name]
+    limits = ex.ExcitationLimits.from_robot(robot)
+    keep = 1.0 - ex.DEFAULT_LIMIT_MARGIN
+    f = res.framed
+    t = dense_times(f, DENSE)
+    q, qd, qdd = f.sample(t)
+    finite = np.isfinite(limits.position_limits).all(axis=1)
+    lo, hi = np.where(finite[:, None], limits.position_limits, 0.0).T
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    assert np.all(np.abs(q - centre)[:, finite] <= keep * half[finite] + 1e-12)
+    assert np.all(np.abs(qd) <= keep * limits.velocity_limits + 1e-12)
+    assert np.all(np.abs(qdd) <= keep * limits.acceleration_limits + 1e-12)
+    k = np.searchsorted(t, dense_times(f, DENSE_TORQUE))
+    tau = robot.rnea(q[k], qd[k], qdd[k])   # pinocchio's RNEA, not the regressor
+    assert np.all(np.abs(tau) <= keep * limits.effort_limits + 1e-9)
+    assert max(res.ratios[k] for k in ex.LIMIT_KINDS) <= keep + 1e-9
+    assert res.margin == ex.DEFAULT_LIMIT_MARGIN
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_criterion_beats_initial_guess(designs, name):
+    robot, res = designs[name]
+    assert res.value < res.initial_value
+    assert res.value == pytest.approx(ex.criterion_value(robot, res.trajectory, 'cond',
+                                                         num_samples=60))
+    assert res.value == pytest.approx(ex.criterion_value(robot, res.framed, 'cond',
+                                                         num_samples=60))
+
+
+def _independent_geometry():
+    """The fixture's collision model built here from the file: pinocchio's own pairs minus
+    those on adjacent joints (parent and child)."""
+    model = pin.buildModelFromUrdf(PANDA)
+    geom = pin.buildGeomFromUrdf(model, PANDA, pin.COLLISION)
+    geom.addAllCollisionPairs()
+    joint = [o.parentJoint for o in geom.geometryObjects]
+    adjacent = [(p.first, p.second) for p in geom.collisionPairs
+                if model.parents[joint[p.first]] == joint[p.second]
+                or model.parents[joint[p.second]] == joint[p.first]]
+    for i, k in adjacent:
+        geom.removeCollisionPair(pin.CollisionPair(i, k))
+    return model, geom
+
+
+def _lowest_point(obj, placement) -> float:
+    """World z of the lowest point of a sphere, box or z-axis cylinder at ``placement``."""
+    shape, R, z = obj.geometry, placement.rotation, placement.translation[2]
+    name = type(shape).__name__
+    if name == 'Sphere':
+        return z - shape.radius
+    if name == 'Box':
+        return z - np.abs(R[2]) @ shape.halfSide
+    if name == 'Cylinder':
+        c = abs(R[2, 2])
+        return z - c * shape.halfLength - shape.radius * math.sqrt(max(0.0, 1 - c * c))
+    raise AssertionError(f'unexpected primitive {name}')
+
+
+def test_no_self_collision_on_a_dense_grid(designs):
+    robot, res = designs['panda']
+    assert has_collision_geometry(robot) and res.collision['pairs'] > 0
+    model, geom = _independent_geometry()
+    data, gdata = model.createData(), pin.GeometryData(geom)
+    assert len(geom.collisionPairs) == 33
+    f = res.framed
+    q = f.sample(dense_times(f, DENSE_COLLISION))[0]
+    # the verification grid keeps the arm within 5 mm of travel between its samples
+    floor = [k for k, o in enumerate(geom.geometryObjects) if o.parentJoint != 0]
+    smallest, lowest = math.inf, math.inf
+    for qk in q:
+        assert not pin.computeCollisions(model, data, geom, gdata, qk, False)
+        pin.computeDistances(model, data, geom, gdata, qk)
+        smallest = min(smallest, min(r.min_distance for r in gdata.distanceResults))
+        lowest = min(lowest, min(_lowest_point(geom.geometryObjects[k], gdata.oMg[k])
+                                 for k in floor))
+    assert smallest >= 0.01 - 0.005
+    assert lowest >= 0.01 - 0.005        # the floor at z = 0, minimum distance 1 cm
+    assert res.clearance['distance'] >= 0.01
+
+
+def test_collision_checker_pairs_srdf_obstacles_and_gradients():
+    robot = load_robot(PANDA)
+    plain = CollisionChecker(robot)
+    assert plain.num_pairs == 33 and plain.srdf_removed == 0
+    joints = {o.name: o.parentJoint for o in plain.geometry.geometryObjects}
+    parents = robot.model.parents
+    for a, b in plain.pairs:   # no pair on one joint or on a parent and its child
+        ja, jb = joints[a], joints[b]
+        assert ja != jb and parents[ja] != jb and parents[jb] != ja
+    assert ('link3_0', 'link5_0') in plain.pairs and ('link3_0', 'link4_0') not in plain.pairs
+    srdf = CollisionChecker(robot, srdf=SRDF)
+    assert srdf.srdf_removed == 3
+    disabled = {('link4_0', 'link6_0'), ('link5_0', 'hand_0'), ('link5_0', 'hand_1')}
+    assert set(plain.pairs) - set(srdf.pairs) == disabled
+    # the floor: distance = lowest point of the primitive above the floor's height
+    env = CollisionChecker(robot, floor={'height': 0.05}, boxes=[BOX])
+    assert env.num_pairs == 33 + 2 * 9   # floor and box against every moving geometry
+    rng = np.random.default_rng(3)
+    lo, hi = robot.position_limits.T
+    q = rng.uniform(lo, hi, size=(6, 7))
+    d, g = env.distances_and_gradients(q)
+    names = [o.name for o in env.geometry.geometryObjects]
+    for k in range(len(q)):
+        env.distances(q[k:k + 1])
+        for i, (a, b) in enumerate(env.pairs):
+            if b == 'floor':
+                obj = env.geometry.geometryObjects[names.index(a)]
+                low = _lowest_point(obj, env.geometry_data.oMg[names.index(a)])
+                assert d[k, i] == pytest.approx(low - 0.05, abs=1e-5)
+    # gradients against central differences (GJK's tolerance limits the step)
+    h = 1e-4
+    fd = np.stack([(env.distances(q + h * e) - env.distances(q - h * e)) / (2 * h)
+                   for e in np.eye(7)], axis=-1)
+    np.testing.assert_allclose(g, fd, atol=2e-2)
+    assert np.median(np.abs(g - fd)) < 1e-4
+    assert not has_collision_geometry(load_robot('crs_a465'))
+    for kwargs, match in [({'boxes': [{'size': [1, 1]}]}, 'size'),
+                          ({'boxes': [{'size': [1, 1, 1], 'colour': 1}]}, 'unknown keys'),
+                          ({'floor': 'low'}, 'floor'), ({'srdf': '/no/such.srdf'}, 'SRDF'),
+                          ({'package_dirs': ['/no/such/dir']}, 'package directory')]:
+        with pytest.raises(IdentificationError, match=match):
+            CollisionChecker(robot, **kwargs)
+
+
+def test_design_constraint_jacobian_with_torque_models_and_collisions():
+    robot = load_robot(PANDA)
+    limits = ex.ExcitationLimits.from_robot(robot).with_margin(0.1)
+    base = ex._base_of(robot, None)
+    checker = CollisionChecker(robot, floor=0.0)
+    design = ex._Design(robot, base, limits, 2, 4.0, 40, 'cond', None, 1.0,
+                        [robot.phi_model, 1.5 * robot.phi_model], checker)
+    x = ex._to_x(ex.initial_trajectory(robot, None, limits, 2, 4.0, 1))
+    c, J = design.constraint(x), design.constraint_jac(x)
+    assert c.shape == (7 * 3 + 7 + checker.num_pairs,) and J.shape == (c.size, x.size)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        v, h = rng.normal(size=x.size), 1e-4
+        fd = (design.constraint(x + h * v) - design.constraint(x - h * v)) / (2 * h)
+        k = 7 * 3 + 7   # limits (torques under both models), then the collision pairs
+        np.testing.assert_allclose(fd[:k], (J @ v)[:k], rtol=1e-4, atol=1e-6)
+        # distances come from GJK with a 1e-6 m tolerance: a few per cent at this step
+        np.testing.assert_allclose(fd[k:], (J @ v)[k:], rtol=0.05, atol=0.05)
+
+
+def test_package_dir_resolves_meshes(tmp_path):
+    mesh = tmp_path / 'pkg' / 'meshes' / 'part.stl'
+    mesh.parent.mkdir(parents=True)
+    facets = [((0, 0, 0), (0.05, 0, 0), (0, 0.05, 0)), ((0, 0, 0), (0, 0, 0.05), (0.05, 0, 0)),
+              ((0, 0, 0), (0, 0.05, 0), (0, 0, 0.05)), ((0.05, 0, 0), (0, 0, 0.05), (0, 0.05, 0))]
+    mesh.write_text('solid t\n' + ''.join(
+        'facet normal 0 0 0\nouter loop\n' + ''.join(f'vertex {x} {y} {z}\n' for x, y, z in f)
+        + 'endloop\nendfacet\n' for f in facets) + 'endsolid t\n')
+    urdf = tmp_path / 'mesh.urdf'
+    urdf.write_text(Path(PANDA).read_text().replace(
+        '<box size="0.12 0.08 0.08"/>', '<mesh filename="package://pkg/meshes/part.stl"/>'))
+    robot = load_robot(str(urdf))
+    with pytest.raises(IdentificationError, match='package-dir'):
+        CollisionChecker(robot)
+    assert CollisionChecker(robot, package_dirs=[tmp_path]).num_pairs == 33
+
+
+# -- limits ----------------------------------------------------------------------------------
+def test_assumed_limits_listed_and_overridden(tmp_path):
+    robot = load_robot(PANDA)
+    lim = ex.ExcitationLimits.from_robot(robot)
+    assert set(lim.assumed) == set(robot.joint_names)
+    assert all(set(v) == {'acceleration'} for v in lim.assumed.values())   # URDF has none
+    assert lim.assumed['joint1']['acceleration'] == pytest.approx(2 * 2.175)
+    over = lim.updated({'joint1': {'acceleration': 10.0}, 'joint2': {'velocity': 1.0}})
+    assert 'joint1' not in over.assumed
+    assert over.assumed['joint2'] == {'acceleration': pytest.approx(2.0)}   # follows velocity
+    assert any(line.startswith('joint3.acceleration: 4.35') for line in over.assumed_list())
+    crs = ex.ExcitationLimits.from_robot(load_robot('mit_dd_arm'))
+    assert crs.assumed['joint1']['position'] is None   # continuous joints
+    # margins: ranges about their centres, the rest scaled
+    m = lim.with_margin(0.2)
+    np.testing.assert_allclose(m.position_limits.mean(axis=1), lim.position_limits.mean(axis=1))
+    np.testing.assert_allclose(np.diff(m.position_limits), 0.8 * np.diff(lim.position_limits))
+    np.testing.assert_allclose(m.effort_limits, 0.8 * lim.effort_limits)
+    for bad in (1.0, -0.1, math.nan):
+        with pytest.raises(IdentificationError, match='margin'):
+            lim.with_margin(bad)
+
+
+def test_torque_limits_hold_under_an_estimate(tmp_path):
+    robot = load_robot('mit_dd_arm')
+    heavy = 1.6 * robot.phi_model    # torques exactly 1.6 times the model's
+    traj = FourierTrajectory.random(robot, 3, 2.0, seed=2)
+    base_ratio = ex.limit_ratios(traj, robot)['effort']
+    both = ex.limit_ratios(traj, robot, phis=[robot.phi_model, heavy])['effort']
+    assert both == pytest.approx(1.6 * base_ratio, rel=1e-9)
+    # effort limits 1.2 times the model's peak torques: the estimate's need more
+    unit = ex.ExcitationLimits.from_robot(robot).updated(
+        {j: {'effort': 1.0} for j in robot.joint_names})
+    peak = ex.limit_ratios(traj, robot, unit)['per_joint']['effort']     # N m
+    limits = unit.updated({j: {'effort': 1.2 * p} for j, p in zip(robot.joint_names, peak)})
+    res = ex.optimize_excitation(robot, 3, 2.0, limits=limits, maxiter=10, num_samples=60,
+                                 periods=2, phis=[robot.phi_model, heavy])
+    f = res.framed
+    t = dense_times(f, DENSE_TORQUE)
+    tau = robot.rnea(*f.sample(t), phi=heavy)
+    assert np.all(np.abs(tau) <= 0.9 * limits.effort_limits + 1e-9)
+    # the estimate file of the node / identify
+    path = tmp_path / 'estimate.yaml'
+    path.write_text(yaml.safe_dump({'standard_parameters': dict(zip(
+        robot.param_names, map(float, heavy)))}))
+    np.testing.assert_allclose(ex.estimate_parameters(path, robot), heavy)
+    path.write_text(yaml.safe_dump({'standard_parameters': {'link1.m': 1.0}}))
+    with pytest.raises(IdentificationError, match='does not match'):
+        ex.estimate_parameters(path, robot)
+
+
+# -- outcome ---------------------------------------------------------------------------------
+def test_iteration_limit_is_a_warning_with_the_best_feasible_point():
+    robot = load_robot('mit_dd_arm')
+    res = ex.optimize_excitation(robot, 3, 2.0, maxiter=3, num_samples=60, periods=2)
+    assert not res.success and res.status == 9
+    assert any('iteration' in w.lower() and 'best feasible' in w for w in res.warnings)
+    assert res.value <= res.initial_value
+    assert max(res.ratios[k] for k in ex.LIMIT_KINDS) <= 0.9 + 1e-9
+
+
+def test_start_configuration(designs):
+    robot, _ = designs['crs_a465']
+    start = [0.1, -0.2, 0.3, 0.0, 0.2, -0.1]
+    res = ex.optimize_excitation(robot, 3, 4.0, maxiter=5, num_samples=60, periods=1,
+                                 start=start)
+    np.testing.assert_allclose(res.framed.sample([0.0, res.framed.duration])[0],
+                               [start, start], atol=1e-12)
+    with pytest.raises(IdentificationError, match='outside the position limits'):
+        ex.optimize_excitation(robot, 3, 4.0, maxiter=1, num_samples=60,
+                               start=[3.0, 0, 0, 0, 0, 0])
+
+
+@pytest.mark.parametrize('extra, match', [
+    (['--robot', 'crs_a465', '--limits', 'EFFORT'], 'infeasible'),
+    (['--urdf', PANDA, '--min-distance', '2.0', '--harmonics', '2', '--period', '4'],
+     'no feasible excitation'),
+    (['--robot', 'mit_dd_arm', '--srdf', SRDF], 'no collision geometry'),
+    (['--robot', 'mit_dd_arm', '--start', '1,2'], 'start configuration'),
+    (['--robot', 'mit_dd_arm', '--margin', '1.5'], 'margin'),
+    (['--robot', 'mit_dd_arm', '--config', 'CONFIG'], 'unknown keys'),
+])
+def test_cli_infeasible_or_bad_gives_a_clear_error_and_no_files(tmp_path, capsys, extra, match):
+    effort = tmp_path / 'effort.yaml'
+    effort.write_text('joint2: {effort: 1.0, position: [0.5, 1.0]}\n')  # < static torque
+    config = tmp_path / 'config.yaml'
+    config.write_text('limits: {}\nobstacles: []\n')
+    extra = [str(effort) if a == 'EFFORT' else str(config) if a == 'CONFIG' else a
+             for a in extra]
+    out = tmp_path / 'o' / 'x.yaml'
+    argv = ['excite', *extra, '--maxiter', '2', '--samples', '60', '--periods', '1',
+            '--out', str(out), '--bag', str(tmp_path / 'o' / 'bag')]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('error:') and match in err
+    assert not (tmp_path / 'o').exists() or not any((tmp_path / 'o').iterdir())
+
+
+# -- outputs ---------------------------------------------------------------------------------
+def test_cli_outputs_a_robot_can_execute(tmp_path, capsys):
+    robot = load_robot(PANDA)
+    limits = tmp_path / 'limits.yaml'
+    limits.write_text('joint1: {acceleration: 3.0}\n')
+    config = tmp_path / 'config.yaml'
+    config.write_text(yaml.safe_dump({'margin': 0.15, 'periods': 2, 'floor': 0.0,
+                                      'limits': {'joint7': {'velocity': 2.0}},
+                                      'min_distance': 0.02}))
+    out, bag = tmp_path / 'exc.yaml', tmp_path / 'bag'
+    argv = ['excite', '--urdf', PANDA, '--harmonics', '2', '--period', '4', '--samples', '60',
+            '--maxiter', '6', '--limits', str(limits), '--config', str(config), '--srdf', SRDF,
+            '--rate', '50', '--out', str(out), '--bag', str(bag)]
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    text = captured.out
+    assert 'durations: ramp in' in text and 'assumed' in text and 'collision: 39 pairs' in text
+    assert 'joint1.acceleration' not in text and 'joint2.acceleration: 4.35' in text
+    assert 'warning:' in captured.err and '--maxiter' in captured.err
+    doc = yaml.safe_load(out.read_text())
+    assert doc['limit_margin'] == 0.15 and doc['collision']['srdf_disabled'] == 3
+    assert doc['collision']['min_distance'] == 0.02 and doc['collision']['clearance'] >= 0.02
+    assert doc['limits']['joint1']['acceleration'] == 3.0
+    assert doc['limits']['joint7']['velocity'] == 2.0
+    assert 'joint1' not in doc['assumed_limits']
+    assert doc['assumed_limits']['joint7'] == {'acceleration': pytest.approx(4.0)}
+    assert doc['warnings'] and doc['criterion']['value'] < doc['criterion']['initial']
+    assert all(doc['limit_ratios'][k]['worst'] <= 0.85 + 1e-9 for k in ex.LIMIT_KINDS)
+    framed = load_trajectory(str(out), robot)
+    assert isinstance(framed, FramedTrajectory) and framed.periods == 2
+    assert doc['durations'] == pytest.approx(framed.parts())
+    assert doc['framing']['ramp_in'] + 8.0 + doc['framing']['ramp_out'] == pytest.approx(
+        framed.duration)
+    # CSV: t, every joint's position, velocity, acceleration, ramps included, at --rate
+    csv = out.with_suffix('.csv')
+    header = csv.read_text().splitlines()[0].split(',')
+    assert header == ['t'] + [f'{j}.{k}' for k in ('position', 'velocity', 'acceleration')
+                              for j in robot.joint_names]
+    data = np.loadtxt(csv, delimiter=',', skiprows=1)
+    np.testing.assert_allclose(data[:, 0], np.arange(len(data)) / 50.0, atol=1e-9)
+    assert data[-1, 0] == pytest.approx(framed.duration)
+    q, qd, qdd = framed.sample(data[:, 0])
+    np.testing.assert_allclose(data[:, 1:], np.hstack([q, qd, qdd]), atol=1e-12)
+    np.testing.assert_allclose(data[[0, -1], 8:], 0.0, atol=1e-12)   # at rest
+    # the plot and the bag
+    assert out.with_suffix('.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    with BagReader(bag) as reader:
+        msg = [m for *_, m in iter_messages(reader)][0]
+    assert len(msg.points) == len(data)
+    np.testing.assert_allclose(msg.points[0].velocities, 0.0, atol=1e-12)
+    np.testing.assert_allclose(msg.points[-1].positions, framed.start, atol=1e-12)
+
+
+def test_identification_from_a_simulated_run_ramps_included(tmp_path, capsys):
+    """excite -> simulate (ArmSimulator under computed torque, ramps included, torque noise)
+    -> identify with the framed trajectory (periodic part only): every base parameter within
+    4 standard deviations of the truth. Averaging the whole run as if periodic is far off."""
+    exc, bag = tmp_path / 'mit.yaml', tmp_path / 'bag'
+    assert main(['excite', '--robot', 'mit_dd_arm', '--harmonics', '3', '--period', '2',
+                 '--periods', '3', '--maxiter', '30', '--samples', '60',
+                 '--out', str(exc)]) == 0
+    assert main(['simulate', '--robot', 'mit_dd_arm', '--trajectory', str(exc),
+                 '--torque-std', '0.5', '--out', str(bag)]) == 0
+    framed = load_trajectory(str(exc), load_robot('mit_dd_arm'))
+    truth = yaml.safe_load((bag / 'true_parameters.yaml').read_text())
+    assert truth['samples'] == int(round(framed.duration * 1000)) + 1   # the ramps were run
+    capsys.readouterr()
+    assert main(['identify', str(bag), '--robot', 'mit_dd_arm', '--trajectory', str(exc),
+                 '--json']) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc['processing']['window_s'] == pytest.approx(list(framed.periodic_window))
+    assert doc['processing']['periods'] == 3
+    est = {p['name']: p for p in doc['base_parameters']}
+    err = [(est[n]['estimate'] - v) / est[n]['stddev']
+           for n, v in truth['base_parameters'].items()]
+    assert np.all(np.abs(err) < 4.0), err
+    assert main(['identify', str(bag), '--robot', 'mit_dd_arm', '--period', '2', '--json']) == 0
+    whole = {p['name']: p for p in json.loads(capsys.readouterr().out)['base_parameters']}
+    off = [abs(whole[n]['estimate'] - v) / whole[n]['stddev']
+           for n, v in truth['base_parameters'].items()]
+    assert max(off) > 20.0
