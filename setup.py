@@ -29,6 +29,8 @@ setup(
         'mcap>=1.2,<2',
         'matplotlib>=3.6,<4',
         'dask[distributed]>=2024.1',   # the fleet verb's cluster (fleet.py)
+        'cvxpy>=1.5,<2',
+        'clarabel>=0.9,<1',
     ],
     extras_require={
         'ros': [

@@ -414,11 +414,14 @@ class RidgeRegression(_BatchAccumulator):
 @dataclass
 class WeightedFit:
     """theta (p,), covariance (p, p), per-joint noise variance of the equations (n,) and s2, the
-    weighted residual variance (1 when the weights are the true inverse variances)."""
+    weighted residual variance (1 when the weights are the true inverse variances); weights
+    (n,): the objective's per-joint weights, covariance = (sum_j w_j Y_j'Y_j)^-1 (the
+    physically consistent solve uses the same objective)."""
     theta: np.ndarray
     covariance: np.ndarray
     noise_variance: np.ndarray
     s2: float
+    weights: np.ndarray | None = None
 
 
 def weighted_solve(equations: NormalEquations, known: bool = False, iterations: int = 20,
@@ -456,12 +459,13 @@ def weighted_solve(equations: NormalEquations, known: bool = False, iterations: 
     if known:
         theta, P, rss, _ = solve(np.ones(n))
         s2 = float(rss.sum() / (counts.sum() - b))
-        return WeightedFit(theta, P * max(1.0, s2), rss / np.maximum(counts, 1), s2)
+        return WeightedFit(theta, P * max(1.0, s2), rss / np.maximum(counts, 1), s2,
+                           np.full(n, 1.0 / max(1.0, s2)))
     w = np.ones(n)
     theta, P, rss, lev = solve(w)
     sigma2 = rss / np.maximum(counts - lev, 1.0)
     if sigma2.max() <= 0:      # noise-free: any weights give the same exact fit
-        return WeightedFit(theta, np.zeros((b, b)), sigma2, 0.0)
+        return WeightedFit(theta, np.zeros((b, b)), sigma2, 0.0, w)
     for _ in range(iterations):
         # Floor: a (nearly) noise-free joint must not get an infinite weight.
         w = 1.0 / np.maximum(sigma2, 1e-12 * sigma2.max())
@@ -472,7 +476,7 @@ def weighted_solve(equations: NormalEquations, known: bool = False, iterations: 
         if done:
             break
     s2 = float((w * rss).sum() / (counts.sum() - b))
-    return WeightedFit(theta, P, sigma2, s2)
+    return WeightedFit(theta, P, sigma2, s2, w)
 
 
 # -- recursive least squares ------------------------------------------------------------------

@@ -38,6 +38,8 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .bagio import iter_joint_states, open_bag, read_string_topic
+from .consistency import (ConsistencyOptions, ConsistentEstimate, ConsistentSolver,
+                          pipeline_equations)
 from .errors import IdentificationError
 from .estimators import ResidualStatistics, WeightedFit, weighted_solve
 from .identifiability import BaseParameters, sample_motion, unexcited_directions
@@ -444,6 +446,17 @@ class Identification:
     series: TorqueSeries | None = None
     details: dict = field(default_factory=dict)
     pipeline: IdentificationPipeline | None = None
+    # the information fitted and its per-joint weights (the WLS objective), for the
+    # constrained solve; its outcome (make_consistent)
+    fit_equations: NormalEquations | None = None
+    fit_weights: np.ndarray | float = 1.0
+    consistent: ConsistentEstimate | None = None
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """The estimate published: the consistent one when solved, else theta (unconstrained)."""
+        ok = self.consistent is not None and self.consistent.ok
+        return self.consistent.theta if ok else self.theta
 
     @property
     def stddev(self) -> np.ndarray:
@@ -476,7 +489,10 @@ class Identification:
         return np.sqrt(self.residuals.variance(self.theta))
 
     def standard_parameters(self) -> np.ndarray:
-        """The full parameter vector closest to the model's that reproduces theta."""
+        """The consistent full parameter vector when solved, else the one closest to the
+        model's that reproduces theta."""
+        if self.consistent is not None and self.consistent.ok:
+            return self.consistent.phi
         return self.base.closest_standard(self.theta, safe_prior(self.robot)[0])
 
     def consistency_problems(self) -> list[str]:
@@ -639,7 +655,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
                          fit.covariance, noise, cond,
                          samples.num_samples, info['rows']),
         history, TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
-                              samples.first_ns), info)
+                              samples.first_ns), info,
+        fit_equations=acc.fit.normal_equations(), fit_weights=fit.weights)
 
 
 def _checkpoint(history: list, acc: _Accumulator, samples: int, stamp_ns: int) -> None:
@@ -722,7 +739,18 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
         list(result.history), series,
         {'processing': 'smoothed', 'smoother_half_window': int(p.config.half_window),
          'smoother_order': int(p.config.smoother_order),
-         'forgetting_factor': float(p.config.forgetting)}, p)
+         'forgetting_factor': float(p.config.forgetting)}, p,
+        *pipeline_equations(p))
+
+
+def make_consistent(ident: Identification, options: ConsistencyOptions | None
+                    ) -> Identification:
+    """``ident`` with its constrained solve (consistency.py) on the information it fitted,
+    with the same weights; unchanged when ``options`` is None (physical_consistency off)."""
+    if options is not None and ident.fit_equations is not None:
+        solver = ConsistentSolver.for_robot(ident.robot, ident.base, options)
+        ident.consistent = solver.solve(ident.fit_equations, ident.fit_weights)
+    return ident
 
 
 # -- validation on a held-out bag ---------------------------------------------------------------
@@ -730,13 +758,15 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
 class Validation:
     """The fitted estimate on a held-out bag, processed as the training bag: samples used,
     rows (after filtering or averaging), per-joint relative torque error (percent) of the
-    estimate and of the model's own parameters, and a torque series for plots."""
+    estimate (the consistent one when solved), of the model's own parameters and of the
+    unconstrained estimate, and a torque series for plots."""
     bag: str
     num_samples: int
     rows: int
     relative_error: np.ndarray
     model_relative_error: np.ndarray
     series: TorqueSeries | None = None
+    unconstrained_relative_error: np.ndarray | None = None
 
 
 def check_same_robot(bag: str | os.PathLike, robot: RobotModel) -> None:
@@ -788,5 +818,6 @@ def validate(ident: Identification, bag: str | os.PathLike, settings: Settings,
                                   samples.first_ns)
     except IdentificationError as exc:
         raise IdentificationError(f'validation bag: {exc}') from None
-    return Validation(str(bag), int(used), int(stats.count), stats.relative_error(ident.theta),
-                      stats.relative_error(ident.theta_model), series)
+    return Validation(str(bag), int(used), int(stats.count), stats.relative_error(ident.estimate),
+                      stats.relative_error(ident.theta_model), series,
+                      stats.relative_error(ident.theta))

@@ -187,14 +187,15 @@ def paper_table3_rows(base: BaseParameters, theta: np.ndarray, covariance: np.nd
 def base_parameter_table(ident: Identification) -> list[str]:
     b = ident.base
     rows = [[f'`{n}`', e, _fmt(v), _fmt(s, 3), _fmt(r, 3), _fmt(m)] for n, e, v, s, r, m in zip(
-        b.names, b.expressions, ident.theta, ident.stddev, ident.rel_stddev, ident.theta_model)]
+        b.names, b.expressions, ident.estimate, ident.stddev, ident.rel_stddev, ident.theta_model)]
     return _table(['base parameter', 'expression', 'estimate', 'stddev', 'rel. stddev (%)',
                    'model'], rows, text=2)
 
 
 def standard_parameter_table(ident: Identification) -> list[str]:
-    """Table 2 style: per link the closest standard parameters reproducing the estimate, with
-    the relative stddev of those identifiable alone; * unidentifiable (model value kept),
+    """Table 2 style: per link the standard parameters of the estimate (the consistent solve's,
+    else the closest to the model's reproducing it), with the relative stddev of those
+    identifiable alone; * unidentifiable (model value kept),
     + identifiable only in combinations (one of the combinations' solutions)."""
     robot, b = ident.robot, ident.base
     phi = ident.standard_parameters()
@@ -220,7 +221,7 @@ def combination_table(ident: Identification) -> list[str]:
     """Table 3 style: every base parameter that regroups several standard parameters."""
     rows = [[f'`{n}`', e, _fmt(v), _fmt(s, 3), _fmt(m)]
             for n, e, t, v, s, m in zip(ident.base.names, ident.base.expressions,
-                                        ident.base.terms, ident.theta, ident.stddev,
+                                        ident.base.terms, ident.estimate, ident.stddev,
                                         ident.theta_model) if len(t) > 1]
     if not rows:
         return ['Every base parameter is a single standard parameter.']
@@ -267,14 +268,15 @@ def markdown(ident: Identification, validation: Validation | None = None,
     lines += ['## Base parameters', '', 'SI units; model: the base parameters of the '
               "description's own parameters.", ''] + base_parameter_table(ident)
     lines += ['', '## Standard parameters per link', '',
-              'The full parameter set closest to the model that reproduces the estimate (Table 2 '
-              'style). In parentheses: relative standard deviation of parameters identifiable '
-              'alone; \\* unidentifiable (model value kept); + identifiable only in the '
+              'The full parameter set of the estimate: the physically consistent solve\'s (else '
+              'the one closest to the model that reproduces it; Table 2 style). In '
+              'parentheses: relative standard deviation of parameters identifiable alone; '
+              '\\* unidentifiable (model value kept); + identifiable only in the '
               'combinations below.', ''] + standard_parameter_table(ident)
     lines += ['', '## Identifiable combinations', '', 'Base parameters that regroup several '
               'standard parameters (Table 3 style).', ''] + combination_table(ident)
     if is_mit_arm(robot):
-        rows = paper_table3_rows(ident.base, ident.theta, ident.covariance, ident.theta_model)
+        rows = paper_table3_rows(ident.base, ident.estimate, ident.covariance, ident.theta_model)
         lines += ['', '### An, Atkeson, Hollerbach (1986), Table 3', ''] + _table(
             ['combination', 'identified', 'stddev', 'model (Table 1)', 'paper CAD',
              'paper estimate'],
@@ -282,10 +284,13 @@ def markdown(ident: Identification, validation: Validation | None = None,
               _fmt(r['model'], 5), _fmt(r['paper_cad'], 5), _fmt(r['paper_estimate'], 5)]
              for r in rows])
     problems = ident.consistency_problems()
+    solver = ident.consistent
     lines += ['', '## Physical consistency', '',
-              'The closest full parameter set is ' + ('physically consistent.' if not problems
-                                                      else 'not physically consistent:')]
+              ('Constrained solve: ' + (solver.status if solver is not None else 'off') + '. ')
+              + 'The full parameter set is ' + ('physically consistent.' if not problems
+                                                else 'not physically consistent:')]
     lines += [f'- {p}' for p in problems]
+    lines += [f'- note: {n}' for n in (solver.notes if solver is not None else [])]
     if validation is not None:
         lines += ['', '## Validation on a held-out bag', '',
                   f'`{validation.bag}`: {validation.num_samples} samples ({validation.rows} '
@@ -315,7 +320,7 @@ def write_report(directory: str | os.PathLike, ident: Identification,
     xlabel = 'phase in the averaged period (s)' if ident.processing == 'periodic' else \
         'time (s)'
     if ident.series is not None and len(ident.series.stamps_ns):
-        data = torque_figure_data(ident.series, ident.theta, ident.theta_model,
+        data = torque_figure_data(ident.series, ident.estimate, ident.theta_model,
                                   ident.robot.joint_names)
         report.data['torque'] = data
         report.files['torque'] = plot_torque(
@@ -329,7 +334,7 @@ def write_report(directory: str | os.PathLike, ident: Identification,
             data, report.directory / CONVERGENCE_FIGURE)
     if validation is not None and validation.series is not None \
             and len(validation.series.stamps_ns):
-        data = torque_figure_data(validation.series, ident.theta, ident.theta_model,
+        data = torque_figure_data(validation.series, ident.estimate, ident.theta_model,
                                   ident.robot.joint_names)
         report.data['validation'] = data
         report.files['validation'] = plot_torque(

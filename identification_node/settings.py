@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, Mapping
 
 import yaml
 
+from .consistency import ConsistencyOptions
 from .errors import IdentificationError
 from .plausibility import PlausibilitySettings
 from .robot import RobotModel, load_robot
@@ -95,7 +96,23 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'payload.tolerance.mass': (0.02, 'kg; mass stddev above this: not excited'),
     'payload.tolerance.com': (0.005, 'm; centre of mass stddev above this: not excited'),
     'payload.tolerance.inertia': (0.002, 'kg m^2; inertia stddev above this: not excited'),
+    'physical_consistency': (True, 'publish and save the physically consistent estimate '
+                             '(constrained least squares); false: the unconstrained one only'),
+    'consistency.weight': (1e-3, 'weight of the log-det regulariser toward the description\'s '
+                           'inertials, in chi-square units of the data term'),
+    'consistency.margin': (1e-6, 'pseudo-inertia margin: J - margin * 1 >= 0 (kg, kg m^2)'),
+    'consistency.solver': ('CLARABEL', 'cvxpy solver: CLARABEL or SCS'),
+    'consistency.time_limit': (5.0, 's per constrained solve; on time-out the unconstrained '
+                               'estimate is kept and the failure reported'),
+    'consistency.geometry_box': (True, 'bound each centre of mass by the bounding box of its '
+                                 'link\'s URDF collision/visual primitives, where it has some'),
+    'consistency.mass_min': ([], 'per identified link lower mass bound, kg (empty: none)'),
+    'consistency.mass_max': ([], 'per identified link upper mass bound, kg (empty: none)'),
+    'consistency.com_box': ([], '6 values per identified link: centre of mass box lo x y z, '
+                            'hi x y z in the link frame, m (empty: geometry_box)'),
 }
+FLOAT_LISTS = ('joint_noise_std', 'consistency.mass_min', 'consistency.mass_max',
+               'consistency.com_box')
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
 # PipelineConfig fields whose parameter has another name.
 CONFIG_FIELD_PARAMETERS = {
@@ -163,7 +180,9 @@ class Settings:
             raise IdentificationError('parameter publish.effort_rate must be >= 0')
         if not str(values['output_directory']).strip():
             raise IdentificationError('parameter output_directory must not be empty')
-        return cls(values, frozenset(given))
+        settings = cls(values, frozenset(given))
+        settings.consistency_options()
+        return settings
 
     def __getitem__(self, name: str) -> Any:
         return self.values[name]
@@ -171,6 +190,20 @@ class Settings:
     @property
     def output_directory(self) -> Path:
         return Path(self.values['output_directory']).expanduser().resolve()
+
+    def consistency_options(self) -> ConsistencyOptions | None:
+        """The constrained solve's options (validated), None when physical_consistency is
+        false."""
+        if not self.values['physical_consistency']:
+            return None
+        v = self.values
+        options = ConsistencyOptions(
+            weight=v['consistency.weight'], margin=v['consistency.margin'],
+            solver=v['consistency.solver'].upper(), time_limit=v['consistency.time_limit'],
+            geometry_box=v['consistency.geometry_box'], mass_min=tuple(v['consistency.mass_min']),
+            mass_max=tuple(v['consistency.mass_max']), com_box=tuple(v['consistency.com_box']))
+        options.validate()
+        return options
 
     def load_robot(self) -> RobotModel:
         v = self.values
@@ -250,8 +283,7 @@ def coerce(name: str, value: Any, default: Any) -> Any:
         if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
             value = [value]
         value = list(value)
-        kind = type(default[0]) if default else (
-            float if name in ('joint_noise_std', 'plausibility.current_limit') else str)
+        kind = type(default[0]) if default else (float if name in FLOAT_LISTS else str)
         return [coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
     if isinstance(default, bool):
         if not isinstance(value, bool):

@@ -1,10 +1,12 @@
-"""Identified parameters as URDF <inertial> blocks, and their physical consistency.
+"""Identified parameters as URDF <inertial> blocks, their physical consistency, and the parts of
+a URDF the consistent solve reads (bodies merged into an identified link, geometry primitives).
 
-The <inertial> of link i is written from the standard parameters [m, mx, my, mz, Ixx, ...] (about
-the joint origin, link frame) as the centre of mass c = (mx, my, mz) / m and the inertia about
-it, I_c = I_o - m (|c|^2 1 - c c^T), with rpy 0. Bodies that pinocchio merged into an identified
-link (fixed children, locked subtrees) lose their own <inertial>, since the identified values
-already contain them.
+The <inertial> of identified link i is written from its standard parameters [m, mx, my, mz, Ixx,
+...] (about the joint origin, link frame) minus those of the bodies of locked joints merged into
+it (which keep their own <inertial>, so the model stays right when they move), as the centre of
+mass c = (mx, my, mz) / m and the inertia about it, I_c = I_o - m (|c|^2 1 - c c^T), rpy 0.
+Links attached by fixed joints only lose their <inertial>: the identified values contain them.
+Every link of the description is kept.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pinocchio as pin
 
-from .robot import RobotModel
+from .robot import PIN_ORDER, RobotModel
 
 
 def link_inertia(phi10: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -66,6 +68,93 @@ def _merged_links(robot: RobotModel, joint_id: int, main: str) -> list[str]:
             if f.parentJoint == joint_id and f.type == pin.FrameType.BODY and f.name != main]
 
 
+def _origin(el: ET.Element | None) -> pin.SE3:
+    """An URDF <origin> (xyz, rpy; absent: identity) as an SE3."""
+    if el is None:
+        return pin.SE3.Identity()
+    xyz = np.array([float(v) for v in el.get('xyz', '0 0 0').split()])
+    rpy = [float(v) for v in el.get('rpy', '0 0 0').split()]
+    return pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
+
+
+def _xml_inertia(link: ET.Element) -> pin.Inertia:
+    """A link's <inertial> in its link frame (zero when it has none)."""
+    el = link.find('inertial')
+    if el is None or el.find('mass') is None:
+        return pin.Inertia.Zero()
+    m = float(el.find('mass').get('value', 0.0))
+    about_com = np.zeros((3, 3))
+    inertia = el.find('inertia')
+    if inertia is not None:
+        for k, (a, b) in {'ixx': (0, 0), 'ixy': (0, 1), 'ixz': (0, 2), 'iyy': (1, 1),
+                          'iyz': (1, 2), 'izz': (2, 2)}.items():
+            about_com[a, b] = about_com[b, a] = float(inertia.get(k, 0.0))
+    M = _origin(el.find('origin'))
+    return pin.Inertia(m, M.translation, M.rotation @ about_com @ M.rotation.T)
+
+
+def _shape_corners(geometry: ET.Element) -> np.ndarray | None:
+    """Corners (8, 3) of the bounding box of a primitive shape in its own frame; None for
+    meshes and unknown shapes."""
+    half = None
+    for shape in geometry:
+        if shape.tag == 'box':
+            half = 0.5 * np.array([float(v) for v in shape.get('size').split()])
+        elif shape.tag in ('cylinder', 'capsule'):
+            r, length = float(shape.get('radius')), float(shape.get('length'))
+            half = np.array([r, r, 0.5 * length + (r if shape.tag == 'capsule' else 0.0)])
+        elif shape.tag == 'sphere':
+            half = np.full(3, float(shape.get('radius')))
+    if half is None:
+        return None
+    signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+    return signs * half
+
+
+def _locked_links(root: ET.Element, main: str, merged: list[str]) -> set[str]:
+    """Those of ``merged`` below a movable (locked) joint on their way up to ``main``."""
+    parent = {j.find('child').get('link'): (j.find('parent').get('link'), j.get('type'))
+              for j in root.findall('joint')
+              if j.find('child') is not None and j.find('parent') is not None}
+    out = set()
+    for name in merged:
+        link = name
+        while link != main and link in parent:
+            link, kind = parent[link]
+            if kind != 'fixed':
+                out.add(name)
+                break
+    return out
+
+
+def merged_bodies(robot: RobotModel, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """For identified link i: the standard parameters (10,) of the links of locked joints merged
+    into it (in its joint frame, at the locked configuration; zero if none), and the corners
+    (k, 3) of the bounding boxes of the collision and visual primitives of all of its links
+    (joint frame, m; None when it has none). URDF descriptions only (zeros, None otherwise)."""
+    if robot.kind != 'urdf':
+        return np.zeros(10), None
+    root = ET.fromstring(robot.description)
+    links = {el.get('name'): el for el in root.findall('link')}
+    jid, main = robot.joint_ids[i], robot.link_names[i]
+    frames = {f.name: f.placement for f in robot.model.frames
+              if f.parentJoint == jid and f.type == pin.FrameType.BODY and f.name in links}
+    locked = _locked_links(root, main, [n for n in frames if n != main])
+    fixed = pin.Inertia.Zero()
+    corners = []
+    for name, placement in frames.items():
+        if name in locked:
+            fixed += placement.act(_xml_inertia(links[name]))
+        for el in links[name].findall('collision') + links[name].findall('visual'):
+            geometry = el.find('geometry')
+            c = None if geometry is None else _shape_corners(geometry)
+            if c is not None:
+                M = placement * _origin(el.find('origin'))
+                corners.append(c @ M.rotation.T + M.translation)
+    return (fixed.toDynamicParameters()[PIN_ORDER],
+            np.concatenate(corners) if corners else None)
+
+
 def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
     """The robot's URDF with each identified link's <inertial> replaced by ``phi``'s values."""
     if robot.kind != 'urdf':
@@ -73,15 +162,17 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
     root = ET.fromstring(robot.description)
     links = {el.get('name'): el for el in root.findall('link')}
     for i, (jid, name) in enumerate(zip(robot.joint_ids, robot.link_names)):
-        for merged in _merged_links(robot, jid, name):
-            old = links.get(merged)
+        merged = _merged_links(robot, jid, name)
+        locked = _locked_links(root, name, merged)
+        for other in set(merged) - locked:
+            old = links.get(other)
             if old is not None and old.find('inertial') is not None:
                 old.remove(old.find('inertial'))
         link = links[name]
         old = link.find('inertial')
         if old is not None:
             link.remove(old)
-        m, c, Ic = link_inertia(phi[10 * i:10 * i + 10])
+        m, c, Ic = link_inertia(phi[10 * i:10 * i + 10] - merged_bodies(robot, i)[0])
         inertial = ET.Element('inertial')
         ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
         ET.SubElement(inertial, 'mass', value=f'{m:.9g}')

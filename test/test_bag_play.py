@@ -11,6 +11,7 @@ import pytest
 import yaml
 from std_srvs.srv import Trigger
 
+from identification_node.consistency import ConsistentSolver, pipeline_equations
 from identification_node.replay import identify_bag
 from identification_node.settings import Settings, read_parameter_file
 from ros_helpers import RosHarness, domain_id, wait_for
@@ -64,10 +65,18 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
     assert live['names'] == est.names
     assert 0 <= est.num_samples - live['num_samples'] <= 5
     values, stddev = np.array(live['values']), np.array(live['stddev'])
-    # Those few samples aside, both saw the same data through the same pipeline.
-    assert np.all(np.abs(values - est.values) <= 0.2 * est.stddev), (
-        (values - est.values) / est.stddev).round(3)
+    unconstrained = np.array(live['unconstrained_values'])
+    # Those few samples aside, both saw the same data through the same pipeline ...
+    assert np.all(np.abs(unconstrained - est.values) <= 0.2 * est.stddev), (
+        (unconstrained - est.values) / est.stddev).round(3)
     np.testing.assert_allclose(stddev, est.stddev, rtol=0.05)
+    # ... and the published, physically consistent estimate is the same solve offline
+    assert live['consistency_status'] == 'optimal'
+    consistent = ConsistentSolver.for_robot(offline.pipeline.robot, offline.pipeline.base,
+                                            settings.consistency_options()).solve(
+        *pipeline_equations(offline.pipeline))
+    assert np.all(np.abs(values - consistent.theta) <= 0.2 * est.stddev), (
+        (values - consistent.theta) / est.stddev).round(3)
     truth = yaml.safe_load((REPO / 'bags' / bag / 'true_parameters.yaml').read_text())
     true = np.array([truth['base_parameters'][n] for n in est.names])
     assert np.all(np.abs(values - true) < 4 * stddev)

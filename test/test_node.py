@@ -28,6 +28,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
+from identification_node.consistency import (ConsistencyOptions, ConsistentSolver,
+                                             pipeline_equations)
 from identification_node.controller_client import IdentifiedModel
 from identification_node.errors import IdentificationError
 from identification_node.identifiability import BaseParameters
@@ -232,7 +234,7 @@ def offline_estimate(sim_params, node_params, sim):
                 p.add_currents(JointStateRecord(int(stamps[k]), channels, angle[k],
                                                 np.empty(0), currents[k]))
         p.process()
-    return p.estimate()
+    return p
 
 
 @pytest.fixture(scope='module')
@@ -459,9 +461,9 @@ def test_published_outputs_while_streaming(ros, mit, diag):
         'samples_received', 0)), 10)
     msg = params.snapshot()[-1]
     params.close()
-    assert [(d.label, d.size) for d in msg.layout.dim] == [('value_stddev', 2),
-                                                           ('base_parameter', b)]
-    assert len(msg.data) == 2 * b and np.all(np.isfinite(msg.data))
+    assert [(d.label, d.size) for d in msg.layout.dim] == [
+        ('value_stddev_unconstrained', 3), ('base_parameter', b)]
+    assert len(msg.data) == 3 * b and np.all(np.isfinite(msg.data))
     values = last_status(diag, 'services')
     assert {f'rejected.{r}' for r in REJECT_REASONS} <= set(values)
     assert int(values['samples_received']) > 0
@@ -501,10 +503,17 @@ def check_convergence(stream):
         rejected = {r: int(status[f'rejected.{r}']) for r in REJECT_REASONS}
         assert int(status['samples_received']) == len(sim.t), (name, status)
         assert sum(rejected.values()) == 0, rejected
-        offline = offline_estimate(stream.sim_params, stream.node_params[name], sim)
+        pipeline = offline_estimate(stream.sim_params, stream.node_params[name], sim)
+        offline = pipeline.estimate()
         assert est['num_samples'] == offline.num_samples
-        diff = np.abs(values - offline.values) / offline.stddev
+        diff = np.abs(np.array(est['unconstrained_values']) - offline.values) / offline.stddev
         assert np.all(diff <= 1e-6), (name, diff.max())
+        # the published estimate is the consistent solve on the same information, offline
+        assert est['consistency_status'] == 'optimal'
+        solver = ConsistentSolver.for_robot(robot, pipeline.base, ConsistencyOptions())
+        consistent = solver.solve(*pipeline_equations(pipeline))
+        diff = np.abs(values - consistent.theta) / offline.stddev
+        assert np.all(diff <= 1e-4), (name, diff.max())
         assert np.all(np.abs(z) <= 3.0), (name, z.round(2))
         # The final estimate predicts the raw measured torque to the noise level.
         Yb = base.base_regressor(robot.regressor(sim.q, sim.qd, sim.qdd))
@@ -765,3 +774,35 @@ def test_unknown_parameters_are_named_in_a_warning(ros, tmp_path):
     stop_process(proc)
     err = proc.stderr.read()
     assert re.search(r'ignoring parameters this node does not have: forgeting_factor\s', err), err
+
+
+# -- physical consistency ------------------------------------------------------------------------
+def test_solver_time_out_publishes_the_unconstrained_estimate(ros, diag):
+    """A constrained solve that cannot finish in consistency.time_limit is reported (service,
+    diagnostics) and the unconstrained estimate goes out instead, finite."""
+    node = start_node(ros, 'timeout', {
+        'robot': 'mit_dd_arm', 'torque_source': ['measured'], 'consistency.time_limit': 1e-5,
+        'process_period': 0.01, 'publish.diagnostics_rate': 5.0}, 'timeout')
+    robot = node.robot
+    t = np.arange(0.0, 4.0, 1e-3)
+    q, qd, qdd = FourierTrajectory.random(robot, period=4.0, seed=3).sample(t)
+    tau = robot.inverse_dynamics(q, qd, qdd) + 0.01 * np.random.default_rng(4).standard_normal(
+        q.shape)
+    with node._lock:     # straight into the pipeline, as its processing thread would
+        node.pipeline.add_joint_states(JointStateRecord(
+            (1_000_000_000 + 1_000_000 * np.arange(len(t))).astype(np.int64),
+            tuple(robot.joint_names), q, qd, tau))
+        node.pipeline.process(flush=True)
+    params = Collector(ros, Float64MultiArray, '/timeout/base_parameters')
+    est = get_estimate(ros, '/timeout')
+    assert est['consistency_status'] == 'time_limit'
+    assert est['num_samples'] > 3000
+    assert est['values'] == est['unconstrained_values']
+    assert np.all(np.isfinite(est['values'])) and np.all(np.isfinite(est['stddev']))
+    assert wait_for(lambda: len(params), 5)
+    rows = np.reshape(params.snapshot()[-1].data, (3, -1))
+    np.testing.assert_array_equal(rows[0], rows[2])
+    params.close()
+    assert wait_for(lambda: (last_status(diag, 'timeout') or {}).get('consistency_status')
+                    == 'time_limit', 5)
+    ros.remove(node)

@@ -8,7 +8,10 @@ least squares. Prints the base parameter estimate with standard deviations, the 
 relative torque error 100 ||tau_measured - tau_predicted|| / ||tau_measured||, the excitation
 condition number and how the estimate converged; ``--validate TEST_BAG`` adds the relative
 error on a held-out bag, ``--report DIR`` writes report.md with figures, ``--json`` prints the
-same as one object.
+same as one object, ``--save DIR`` writes estimate.yaml and identified.urdf as the node's
+``~/save`` does. The estimate is the physically consistent one (consistency.py) unless
+``--no-physical-consistency`` (config ``physical_consistency: false``); the unconstrained one
+is reported alongside.
 """
 from __future__ import annotations
 
@@ -67,13 +70,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          "default: the model's own")
     parser.add_argument('--report', metavar='DIR',
                         help='write report.md and PNG figures into DIR')
+    parser.add_argument('--save', metavar='DIR',
+                        help="write estimate.yaml and identified.urdf into DIR (the node's "
+                        '~/save)')
+    parser.add_argument('--no-physical-consistency', action='store_true',
+                        help='the unconstrained least-squares estimate only (config: '
+                        'physical_consistency: false)')
 
 
 def result_document(result, validation=None) -> dict:
     """The ``--json`` object of an identification (offline.Identification, or the
     replay.ReplayResult of the streaming pipeline), with the validation when given."""
     from ..offline import Identification, from_replay
-    from ..results import plain
+    from ..results import parameters_document, plain
     from ..urdf_export import consistency_problems
 
     ident = result if isinstance(result, Identification) else from_replay(result)
@@ -82,6 +91,8 @@ def result_document(result, validation=None) -> dict:
     unexcited = ident.unexcited
     # parameters in an unexcited direction: the data say nothing about them, so no estimate
     blind = {name for _, names in unexcited for name in names}
+    params = parameters_document(robot, base, ident.theta, ident.stddev, ident.consistent,
+                                 ident.covariance)
     doc = {
         'bag': ident.bag, 'robot': robot.name, 'joints': robot.joint_names,
         'method': ident.method, 'processing': ident.details,
@@ -89,13 +100,23 @@ def result_document(result, validation=None) -> dict:
         'base_parameters': [
             {'name': n, 'expression': e, 'terms': t,
              'estimate': None if n in blind else float(v),
+             'unconstrained_estimate': None if n in blind else float(u),
              'stddev': None if n in blind else float(s),
              'rel_stddev': None if n in blind else float(r), 'model': float(m),
              'excited': n not in blind}
-            for n, e, t, v, s, r, m in zip(base.names, base.expressions, base.terms,
-                                           ident.theta, ident.stddev, ident.rel_stddev,
-                                           ident.theta_model)],
-        'relative_error': dict(zip(robot.joint_names, ident.relative_error().tolist())),
+            for n, e, t, v, u, s, r, m in zip(base.names, base.expressions, base.terms,
+                                              ident.estimate, ident.theta, ident.stddev,
+                                              ident.rel_stddev, ident.theta_model)],
+        'estimate': ident.estimate.tolist(),
+        'unconstrained_estimate': ident.theta.tolist(),
+        'stddev': ident.stddev.tolist(),
+        'consistency_solver': params['consistency_solver'],
+        'links': params['links'],
+        'standard_parameters': params['standard_parameters'],
+        'relative_error': dict(zip(robot.joint_names, ident.relative_error(
+            ident.estimate).tolist())),
+        'unconstrained_relative_error': dict(zip(robot.joint_names,
+                                                 ident.relative_error().tolist())),
         'model_relative_error': dict(zip(robot.joint_names, ident.relative_error(
             ident.theta_model).tolist())),
         'residual_rms': dict(zip(robot.joint_names, ident.residual_rms.tolist())),
@@ -117,8 +138,24 @@ def result_document(result, validation=None) -> dict:
             'bag': validation.bag, 'num_samples': validation.num_samples,
             'rows': validation.rows,
             'relative_error': dict(zip(robot.joint_names, validation.relative_error.tolist())),
+            'unconstrained_relative_error': dict(zip(
+                robot.joint_names, validation.unconstrained_relative_error.tolist())),
             'model_relative_error': dict(zip(robot.joint_names,
                                              validation.model_relative_error.tolist()))}
+    return plain(doc)
+
+
+def saved_document(ident) -> dict:
+    """estimate.yaml of an identification: what the node's ~/save writes."""
+    from ..results import parameters_document, plain
+
+    doc = parameters_document(ident.robot, ident.base, ident.theta, ident.stddev,
+                              ident.consistent, ident.covariance)
+    doc.update({'bag': ident.bag, 'method': ident.method, 'num_samples': ident.num_samples,
+                'condition_number': ident.condition_number, 'converged': ident.converged,
+                'residual_rms': dict(zip(ident.robot.joint_names,
+                                         ident.residual_rms.tolist())),
+                'rejected': ident.rejected})
     return plain(doc)
 
 
@@ -128,13 +165,20 @@ def format_report(doc: dict) -> str:
              f"method: {doc['method']} ({doc['processing'].get('processing', '')})"]
     if doc['rejected']:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in doc['rejected'].items()))
-    rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['stddev']:.3g}" if b['stddev'] is not None
+    rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['unconstrained_estimate']:.6g}",
+             f"{b['stddev']:.3g}" if b['stddev'] is not None
              else 'inf', f"{b['rel_stddev']:.2f}" if b['rel_stddev'] is not None else 'inf',
              f"{b['model']:.6g}", b['expression']) if b['estimate'] is not None else
-            (b['name'], 'not excited', '', '', f"{b['model']:.6g}", b['expression'])
+            (b['name'], 'not excited', '', '', '', f"{b['model']:.6g}", b['expression'])
             for b in doc['base_parameters']]
     lines += ['', 'base parameters (SI units):'] + _table(
-        ('name', 'estimate', 'stddev', 'rel %', 'model', 'expression'), rows)
+        ('name', 'estimate', 'unconstrained', 'stddev', 'rel %', 'model', 'expression'), rows)
+    solver = doc['consistency_solver']
+    lines.append(f"physically consistent solve: {solver['status']}" + (
+        f" ({solver['solve_time']:.3f} s)" if solver['solve_time'] is not None else '')
+        + ('' if solver['status'] in ('optimal', 'disabled') else
+           ': the unconstrained estimate is given'))
+    lines += [f'  note: {n}' for n in solver['notes']]
     lines += ['', 'relative torque error, percent: ' + _per_joint(doc['relative_error']),
               'with the model\'s own parameters: ' + _per_joint(doc['model_relative_error']),
               'excitation condition number: ' + _number(doc['condition_number'])
@@ -291,10 +335,11 @@ def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..offline import offline_identify, replay_identify, validate
+    from ..offline import make_consistent, offline_identify, replay_identify, validate
     from ..replay import bag_robot
 
     settings = settings_from_args(args)
+    consistency = None if args.no_physical_consistency else settings.consistency_options()
     method = _method(args)
     if args.report:
         from ..report import check_writable
@@ -320,6 +365,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics)
+    make_consistent(ident, consistency)
     validation = (validate(ident, args.validate, settings, options, *topics)
                   if args.validate else None)
     doc = result_document(ident, validation)
@@ -327,6 +373,9 @@ def run(args: argparse.Namespace) -> int:
         from ..payload_monitor import segments_document
         from ..results import plain
         doc['payload_changes'] = plain(segments_document(monitor.finish()))
+    if args.save:
+        from ..results import write_results
+        doc['saved'] = [str(p) for p in write_results(args.save, saved_document(ident), robot)]
     if args.report:
         from ..report import write_report
         report = write_report(args.report, ident, validation)

@@ -8,13 +8,18 @@ pipeline, runs it on them in one batch and publishes (the effort topics only whi
 subscribers):
 
 - ``~/predicted_effort``, ``~/measured_effort`` (JointState, stamped with the sample's stamp),
-- ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations),
-- ``~/robot_description`` (String, transient local: URDF with identified inertials),
+- ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations, row 2
+  the unconstrained values; row 0 is the physically consistent estimate unless
+  ``physical_consistency`` is false, then rows 0 and 2 agree),
+- ``~/robot_description`` (String, transient local: URDF with the consistent inertials),
 - ``/diagnostics`` (counters, with ``lost_messages.<topic>``: input messages lost before the
   node took them, e.g. its queue overflowing while processing stalled, or dropped packets);
 
-exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` parameters (read-only from outside)
-and the services ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``. With
+exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` / ``estimate_unconstrained.<name>``
+parameters (read-only from outside) and the services ``~/reset``, ``~/freeze``, ``~/save``,
+``~/get_estimate``. The constrained solve (consistency.py) runs at every estimate refresh in a
+child process (SolverProcess), on a snapshot of the pipeline's information taken under the
+processing lock and released before the solve. With
 ``payload.enabled`` (ros/payload_outputs.py): ``~/payload`` (InertiaStamped, transient
 local), ``~/payload_changed`` (Header: the change's stamp, frame_id the payload link), the
 services ``~/payload/reset`` and ``~/payload/set``, and the payload in diagnostics, in
@@ -44,6 +49,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
+from ..consistency import ConsistentEstimate, SolverProcess, pipeline_equations
 from ..pipeline import EstimateReport, PipelineOutput
 from ..results import plain, save_results
 from ..settings import PARAMETERS, Settings
@@ -62,6 +68,7 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 ESTIMATE_PREFIX, STDDEV_PREFIX = 'estimate.', 'estimate_stddev.'
+UNCONSTRAINED_PREFIX = 'estimate_unconstrained.'
 # Whether the effort topics have subscribers is asked this often (s), not every run (it is a
 # middleware query): a new subscriber may miss the efforts of its first ~0.1 s.
 LISTENER_CHECK_PERIOD = 0.1
@@ -137,6 +144,20 @@ class IdentificationNode(Node):
         self._listeners_checked = -math.inf      # every LISTENER_CHECK_PERIOD s
         self._consistency: list[str] = []
         self._urdf_samples = 0
+        # The constrained solve: built on first use, run by the worker (or a service) under
+        # its own lock, never under the processing lock.
+        self._consistency_options = s.consistency_options()
+        self._solver: SolverProcess | None = None
+        self._solver_lock = threading.Lock()
+        self._publish_lock = threading.Lock()
+        self._consistent: ConsistentEstimate | None = None
+        self._solver_failure: str = ''
+        self._job: tuple | None = None
+        self._job_ready = threading.Condition()
+        self._worker_running = True
+        self._worker = threading.Thread(target=self._consistency_worker,
+                                        name='identification_consistency', daemon=True)
+        self._worker.start()
         self._received_at_last_diag = 0
         self._last_diag_time = self.get_clock().now()
         self.create_timer(1.0 / s['publish.estimate_rate'], self._guarded(self.refresh_estimate))
@@ -219,7 +240,8 @@ class IdentificationNode(Node):
         self.declare_parameter('base_parameter_names', list(names), ParameterDescriptor(
             description='base parameter names, in the order of ~/base_parameters'))
         for name in names:
-            for prefix, text in ((ESTIMATE_PREFIX, 'estimate'), (STDDEV_PREFIX, 'stddev')):
+            for prefix, text in ((ESTIMATE_PREFIX, 'estimate'), (STDDEV_PREFIX, 'stddev'),
+                                 (UNCONSTRAINED_PREFIX, 'unconstrained estimate')):
                 self.declare_parameter(prefix + name, 0.0, ParameterDescriptor(
                     description=f'{text} of base parameter {name} (SI units)'))
                 self._estimate_names.add(prefix + name)
@@ -285,36 +307,108 @@ class IdentificationNode(Node):
         with self._lock:
             return self.pipeline.estimate()
 
-    def refresh_estimate(self) -> None:
-        """Publish base_parameters and the identified URDF; refresh the estimate parameters."""
-        est = self.estimate()
+    def _snapshot(self) -> tuple:
+        """(estimate, normal equations, weights) of the pipeline now, under the lock."""
+        with self._lock:
+            est = self.pipeline.estimate()
+            equations = (pipeline_equations(self.pipeline) if self._consistency_options
+                         else None)
+        return est, equations
+
+    def refresh_estimate(self, wait: bool = False) -> ConsistentEstimate | None:
+        """Publish base_parameters and the identified URDF; refresh the estimate parameters.
+        The constrained solve runs on the worker thread (``wait``: on this one, returning its
+        outcome)."""
+        est, equations = self._snapshot()
+        if equations is None:
+            self._publish_estimate(est, None)
+            return None
+        if wait:
+            return self._solve_and_publish(est, equations)
+        with self._job_ready:
+            self._job = (est, equations)   # the newest snapshot replaces one not yet taken
+            self._job_ready.notify()
+        return None
+
+    def _consistency_worker(self) -> None:
+        if self._consistency_options is not None:
+            try:
+                self._solver_instance()   # built once, ahead of the first refresh
+            except Exception as exc:  # noqa: BLE001 - reported by the first solve again
+                self.get_logger().error(f'physical consistency solver: {exc}')
+        while True:
+            with self._job_ready:
+                while self._job is None and self._worker_running:
+                    self._job_ready.wait()
+                if not self._worker_running:
+                    return
+                job, self._job = self._job, None
+            try:
+                self._solve_and_publish(*job)
+            except Exception as exc:  # noqa: BLE001 - the worker must survive and report
+                self.get_logger().error('physical consistency solve failed: ' + ''.join(
+                    traceback.format_exception(exc)), throttle_duration_sec=5.0)
+
+    def _solver_instance(self) -> SolverProcess:
+        with self._solver_lock:
+            if self._solver is None:
+                self._solver = SolverProcess.for_robot(self.robot, self.pipeline.base,
+                                                       self._consistency_options)
+                self._solver.start()
+            return self._solver
+
+    def _solve(self, equations: tuple) -> ConsistentEstimate:
+        solver = self._solver_instance()
+        with self._solver_lock:
+            result = solver.solve(*equations)
+        self._consistent = result
+        if not result.ok and result.status != self._solver_failure:
+            self.get_logger().warning(
+                f'physically consistent solve: {result.status}; publishing the '
+                'unconstrained estimate')
+        self._solver_failure = '' if result.ok else result.status
+        return result
+
+    def _solve_and_publish(self, est: EstimateReport, equations: tuple) -> ConsistentEstimate:
+        result = self._solve(equations)
+        self._publish_estimate(est, result)
+        return result
+
+    def _publish_estimate(self, est: EstimateReport, consistent: ConsistentEstimate | None
+                          ) -> None:
+        ok = consistent is not None and consistent.ok
+        values = consistent.theta if ok else est.values
         b = len(est.names)
         msg = Float64MultiArray()
-        msg.layout.dim = [MultiArrayDimension(label='value_stddev', size=2, stride=2 * b),
+        msg.layout.dim = [MultiArrayDimension(label='value_stddev_unconstrained', size=3,
+                                              stride=3 * b),
                           MultiArrayDimension(label='base_parameter', size=b, stride=b)]
-        msg.data = np.concatenate([est.values, est.stddev]).tolist()
-        self._pub_params.publish(msg)
+        msg.data = np.concatenate([values, est.stddev, est.values]).tolist()
         params = [Parameter(ESTIMATE_PREFIX + n, value=float(v))
-                  for n, v in zip(est.names, est.values)]
+                  for n, v in zip(est.names, values)]
         params += [Parameter(STDDEV_PREFIX + n, value=float(s) if np.isfinite(s) else -1.0)
                    for n, s in zip(est.names, est.stddev)]
-        self._internal_update = True
-        try:
-            self.set_parameters_atomically(params)   # one parameter event, one snapshot
-        finally:
-            self._internal_update = False
-        # The URDF topic is latched: rebuild it only when new samples changed the estimate.
-        version = (est.num_samples, self.payload.version if self.payload else 0)
-        if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
-            self._urdf_samples = version
-            with self._lock:
-                phi = self.pipeline.standard_parameters()
-                payload = self.payload.current if self.payload else None
-            self._consistency = consistency_problems(self.robot, phi)
-            urdf = identified_urdf(self.robot, phi)
-            if payload is not None:
-                urdf = urdf_with_payload(urdf, payload)
-            self._pub_urdf.publish(String(data=urdf))
+        params += [Parameter(UNCONSTRAINED_PREFIX + n, value=float(v))
+                   for n, v in zip(est.names, est.values)]
+        with self._publish_lock:
+            self._pub_params.publish(msg)
+            self._internal_update = True
+            try:
+                self.set_parameters_atomically(params)   # one parameter event, one snapshot
+            finally:
+                self._internal_update = False
+            # The URDF topic is latched: rebuild it only when new samples changed the estimate.
+            version = (est.num_samples, self.payload.version if self.payload else 0)
+            if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
+                self._urdf_samples = version
+                with self._lock:
+                    phi = consistent.phi if ok else self.pipeline.standard_parameters()
+                    payload = self.payload.current if self.payload else None
+                self._consistency = consistency_problems(self.robot, phi)
+                urdf = identified_urdf(self.robot, phi)
+                if payload is not None:
+                    urdf = urdf_with_payload(urdf, payload)
+                self._pub_urdf.publish(String(data=urdf))
 
     def _publish_diagnostics(self) -> None:
         p = self.pipeline
@@ -354,6 +448,16 @@ class IdentificationNode(Node):
             'smoother_edge_samples': edges, 'layout_cache_bytes': cache,
             'callback_errors': sum(self.callback_errors.values()),
         }
+        result = self._consistent
+        values['consistency_status'] = ('disabled' if self._consistency_options is None else
+                                        'not solved yet' if result is None else result.status)
+        if result is not None:
+            values['consistency_solve_time_ms'] = f'{1e3 * result.solve_time:.1f}'
+            if not result.ok:
+                status.level = DiagnosticStatus.WARN
+                status.message += '; consistent solve failed: unconstrained estimate published'
+            if result.notes:
+                values['consistency_notes'] = '; '.join(result.notes)
         values.update({f'lost_messages.{s.topic}': 'not known with this middleware'
                        if s.lost is None else s.lost for s in self._inputs})
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
@@ -387,10 +491,13 @@ class IdentificationNode(Node):
         return res
 
     def _srv_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        est, equations = self._snapshot()
+        consistent = None if equations is None else self._solve(equations)
         try:
             with self._lock:
                 paths = save_results(self.pipeline, self.settings.output_directory,
-                                     self.payload.current if self.payload else None)
+                                     self.payload.current if self.payload else None,
+                                     consistent)
         except OSError as exc:
             res.success, res.message = False, f'cannot save: {exc}'
             return res
@@ -399,11 +506,16 @@ class IdentificationNode(Node):
 
     def _srv_get_estimate(self, _req: Trigger.Request,
                           res: Trigger.Response) -> Trigger.Response:
-        self.refresh_estimate()
-        est = self.estimate()
+        est, equations = self._snapshot()
+        consistent = None if equations is None else self._solve_and_publish(est, equations)
+        if equations is None:
+            self._publish_estimate(est, None)
+        ok = consistent is not None and consistent.ok
         res.success = True
         res.message = json.dumps(plain({
-            'names': est.names, 'values': est.values.tolist(), 'stddev': est.stddev.tolist(),
+            'names': est.names, 'values': (consistent.theta if ok else est.values).tolist(),
+            'stddev': est.stddev.tolist(), 'unconstrained_values': est.values.tolist(),
+            'consistency_status': 'disabled' if consistent is None else consistent.status,
             'num_samples': est.num_samples, 'time': est.stamp, 'converged': est.converged,
             'condition_number': est.condition_number}))
         return res
@@ -411,6 +523,13 @@ class IdentificationNode(Node):
     def destroy_node(self) -> None:
         self._clock_check.stop()
         self._processing.stop()
+        with self._job_ready:
+            self._worker_running = False
+            self._job_ready.notify()
+        self._worker.join(timeout=10.0)
+        if self._solver is not None:
+            with self._solver_lock:
+                self._solver.close()
         for source in self._inputs:
             source.destroy()
         super().destroy_node()
