@@ -198,8 +198,9 @@ class ConsistentSolver:
             own_prior = phi_prior[body.start:body.start + 10] - body.fixed
             J0 = pseudo_inertia(own_prior)
             ev = np.linalg.eigvalsh(J0)
-            eps = min(eps_opt, 1e-2 * ev[0]) if ev[0] > 0 else eps_opt
-            if ev[0] <= 0:
+            degenerate = not ev[0] > 1e-9 * max(ev[-1], 0.0)   # also singular to rounding
+            eps = eps_opt if degenerate else min(eps_opt, 1e-2 * ev[0])
+            if degenerate:
                 J0 = _repaired(J0, max(1e-3 * ev[-1], 10 * eps))
                 self.notes.append(f'{body.name}: the prior is not physically consistent '
                                   f'(pseudo-inertia eigenvalues {np.array2string(ev, precision=3)}'
@@ -245,9 +246,11 @@ class ConsistentSolver:
                   options: ConsistencyOptions | None = None) -> ConsistentSolver:
         """The solver for a RobotModel: one body per identified link (its locked subtrees
         fixed at their URDF inertials), the description's parameters as the prior."""
+        from .prior import safe_prior
+
         options = options or ConsistencyOptions()
         options.validate(robot.dof)
-        return cls(base, robot.phi_model, robot_bodies(robot, options), options)
+        return cls(base, safe_prior(robot)[0], robot_bodies(robot, options), options)
 
     def data_factor(self, equations: NormalEquations, weights: np.ndarray | float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -387,7 +390,9 @@ class SolverProcess:
         """As ConsistentSolver.for_robot (the bodies are read here, from the robot)."""
         options = options or ConsistencyOptions()
         options.validate(robot.dof)
-        return cls(base, robot.phi_model, robot_bodies(robot, options), options)
+        from .prior import safe_prior
+
+        return cls(base, safe_prior(robot)[0], robot_bodies(robot, options), options)
 
     def start(self) -> None:
         """Start the child (solve does when needed); it builds the problem at once."""
@@ -428,14 +433,8 @@ class SolverProcess:
         """Stop the child."""
         if self._process is None:
             return
-        try:
-            self._conn.send(None)
-        except (OSError, BrokenPipeError):
-            pass
-        self._process.join(timeout=2.0)
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(timeout=2.0)
+        self._process.terminate()   # nothing to keep: quick, also mid-solve
+        self._process.join(timeout=1.0)
         self._conn.close()
         self._process = self._conn = None
 

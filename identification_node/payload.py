@@ -21,6 +21,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
+from .consistency import pseudo_inertia
 from .errors import IdentificationError
 from .normal_equations import NormalEquations
 from .robot import RobotModel
@@ -189,19 +190,6 @@ def _jacobian(phi: np.ndarray) -> np.ndarray:
         d = np.zeros(10)
         d[k] = h
         J[:, k] = (quantities(phi + d) - quantities(phi - d)) / (2 * h)
-    return J
-
-
-def pseudo_inertia(phi: np.ndarray) -> np.ndarray:
-    """The 4x4 pseudo-inertia J(phi) = [[tr(I)/2 1 - I, h], [h', m]] (Wensing, Kim and
-    Slotine 2017): phi is physically consistent iff J > 0."""
-    m, h = phi[0], phi[1:4]
-    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi[4:]
-    inertia = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
-    J = np.empty((4, 4))
-    J[:3, :3] = 0.5 * np.trace(inertia) * np.eye(3) - inertia
-    J[:3, 3] = J[3, :3] = h
-    J[3, 3] = m
     return J
 
 

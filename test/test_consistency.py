@@ -21,6 +21,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimators import RecursiveLeastSquares
 from identification_node.identifiability import BaseParameters
 from identification_node.normal_equations import NormalEquations
+from identification_node.prior import safe_prior
 from identification_node.robot import load_robot
 from identification_node.trajectories import FourierTrajectory
 from identification_node.urdf_export import consistency_problems, identified_urdf
@@ -262,7 +263,9 @@ def test_hard_priors_give_a_feasible_result_and_a_message():
     base = BaseParameters.from_robot(robot)
     assert len(consistency_problems(robot, robot.phi_model)) == 2
     solver = ConsistentSolver.for_robot(robot, base)
-    assert any('l1' in n for n in solver.notes) and any('l2' in n for n in solver.notes)
+    # l1 (zero mass) is replaced by prior.safe_prior, l2 (triangle) repaired by the solver
+    assert any('l1' in n for n in safe_prior(robot)[1])
+    assert any('l2' in n for n in solver.notes)
     phi = robot.phi_model.copy()
     phi[0:10] = [1.0, 0, 0, 0.05, 0.01, 0, 0, 0.01, 0, 0.01]   # a physical truth
     phi[10:20] = [2.0, 0.4, 0, 0, 0.01, 0, 0, 0.1, 0, 0.1]

@@ -526,10 +526,9 @@ class IdentificationNode(Node):
         with self._job_ready:
             self._worker_running = False
             self._job_ready.notify()
-        self._worker.join(timeout=10.0)
         if self._solver is not None:
-            with self._solver_lock:
-                self._solver.close()
+            self._solver.close()   # not under the solver lock: a solve may be in flight
+        self._worker.join(timeout=1.0)
         for source in self._inputs:
             source.destroy()
         super().destroy_node()
