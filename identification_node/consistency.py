@@ -178,6 +178,7 @@ class ConsistentSolver:
             in_body[body.start:body.start + 10] = True
         self._extra = np.flatnonzero(~in_body)
         kinds = [base.param_names[k].rsplit('.', 1)[-1] for k in self._extra]
+        self._nonneg = self._extra[[k in NONNEGATIVE for k in kinds]] if kinds else self._extra
         eps_opt, gamma = self.options.margin, self.options.weight
 
         # Scaled variables, so that the solver sees numbers of order one: per body Jt with
@@ -313,6 +314,8 @@ class ConsistentSolver:
         phi = self._phi.value if status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) else None
         if phi is not None:
             phi = np.asarray(phi, dtype=float).reshape(-1)
+            # fv, fc, Ia >= 0 hold to the solver's tolerance (-1e-12): exactly, after this
+            phi[self._nonneg] = np.maximum(phi[self._nonneg], 0.0)
             problems = self.violations(phi)
             if not np.isfinite(phi).all() or problems:
                 status, phi = 'infeasible_result: ' + '; '.join(problems[:3]), None
