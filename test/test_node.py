@@ -43,8 +43,10 @@ from identification_node.settings import Settings
 from identification_node.simulation import SensorNoise, simulate_kinematic
 from identification_node.torque import TorqueConverter
 from identification_node.trajectories import FourierTrajectory
-from ros_helpers import (LATCHED, RELIABLE, Collector, RosHarness, diagnostic_values, domain_id,
+from ros_helpers import (LATCHED, RELIABLE, Collector, diagnostic_values,
                          joint_state_msgs, stamp_ns, wait_for)
+
+pytestmark = pytest.mark.ros
 
 DURATION = 15.0
 OFFSET = 1000.0          # s: stamps = OFFSET + sample time
@@ -60,13 +62,6 @@ CRS = dict(robot='crs_a465', trajectory='table1', torque_std=0.2, current_std=0.
                    'phase_order': ['abc', 'acb', 'abc', 'acb', 'abc', 'acb']},
            payload=('link6', 0.5, [0.0, 0.05, 0.1]), electrical_angle=True)
 FAST = {'process_period': 0.01, 'publish.effort_rate': 200.0}
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 def remaps(prefix):
