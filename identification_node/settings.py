@@ -96,6 +96,19 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'payload.tolerance.com': (0.005, 'm; centre of mass stddev above this: not excited'),
     'payload.tolerance.inertia': (0.002, 'kg m^2; inertia stddev above this: not excited'),
 }
+# Inclusive ranges of numeric parameters: the node's typed parameter descriptors carry them and
+# Settings checks them, for the node and the offline configuration alike (bounds that exclude
+# their end, such as > 0, are checked where the value is used).
+RANGES: dict[str, tuple[float, float]] = {
+    'coulomb_velocity': (0.0, math.inf),
+    'forgetting_factor': (0.9, 1.0),
+    'smoother.half_window': (1, 10_000),
+    'smoother.order': (2, 4),
+    'update_batch': (1, 10**9),
+    'coulomb_exclusion_speed': (0.0, math.inf),
+    'min_samples': (0, 10**12),
+    'publish.effort_rate': (0.0, math.inf),
+}
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
 # PipelineConfig fields whose parameter has another name.
 CONFIG_FIELD_PARAMETERS = {
@@ -156,6 +169,10 @@ class Settings:
             values[name] = coerce(name, values[name], default)
         if values['watchdog_timeout'] < 0:
             raise IdentificationError('parameter watchdog_timeout must be >= 0')
+        for name, (lo, hi) in RANGES.items():
+            if not lo <= values[name] <= hi:
+                raise IdentificationError(
+                    f'parameter {name} = {values[name]} must be in [{lo}, {hi}]')
         for name in ('process_period', 'publish.estimate_rate', 'publish.diagnostics_rate'):
             if not values[name] > 0:
                 raise IdentificationError(f'parameter {name} = {values[name]} must be > 0')
@@ -241,6 +258,13 @@ class Settings:
             raise IdentificationError(text) from None
 
 
+def element_type(name: str, default: list) -> type:
+    """The type of the elements of list parameter ``name`` (its default's, or for an empty
+    default float for joint_noise_std and str otherwise)."""
+    return type(default[0]) if default else (
+        float if name in ('joint_noise_std', 'plausibility.current_limit') else str)
+
+
 def coerce(name: str, value: Any, default: Any) -> Any:
     """Value converted to the default's type, or IdentificationError naming the parameter."""
     def bad(expected: str) -> IdentificationError:
@@ -250,8 +274,7 @@ def coerce(name: str, value: Any, default: Any) -> Any:
         if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
             value = [value]
         value = list(value)
-        kind = type(default[0]) if default else (
-            float if name in ('joint_noise_std', 'plausibility.current_limit') else str)
+        kind = element_type(name, default)
         return [coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
     if isinstance(default, bool):
         if not isinstance(value, bool):

@@ -745,12 +745,43 @@ def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):
     ({'kt': [1.0, 2.0]}, 'kt'),
     ({'process_period': -1.0}, 'process_period'),
     ({'output_directory': ' '}, 'output_directory'),
+    ({'hold_time': 1}, 'hold_time'),                 # an integer for a double
 ])
 def test_invalid_parameters_exit_2_naming_them(ros, tmp_path, params, name):
     proc = ros.start('node', params, tmp_path, 'identification_node')
     assert proc.wait(30) == 2
     err = proc.stderr.read()
     assert f'parameter {name}' in err, err
+
+
+def test_parameters_are_typed_and_ranged_by_the_settings_table(ros):
+    """Each parameter's descriptor has the type of its default in settings.PARAMETERS and the
+    range of settings.RANGES; the values given are the node's (its settings agree)."""
+    from rcl_interfaces.msg import ParameterType
+    from identification_node.settings import PARAMETERS, RANGES
+    node = start_node(ros, 'typed', {'robot': 'mit_dd_arm', 'forgetting_factor': 0.95,
+                                     'joints': ['joint2', 'joint1']}, 'typed')
+    try:
+        names = list(PARAMETERS)
+        for name, d in zip(names, node.describe_parameters(names)):
+            default = PARAMETERS[name][0]
+            assert d.read_only and not d.dynamic_typing
+            if isinstance(default, list):
+                continue
+            assert d.type == {bool: ParameterType.PARAMETER_BOOL,
+                              int: ParameterType.PARAMETER_INTEGER,
+                              float: ParameterType.PARAMETER_DOUBLE,
+                              str: ParameterType.PARAMETER_STRING}[type(default)], name
+            ranges = list(d.integer_range) + list(d.floating_point_range)
+            assert [(r.from_value, r.to_value) for r in ranges] == (
+                [RANGES[name]] if name in RANGES else []), name
+        assert node.describe_parameter('joints').type == ParameterType.PARAMETER_STRING_ARRAY
+        assert node.describe_parameter('kt').type == ParameterType.PARAMETER_DOUBLE_ARRAY
+        assert node.settings['forgetting_factor'] == 0.95
+        assert node.settings['joints'] == ['joint2', 'joint1']
+        assert node.robot.joint_names == ['joint2', 'joint1']
+    finally:
+        ros.remove(node)
 
 
 def test_unknown_parameters_are_named_in_a_warning(ros, tmp_path):
