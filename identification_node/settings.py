@@ -260,7 +260,7 @@ class Settings:
 
 def element_type(name: str, default: list) -> type:
     """The type of the elements of list parameter ``name`` (its default's, or for an empty
-    default float for joint_noise_std and str otherwise)."""
+    default float for the per-joint numbers and str otherwise)."""
     return type(default[0]) if default else (
         float if name in ('joint_noise_std', 'plausibility.current_limit') else str)
 
