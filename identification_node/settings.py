@@ -52,7 +52,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
     'max_condition': (1e8, 'largest information condition number counted as excited'),
     'min_samples': (1000, 'samples needed before convergence is declared'),
-    'process_period': (0.0025, 's (wall clock) between batch processing runs (latency vs CPU)'),
+    'process_period': (0.01, 's (wall clock) between batch processing runs (latency vs CPU)'),
     'publish.effort_rate': (0.0, 'Hz for predicted/measured effort; 0 = every sample'),
     'publish.estimate_rate': (1.0, 'Hz for base_parameters, estimate.* and robot_description'),
     'publish.diagnostics_rate': (1.0, 'Hz for /diagnostics'),
