@@ -78,10 +78,15 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
     """The read-only, typed descriptor of a settings table entry, with its range from
-    settings.RANGES."""
+    settings.RANGES. Lists with an empty default stay dynamically typed (Settings checks
+    them): rclpy declares a typed parameter without a value uninitialized, which its
+    parameter services then fail to report, and types an empty list as bytes."""
     d = ParameterDescriptor(description=text, read_only=True)
     if isinstance(default, list):
-        d.type = _ARRAY_TYPES[element_type(name, default)].value
+        if default:
+            d.type = _ARRAY_TYPES[element_type(name, default)].value
+        else:
+            d.dynamic_typing = True
         return d
     d.type = _TYPES[type(default)]
     lo, hi = RANGES.get(name, (None, None))
@@ -101,8 +106,7 @@ def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str,
     values = {}
     for name, (default, text) in table.items():
         descriptor = parameter_descriptor(name, default, text)
-        initial = (_ARRAY_TYPES[element_type(name, default)]
-                   if isinstance(default, list) and not default else default)
+        initial = None if isinstance(default, list) and not default else default
         try:
             value = node.declare_parameter(name, initial, descriptor).value
         except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
