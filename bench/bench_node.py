@@ -30,6 +30,9 @@ REPO = Path(__file__).resolve().parents[1]
 PANDA = REPO / 'test' / 'fixtures' / 'panda_like.urdf'
 os.environ.setdefault('ROS_DOMAIN_ID', str(30 + os.getpid() % 60))
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+# single-threaded BLAS, as the package's programs set it (programs.py), for the node that
+# bench_node_split runs in its own process: idle OpenBLAS threads spin on the cores
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 # --currents: the node's torque source and motor constants (every joint alike)
 CURRENTS = {'source': 'three_phase', 'kt': 0.5, 'gear_ratio': 50.0, 'pole_pairs': 7}
 

@@ -53,7 +53,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
     'max_condition': (1e8, 'largest information condition number counted as excited'),
     'min_samples': (1000, 'samples needed before convergence is declared'),
-    'process_period': (0.0025, 's (wall clock) between batch processing runs (latency vs CPU)'),
+    'process_period': (0.01, 's (wall clock) between batch processing runs (latency vs CPU)'),
     'publish.effort_rate': (0.0, 'Hz for predicted/measured effort; 0 = every sample'),
     'publish.estimate_rate': (1.0, 'Hz for base_parameters, estimate.* and robot_description'),
     'publish.diagnostics_rate': (1.0, 'Hz for /diagnostics'),
@@ -111,8 +111,23 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'consistency.com_box': ([], '6 values per identified link: centre of mass box lo x y z, '
                             'hi x y z in the link frame, m (empty: geometry_box)'),
 }
-FLOAT_LISTS = ('joint_noise_std', 'consistency.mass_min', 'consistency.mass_max',
-               'consistency.com_box')
+# List parameters of floats whose default is empty (their element type cannot be read off).
+FLOAT_LISTS = ('joint_noise_std', 'plausibility.current_limit', 'consistency.mass_min',
+               'consistency.mass_max', 'consistency.com_box')
+
+# Inclusive ranges of numeric parameters: the node's typed parameter descriptors carry them and
+# Settings checks them, for the node and the offline configuration alike (bounds that exclude
+# their end, such as > 0, are checked where the value is used).
+RANGES: dict[str, tuple[float, float]] = {
+    'coulomb_velocity': (0.0, math.inf),
+    'forgetting_factor': (0.9, 1.0),
+    'smoother.half_window': (1, 10_000),
+    'smoother.order': (2, 4),
+    'update_batch': (1, 10**9),
+    'coulomb_exclusion_speed': (0.0, math.inf),
+    'min_samples': (0, 10**12),
+    'publish.effort_rate': (0.0, math.inf),
+}
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
 # PipelineConfig fields whose parameter has another name.
 CONFIG_FIELD_PARAMETERS = {
@@ -173,6 +188,10 @@ class Settings:
             values[name] = coerce(name, values[name], default)
         if values['watchdog_timeout'] < 0:
             raise IdentificationError('parameter watchdog_timeout must be >= 0')
+        for name, (lo, hi) in RANGES.items():
+            if not lo <= values[name] <= hi:
+                raise IdentificationError(
+                    f'parameter {name} = {values[name]} must be in [{lo}, {hi}]')
         for name in ('process_period', 'publish.estimate_rate', 'publish.diagnostics_rate'):
             if not values[name] > 0:
                 raise IdentificationError(f'parameter {name} = {values[name]} must be > 0')
@@ -274,6 +293,12 @@ class Settings:
             raise IdentificationError(text) from None
 
 
+def element_type(name: str, default: list) -> type:
+    """The type of the elements of list parameter ``name`` (its default's, or for an empty
+    default float for the per-joint numbers and str otherwise)."""
+    return type(default[0]) if default else (float if name in FLOAT_LISTS else str)
+
+
 def coerce(name: str, value: Any, default: Any) -> Any:
     """Value converted to the default's type, or IdentificationError naming the parameter."""
     def bad(expected: str) -> IdentificationError:
@@ -283,7 +308,7 @@ def coerce(name: str, value: Any, default: Any) -> Any:
         if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
             value = [value]
         value = list(value)
-        kind = type(default[0]) if default else (float if name in FLOAT_LISTS else str)
+        kind = element_type(name, default)
         return [coerce(f'{name}[{i}]', v, kind()) for i, v in enumerate(value)]
     if isinstance(default, bool):
         if not isinstance(value, bool):

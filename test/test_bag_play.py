@@ -14,18 +14,13 @@ from std_srvs.srv import Trigger
 from identification_node.consistency import ConsistentSolver, pipeline_equations
 from identification_node.replay import identify_bag
 from identification_node.settings import Settings, read_parameter_file
-from ros_helpers import RosHarness, domain_id, wait_for
+from ros_helpers import wait_for
 from test_bags import BAGS
 from test_node import reliable, remaps, start_node_process, stop_process
 
+pytestmark = pytest.mark.ros
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 @pytest.mark.parametrize('bag', sorted(BAGS))

@@ -504,6 +504,7 @@ def test_writer_input_errors(tmp_path):
 # Streaming memory
 # ---------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize('storage', bagio.STORAGES)
 def test_streaming_read_memory_is_flat(tmp_path, storage):
     n = 100_000
@@ -628,6 +629,7 @@ def _long_bag(path, n, compression=None, order=None, frame=lambda i: 'base'):
     return path
 
 
+@pytest.mark.slow
 def test_blocks_from_several_chunks_plain_and_compressed(tmp_path):
     from rosbags.rosbag2.enums import CompressionMode
     for name, compression in (('plain', None), ('zstd', CompressionMode.STORAGE)):
@@ -640,6 +642,7 @@ def test_blocks_from_several_chunks_plain_and_compressed(tmp_path):
         assert items <= 2 * len(kinds)  # ~5400 messages a chunk: blocks of <= 4096 rows
 
 
+@pytest.mark.slow
 def test_blocks_split_at_layout_changes_and_odd_messages(tmp_path):
     # the frame id changes (same message length) at 3 places, and one message is corrupt
     frames = {5000: 'bass', 5001: 'bass', 9000: 'b' * 9}
@@ -647,6 +650,7 @@ def test_blocks_split_at_layout_changes_and_odd_messages(tmp_path):
     assert _assert_blocks_match(path, '/joint_states') < 12
 
 
+@pytest.mark.slow
 def test_blocks_fall_back_where_rosbags_merges_chunks(tmp_path):
     from rosbags.rosbag2.enums import CompressionMode
     # written backwards over several chunks: the chunks overlap in index order

@@ -108,6 +108,7 @@ def _write_bag(path, samples, storage='mcap', topic='/joint_states'):
     return path
 
 
+@pytest.mark.slow
 def test_replay_memory_does_not_grow_with_the_bag(tmp_path):
     s = Settings.from_dict({'robot': 'mit_dd_arm'})
     robot = s.load_robot()
@@ -127,6 +128,7 @@ def run_cli(*args):
                           capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_bad_bags_give_clear_errors(tmp_path):
     good = _write_bag(tmp_path / 'good', 2000)
     truncated = tmp_path / 'truncated'

@@ -28,12 +28,6 @@ def crs():
 
 
 @pytest.fixture(scope='module')
-def mit():
-    robot = load_robot('mit_dd_arm')
-    return robot, BaseParameters.from_robot(robot)
-
-
-@pytest.fixture(scope='module')
 def crs_results(crs):
     robot, base = crs
     return {c: ex.optimize_excitation(robot, 5, 10.0, c, base=base, maxiter=20)
@@ -208,6 +202,7 @@ def test_crs_from_table1(crs):
     assert_within_limits(res.trajectory, robot, ex.ExcitationLimits.from_robot(robot))
 
 
+@pytest.mark.slow
 def test_shrink_into_tight_effort_limits(crs):
     robot, _ = crs
     limits = ex.ExcitationLimits.from_robot(robot).updated({'joint2': {'effort': 25.0}})

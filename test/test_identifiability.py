@@ -26,12 +26,6 @@ MIT_COMBINED = ['link1.Izz', 'link2.my', 'link2.Ixx', 'link2.Iyy', 'link2.Iyz', 
 ALL_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
 
 
-@pytest.fixture(scope='module')
-def mit():
-    robot = load_robot('mit_dd_arm')
-    return robot, BaseParameters.from_robot(robot)
-
-
 def stacked(robot, seed, num=60):
     """A fresh stacked regressor (rows, p) at other random samples than from_robot's."""
     q, qd, qdd = sample_motion(robot, num, seed)

@@ -19,9 +19,9 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type registration)
+from rclpy.event_handler import UnsupportedEventTypeError
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
-from rclpy.event_handler import UnsupportedEventTypeError
 from rclpy.parameter_event_handler import ParameterEventHandler
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -45,8 +45,10 @@ from identification_node.settings import Settings
 from identification_node.simulation import SensorNoise, simulate_kinematic
 from identification_node.torque import TorqueConverter
 from identification_node.trajectories import FourierTrajectory
-from ros_helpers import (LATCHED, RELIABLE, Collector, RosHarness, diagnostic_values, domain_id,
+from ros_helpers import (LATCHED, RELIABLE, Collector, diagnostic_values,
                          joint_state_msgs, stamp_ns, wait_for)
+
+pytestmark = pytest.mark.ros
 
 DURATION = 15.0
 OFFSET = 1000.0          # s: stamps = OFFSET + sample time
@@ -62,13 +64,6 @@ CRS = dict(robot='crs_a465', trajectory='table1', torque_std=0.2, current_std=0.
                    'phase_order': ['abc', 'acb', 'abc', 'acb', 'abc', 'acb']},
            payload=('link6', 0.5, [0.0, 0.05, 0.1]), electrical_angle=True)
 FAST = {'process_period': 0.01, 'publish.effort_rate': 200.0}
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 def remaps(prefix):
@@ -759,12 +754,43 @@ def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):
     ({'kt': [1.0, 2.0]}, 'kt'),
     ({'process_period': -1.0}, 'process_period'),
     ({'output_directory': ' '}, 'output_directory'),
+    ({'hold_time': 1}, 'hold_time'),                 # an integer for a double
 ])
 def test_invalid_parameters_exit_2_naming_them(ros, tmp_path, params, name):
     proc = ros.start('node', params, tmp_path, 'identification_node')
     assert proc.wait(30) == 2
     err = proc.stderr.read()
     assert f'parameter {name}' in err, err
+
+
+def test_parameters_are_typed_and_ranged_by_the_settings_table(ros):
+    """Each parameter's descriptor has the type of its default in settings.PARAMETERS and the
+    range of settings.RANGES; the values given are the node's (its settings agree)."""
+    from rcl_interfaces.msg import ParameterType
+    from identification_node.settings import PARAMETERS, RANGES
+    node = start_node(ros, 'typed', {'robot': 'mit_dd_arm', 'forgetting_factor': 0.95,
+                                     'joints': ['joint2', 'joint1']}, 'typed')
+    try:
+        names = list(PARAMETERS)
+        for name, d in zip(names, node.describe_parameters(names)):
+            default = PARAMETERS[name][0]
+            # an empty default list cannot be typed in rclpy (see parameter_descriptor)
+            assert d.read_only and d.dynamic_typing == (default == [])
+            if isinstance(default, list):
+                continue
+            assert d.type == {bool: ParameterType.PARAMETER_BOOL,
+                              int: ParameterType.PARAMETER_INTEGER,
+                              float: ParameterType.PARAMETER_DOUBLE,
+                              str: ParameterType.PARAMETER_STRING}[type(default)], name
+            ranges = list(d.integer_range) + list(d.floating_point_range)
+            assert [(r.from_value, r.to_value) for r in ranges] == (
+                [RANGES[name]] if name in RANGES else []), name
+        assert node.describe_parameter('kt').type == ParameterType.PARAMETER_DOUBLE_ARRAY
+        assert node.settings['forgetting_factor'] == 0.95
+        assert node.settings['joints'] == ['joint2', 'joint1']
+        assert node.robot.joint_names == ['joint2', 'joint1']
+    finally:
+        ros.remove(node)
 
 
 def test_unknown_parameters_are_named_in_a_warning(ros, tmp_path):

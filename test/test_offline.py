@@ -208,6 +208,7 @@ def test_periodic_averaging_needs_two_periods(periodic_bag, mit, mit_settings):
         offline_identify(periodic_bag, mit_settings, mit, BatchOptions(period=7.0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('options, period', [(BatchOptions(), 4.0),
                                              (BatchOptions(period=2.0), 2.0)])
 def test_the_covariance_is_honest_over_noise_realisations(mit, mit_settings, options, period):

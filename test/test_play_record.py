@@ -39,6 +39,8 @@ from identification_node.ros.conversions import wait_for_all_acked  # noqa: E402
 from identification_node.ros.player import BagPlayer, offered_qos  # noqa: E402
 from identification_node.ros.recorder import BagRecorder  # noqa: E402
 
+pytestmark = pytest.mark.ros
+
 # 1..100: Linux' ephemeral ports start above the ports of higher domains; pid and module
 # name keep parallel runs and other modules apart (as test/ros_helpers.domain_id does)
 DOMAIN = 1 + (os.getpid() * 7 + zlib.crc32(b'test_play_record')) % 100

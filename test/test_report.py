@@ -54,6 +54,7 @@ def assert_png(path):
     assert len(data) > 5000 and data[:8] == PNG
 
 
+@pytest.mark.slow
 def test_report_files_and_tables(crs_batch, tmp_path):
     ident, validation = crs_batch
     report = write_report(tmp_path / 'rep', ident, validation)
@@ -79,6 +80,7 @@ def test_report_files_and_tables(crs_batch, tmp_path):
     assert f'{ident.condition_number:.4g}' in md
 
 
+@pytest.mark.slow
 def test_mit_report_has_the_papers_table3_and_the_validation(tmp_path, capsys):
     out = tmp_path / 'mit'
     assert main(['identify', str(REPO / 'bags' / 'mit_paper_moves'), '--config',

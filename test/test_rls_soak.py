@@ -8,6 +8,8 @@ from identification_node.estimators import LeastSquares, RecursiveLeastSquares
 from identification_node.robot import load_robot
 from test_estimators import sines_trajectory
 
+pytestmark = pytest.mark.slow
+
 BATCH = 1000
 SIGMA = 0.5  # N m torque noise
 # (kind, number of batches): 10^6 samples, 4 * 10^5 of them at rest

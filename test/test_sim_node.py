@@ -14,7 +14,9 @@ from std_msgs.msg import String
 
 from identification_node.robot import load_robot
 from identification_node.torque import JointTorqueConfig, TorqueConverter
-from ros_helpers import LATCHED, Collector, RosHarness, domain_id, stamp_ns, wait_for
+from ros_helpers import LATCHED, Collector, stamp_ns, wait_for
+
+pytestmark = pytest.mark.ros
 
 MIT = load_robot('mit_dd_arm')
 DURATION = 3.0
@@ -35,13 +37,6 @@ def payload_phi(robot, link, mass, point):
     phi[i + 1:i + 4] += mass * p
     phi[i + 4:i + 10] += inertia[[0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
     return phi
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 @pytest.fixture(scope='module')

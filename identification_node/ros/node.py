@@ -40,7 +40,9 @@ from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -52,8 +54,9 @@ from std_srvs.srv import SetBool, Trigger
 from ..consistency import ConsistentEstimate, SolverProcess, pipeline_equations
 from ..pipeline import EstimateReport, PipelineOutput
 from ..results import plain, save_results
-from ..settings import PARAMETERS, Settings
+from ..errors import IdentificationError
 from ..payload import urdf_with_payload
+from ..settings import PARAMETERS, RANGES, Settings, element_type
 from ..urdf_export import consistency_problems, identified_urdf
 from .payload_outputs import PayloadOutputs
 from .spin import PeriodicThread, run_node
@@ -74,15 +77,47 @@ UNCONSTRAINED_PREFIX = 'estimate_unconstrained.'
 LISTENER_CHECK_PERIOD = 0.1
 
 
+_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+_ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARRAY,
+                float: Parameter.Type.DOUBLE_ARRAY, str: Parameter.Type.STRING_ARRAY}
+
+
+def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
+    """The read-only, typed descriptor of a settings table entry, with its range from
+    settings.RANGES. Lists with an empty default stay dynamically typed (Settings checks
+    them): rclpy declares a typed parameter without a value uninitialized, which its
+    parameter services then fail to report, and types an empty list as bytes."""
+    d = ParameterDescriptor(description=text, read_only=True)
+    if isinstance(default, list):
+        if default:
+            d.type = _ARRAY_TYPES[element_type(name, default)].value
+        else:
+            d.dynamic_typing = True
+        return d
+    d.type = _TYPES[type(default)]
+    lo, hi = RANGES.get(name, (None, None))
+    if lo is not None and type(default) is int:
+        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+    elif lo is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(lo),
+                                                     to_value=float(hi), step=0.0)]
+    return d
+
+
 def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str, Any]:
-    """Declare every parameter of ``table`` (name: (default, description)) read-only and
-    dynamically typed (Settings validates the values), and return those given; lists with an
-    empty default stay unset unless given."""
+    """Declare every parameter of ``table`` (name: (default, description)) read-only, typed
+    and ranged (parameter_descriptor; Settings validates the rest), and return those given;
+    lists with an empty default stay unset unless given. A value rclpy refuses (type,
+    range) raises IdentificationError naming the parameter."""
     values = {}
     for name, (default, text) in table.items():
-        descriptor = ParameterDescriptor(description=text, read_only=True, dynamic_typing=True)
+        descriptor = parameter_descriptor(name, default, text)
         initial = None if isinstance(default, list) and not default else default
-        value = node.declare_parameter(name, initial, descriptor).value
+        try:
+            value = node.declare_parameter(name, initial, descriptor).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            raise IdentificationError(f'parameter {name}: {exc}') from None
         if value is not None:
             values[name] = list(value) if isinstance(value, (list, tuple)) or hasattr(
                 value, 'typecode') else value
