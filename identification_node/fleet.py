@@ -16,11 +16,15 @@ its own sampling noise, a few percent on short bags; estimates and every other s
 whole bag's. Whole bags are the default unit.
 
 Solve: ``solve_unconstrained(NormalEquations) -> theta`` (the streaming estimator's own least
-squares on the merged normal equations) is the one seam a physically consistent solve with the
-same signature replaces (``solve=``); the pipeline then derives noise, covariance and
-convergence from the statistics at that theta as it does for streamed data
-(IdentificationPipeline.restore), so a group of bags gives what ``identify`` gives for one bag
-holding them one after another (each its own stream).
+squares on the merged normal equations) is the seam of the unconstrained solve (``solve=``);
+the pipeline then derives noise, covariance and convergence from the statistics at that theta
+as it does for streamed data (IdentificationPipeline.restore), so a group of bags gives what
+``identify`` gives for one bag holding them one after another (each its own stream). Then,
+as ``identify`` does, offline.make_consistent solves the same information physically
+consistent (consistency.ConsistentSolver; ``physical_consistency=False``, the CLI's
+``--no-physical-consistency``, or the robot's config ``physical_consistency: false`` skip it),
+so each period's document has ``estimate`` (consistent), ``unconstrained_estimate``,
+``links`` and ``consistency_solver`` as identify's.
 
 Flags: a base parameter that moved by more than k combined standard deviations between
 consecutive periods of a robot (drift), and robots whose estimate lies more than k robust
@@ -306,15 +310,18 @@ def solve_unconstrained(equations: NormalEquations) -> np.ndarray:
     """The base parameters minimising sum_j ||tau_j - Y_j theta||^2 over merged normal
     equations, as the streaming estimator solves them. THE SEAM: a physically consistent
     solve with the same signature (normal equations in, base parameters out) replaces it
-    (``solve=`` of identification and run_fleet); the covariance stays the information's."""
+    (``solve=`` of identification and run_fleet); the covariance stays the information's.
+    The physically consistent estimate is solved after it (identification), as identify's."""
     return RecursiveLeastSquares.from_normal_equations(equations, 0).theta
 
 
 def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
-                   label: str | None = None, solve: Solve = solve_unconstrained):
+                   label: str | None = None, solve: Solve = solve_unconstrained,
+                   physical_consistency: bool = True):
     """The offline.Identification of merged statistics, as ``identify`` gives for their
-    bags streamed one after another (one stream each)."""
-    from .offline import from_replay
+    bags streamed one after another (one stream each): the physically consistent estimate
+    too unless ``physical_consistency`` is False or ``settings`` turn it off."""
+    from .offline import from_replay, make_consistent
 
     if stats.model != model_key(robot):
         raise IdentificationError(f'statistics of {stats.bags[0]} are not of {robot.name}')
@@ -325,8 +332,10 @@ def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
                      stats.excluded_rows, stats.restarts, stats.last_ns)
     est = pipeline.estimate()
     history = [Checkpoint(est.num_samples, est.stamp, est.values, est.stddev)]
-    return from_replay(ReplayResult(label or ', '.join(stats.bags), pipeline, stats.messages,
-                                    history))
+    ident = from_replay(ReplayResult(label or ', '.join(stats.bags), pipeline, stats.messages,
+                                     history))
+    return make_consistent(ident, settings.consistency_options() if physical_consistency
+                           else None)
 
 
 # -- the fleet run --------------------------------------------------------------------------------
@@ -452,8 +461,10 @@ class FleetResult:
 def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | None = None,
               joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
               solve: Solve = solve_unconstrained, retries: int = 3,
-              progress: Callable[[int, int], None] | None = None) -> FleetResult:
-    """Map every bag (segment) on the cluster, reduce per robot and period, solve."""
+              progress: Callable[[int, int], None] | None = None,
+              physical_consistency: bool = True) -> FleetResult:
+    """Map every bag (segment) on the cluster, reduce per robot and period, solve (physically
+    consistent too unless ``physical_consistency`` is False)."""
     from distributed import as_completed
 
     tasks = plan_tasks(entries, segment_seconds, joint_states, motor_currents)
@@ -491,9 +502,11 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
                 settings = entry_settings(entry)
                 models[robot] = (settings, entry_robot(entry, settings))
             if isinstance(key, tuple):
-                idents[key] = identification(stats, *models[robot], f'{robot} {key[1]}', solve)
+                idents[key] = identification(stats, *models[robot], f'{robot} {key[1]}', solve,
+                                             physical_consistency)
             else:
-                total_idents[robot] = identification(stats, *models[robot], robot, solve)
+                total_idents[robot] = identification(stats, *models[robot], robot, solve,
+                                                     physical_consistency)
         except IdentificationError as exc:
             failures.append({'bag': ', '.join(stats.bags), 'error': str(exc)})
     return FleetResult(groups, totals, idents, total_idents, failures)
@@ -506,15 +519,23 @@ def print_progress(done: int, total: int, unit: str = 'bags') -> None:
 
 # -- flags ----------------------------------------------------------------------------------------
 def _params(doc: dict) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Names, unconstrained base estimates and their stddev (nan, inf where not excited).
+    The flags test these, not the consistent estimate: the unconstrained WLS estimate is
+    unbiased with exactly the stddev of the information, so (b - a) / sqrt(sa^2 + sb^2) is a
+    standard normal without change; the consistent one is pulled by the constraints and the
+    regulariser (differently in each period, by amounts its stddev does not describe)."""
     ps = doc['base_parameters']
     sd = [p['stddev'] if p['stddev'] is not None else math.inf for p in ps]
-    return [p['name'] for p in ps], np.array([p['estimate'] for p in ps]), np.array(sd)
+    est = [p['unconstrained_estimate'] if p['unconstrained_estimate'] is not None else math.nan
+           for p in ps]
+    return [p['name'] for p in ps], np.array(est, dtype=float), np.array(sd, dtype=float)
 
 
 def drift_flags(periods: dict[str, dict], robot: str, k: float = DEFAULT_SIGMA) -> list[dict]:
     """Parameters of ``robot`` that moved by more than k standard deviations of the change
     (sqrt(sd_a^2 + sd_b^2)) between consecutive periods; ``periods``: period -> identify
-    document, in time order."""
+    document, in time order. A k-sigma test on the unconstrained base estimates and their
+    stddev (see _params), also when the documents' ``estimate`` is the consistent one."""
     flags = []
     keys = list(periods)
     for before, after in zip(keys[:-1], keys[1:]):

@@ -20,7 +20,8 @@ from identification_node.cli.identify import result_document
 from identification_node.errors import IdentificationError
 from identification_node.estimators import RecursiveLeastSquares, ResidualStatistics
 from identification_node.normal_equations import NormalEquations
-from identification_node.offline import replay_identify
+from identification_node.consistency import ConsistentSolver
+from identification_node.offline import make_consistent, replay_identify
 from identification_node.robot import load_robot
 from identification_node.settings import Settings
 from identification_node.trajectories import FourierTrajectory
@@ -170,7 +171,12 @@ def test_one_bag_statistics_give_identify(fleet_dir, robot, settings):
     bag = fleet_dir / 'bags/arm_a_day1_0'
     stats = fleet.bag_statistics(bag, settings, robot)
     doc = result_document(fleet.identification(stats, settings, robot))
-    assert_same_identification(doc, result_document(replay_identify(bag, settings, robot)))
+    ref = make_consistent(replay_identify(bag, settings, robot), settings.consistency_options())
+    # the consistent estimate to the solver's tolerance, the rest to rounding
+    assert_same_identification(doc, result_document(ref), rtol=1e-6)
+    np.testing.assert_allclose(doc['unconstrained_estimate'],
+                               result_document(ref)['unconstrained_estimate'], rtol=1e-9,
+                               atol=1e-9 * np.abs(doc['unconstrained_estimate']).max())
 
 
 def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, robot, settings,
@@ -183,10 +189,45 @@ def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, rob
     bags = [fleet_dir / f'bags/arm_b_{p}_{k}' for p in PERIODS[:2] for k in range(2)]
     merged = sum((fleet.bag_statistics(b, settings, robot) for b in bags[1:]),
                  fleet.bag_statistics(bags[0], settings, robot))
-    doc = result_document(fleet.identification(merged, settings, robot))
+    doc = result_document(fleet.identification(merged, settings, robot,
+                                               physical_consistency=False))
     ref = replay_identify(concatenated(bags, tmp_path / 'cat', robot), settings, robot)
     assert ref.pipeline.restarts == 3
     assert_same_identification(doc, result_document(ref))
+
+
+def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, tmp_path):
+    """A group's document has identify's shape; its consistent estimate is ConsistentSolver's
+    on the merged normal equations and identify's (make_consistent) of the concatenated
+    bags, to solver tolerance; physical_consistency=False gives the unconstrained one."""
+    settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
+                                  'robust': {'enabled': False}})
+    bags = [fleet_dir / f'bags/arm_b_{PERIODS[0]}_{k}' for k in range(2)]
+    merged = fleet.bag_statistics(bags[0], settings, robot) + fleet.bag_statistics(
+        bags[1], settings, robot)
+    ident = fleet.identification(merged, settings, robot)
+    doc = result_document(ident)
+    assert doc['consistency_solver']['status'] == 'optimal' and doc['links']
+    options = settings.consistency_options()
+    base = fleet_base(robot, settings)
+    weight = 1.0 / float(np.mean(ident.pipeline.noise_variance()))
+    direct = ConsistentSolver.for_robot(robot, base, options).solve(
+        merged.normal_equations, weight)
+    scale = np.abs(direct.theta).max()
+    np.testing.assert_allclose(doc['estimate'], direct.theta, atol=1e-6 * scale)
+    ref = make_consistent(replay_identify(concatenated(bags, tmp_path / 'cat', robot),
+                                          settings, robot), options)
+    ref_doc = result_document(ref)
+    np.testing.assert_allclose(doc['estimate'], ref_doc['estimate'], atol=1e-6 * scale)
+    np.testing.assert_allclose(doc['unconstrained_estimate'],
+                               ref_doc['unconstrained_estimate'], rtol=1e-9,
+                               atol=1e-9 * np.abs(ref_doc['unconstrained_estimate']).max())
+    assert set(doc) == set(ref_doc)
+    assert not np.allclose(doc['estimate'], doc['unconstrained_estimate'], rtol=1e-6)
+    plain = result_document(fleet.identification(merged, settings, robot,
+                                                 physical_consistency=False))
+    assert plain['estimate'] == plain['unconstrained_estimate'] == doc['unconstrained_estimate']
+    assert plain['consistency_solver']['status'] == 'disabled'
 
 
 def test_segments_give_the_rows_of_the_whole_bag(fleet_dir, robot, settings):
@@ -220,7 +261,8 @@ def test_the_solve_seam_takes_normal_equations_and_gives_the_estimate(
         seen.append(equations)
         return fleet_base(robot, settings).to_base(robot.phi_model)
 
-    doc = result_document(fleet.identification(stats, settings, robot, solve=model_solve))
+    doc = result_document(fleet.identification(stats, settings, robot, solve=model_solve,
+                                               physical_consistency=False))
     assert len(seen) == 1 and isinstance(seen[0], fleet.NormalEquations)
     np.testing.assert_array_equal(values(doc)[0], fleet_base(robot, settings).to_base(
         robot.phi_model))
@@ -279,8 +321,10 @@ def test_manifest_paths_are_relative_to_it(tmp_path):
 
 def test_outliers_need_a_fleet_and_flag_the_odd_robot():
     def doc(x, sd=0.01):
-        return {'base_parameters': [{'name': 'a', 'estimate': x, 'stddev': sd},
-                                    {'name': 'b', 'estimate': 1.0, 'stddev': sd}]}
+        # the flags read the unconstrained estimate (the consistent one is a decoy here)
+        return {'base_parameters': [
+            {'name': 'a', 'estimate': 1.0, 'unconstrained_estimate': x, 'stddev': sd},
+            {'name': 'b', 'estimate': 9.0, 'unconstrained_estimate': 1.0, 'stddev': sd}]}
     totals = {'r1': doc(1.0), 'r2': doc(1.01), 'r3': doc(0.99), 'r4': doc(1.5)}
     flags = fleet.outlier_flags(totals, dict.fromkeys(totals, 'm'))
     assert [(f['robot'], f['parameter']) for f in flags] == [('r4', 'a')]

@@ -5,8 +5,10 @@ relative to its folder), or a folder of bags, grouped by the robot description t
 (period: the UTC day of each bag); ``--config`` applies to the bags whose row names no
 parameter file. Each bag (or ``--segment`` seconds of it) is mapped to its
 sufficient statistics on the cluster, they are reduced per robot and period and per robot,
-and solved (fleet.py). The default cluster is a LocalCluster with one single-threaded worker
-process per core (``--workers N``); ``--scheduler tcp://HOST:PORT`` uses a running one
+and solved (fleet.py), physically consistent as ``identify`` unless
+``--no-physical-consistency``; the flags test the unconstrained estimates. The default
+cluster is a LocalCluster with one single-threaded worker process per core (``--workers
+N``); ``--scheduler tcp://HOST:PORT`` uses a running one
 (``dask scheduler`` / ``dask worker``). Progress goes to stderr. Prints per robot the estimate
 over the periods with standard deviations, the flags (parameters moved by more than
 ``--sigma`` standard deviations between periods, robots that are outliers against the fleet)
@@ -40,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='map each S seconds of a bag as its own task (long bags)')
     parser.add_argument('--timeout', type=float, default=5.0, metavar='S',
                         help='seconds to wait for --scheduler (default 5)')
+    parser.add_argument('--no-physical-consistency', action='store_true',
+                        help='report the unconstrained least-squares estimates only (as '
+                        'identify; config physical_consistency: false)')
     parser.add_argument('--joint-states-topic', default='/joint_states')
     parser.add_argument('--currents-topic', default='/motor_currents')
 
@@ -101,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
         unit = 'segments' if args.segment else 'bags'
         result = fleet.run_fleet(
             entries, client, args.segment, args.joint_states_topic, args.currents_topic,
-            progress=lambda done, total: fleet.print_progress(done, total, unit))
+            progress=lambda done, total: fleet.print_progress(done, total, unit),
+            physical_consistency=not args.no_physical_consistency)
     finally:
         cluster = None if args.scheduler else client.cluster
         client.close()
