@@ -12,17 +12,16 @@ and given no value.
 """
 from __future__ import annotations
 
-import functools
 import math
-import threading
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
 import pinocchio as pin
 
-from .consistency import pseudo_inertia
+from .consistency import SOLVERS, Body, ConsistencyOptions, ConsistentSolver, pseudo_inertia
 from .errors import IdentificationError
+from .identifiability import BaseParameters
 from .normal_equations import NormalEquations
 from .robot import RobotModel
 from .urdf_export import link_inertia
@@ -35,7 +34,7 @@ QUANTITIES = ('mass',) + tuple(f'com.{k}' for k in COM_KEYS) + tuple(
 _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 # Quantities with a standard deviation above these are reported "not excited" (no value).
 DEFAULT_TOLERANCE = {'mass': 0.02, 'com': 0.005, 'inertia': 0.002}   # kg, m, kg m^2
-PSEUDO_INERTIA_EPS = 1e-9   # J(phi) - eps 1 >= 0, kg m^2: consistent but free to be tiny
+PSEUDO_INERTIA_EPS = 1e-9   # J(phi) - eps 1 >= 0 (at most; kg m^2): consistent but free to be tiny
 
 
 @dataclass(frozen=True)
@@ -193,65 +192,40 @@ def _jacobian(phi: np.ndarray) -> np.ndarray:
     return J
 
 
-class _ConsistencyProblem:
-    """min ||M x - z||^2 s.t. J(x) - eps 1 >= 0 as a parametrised cvxpy problem (M, z
-    parameters), canonicalised once: each re-solve costs the solver only (milliseconds, not
-    the quarter of a second of building it)."""
-
-    def __init__(self):
-        import cvxpy as cp
-        self.cp = cp
-        self.x = cp.Variable(10)
-        self.M, self.z = cp.Parameter((10, 10)), cp.Parameter(10)
-        m, h = self.x[0], self.x[1:4]
-        Ixx, Ixy, Ixz, Iyy, Iyz, Izz = (self.x[k] for k in range(4, 10))
-        tr = 0.5 * (Ixx + Iyy + Izz)
-        J = cp.bmat([[tr - Ixx, -Ixy, -Ixz, h[0]], [-Ixy, tr - Iyy, -Iyz, h[1]],
-                     [-Ixz, -Iyz, tr - Izz, h[2]], [h[0], h[1], h[2], m]])
-        self.problem = cp.Problem(cp.Minimize(cp.sum_squares(self.M @ self.x - self.z)),
-                                  [0.5 * (J + J.T) >> PSEUDO_INERTIA_EPS * np.eye(4)])
-        self.lock = threading.Lock()
-        self.solve(np.eye(10), np.zeros(10))   # the first solve canonicalises: seconds
-
-    def solve(self, M: np.ndarray, target: np.ndarray) -> np.ndarray:
-        cp = self.cp
-        with self.lock:
-            self.M.value, self.z.value = M, M @ target
-            for solver in (cp.CLARABEL, cp.SCS):
-                try:
-                    self.problem.solve(solver=solver)
-                except cp.error.SolverError:
-                    continue
-                if self.x.value is not None and self.problem.status in (
-                        'optimal', 'optimal_inaccurate'):
-                    return np.asarray(self.x.value, dtype=float)
-            raise IdentificationError(
-                f'payload consistency solve failed: {self.problem.status}')
+_NAMES = tuple(f'payload.{k}' for k in ('m', 'mx', 'my', 'mz', 'Ixx', 'Ixy', 'Ixz', 'Iyy',
+                                        'Iyz', 'Izz'))
 
 
-@functools.lru_cache(maxsize=1)
-def consistency_problem() -> _ConsistencyProblem:
-    """The shared parametrised problem (built on first use: importing cvxpy takes seconds,
-    so the node builds it at start-up)."""
-    return _ConsistencyProblem()
+def prepare_consistency() -> None:
+    """Import cvxpy and solve one payload problem (seconds, once per process): the node does
+    it at start-up, not in a run."""
+    rows = np.eye(10)[None]
+    bad = np.r_[1.0, 0, 0, 0, -1.0, 0, 0, 0, 0, 0]
+    consistent_payload(NormalEquations.from_rows(rows, rows @ bad), 1.0, bad)
 
 
-def consistent_payload(phi: np.ndarray, information: np.ndarray) -> np.ndarray:
-    """The physically consistent parameters nearest to ``phi`` in the metric of
-    ``information`` (10, 10): min (x - phi)' G (x - phi) s.t. J(x) - eps 1 >= 0, by cvxpy
-    (Clarabel). ``phi`` itself when it is consistent already."""
+def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np.ndarray
+                       ) -> np.ndarray:
+    """The physically consistent parameters minimising the weighted data term of the
+    payload's normal equations ``ne`` (10 columns, per-joint ``weights``, inverse noise
+    variances): consistency.ConsistentSolver on one body with K = 1, J(x) - eps 1 >= 0 with
+    eps = PSEUDO_INERTIA_EPS, Clarabel then SCS. Its log-det regulariser (default weight,
+    1e-3 in chi-square units) pulls toward the least-squares fit ``phi`` itself, which the
+    solver replaces by its nearest consistent pseudo-inertia (eigenvalues raised to 1e-3 of
+    the largest): a weak prior of the payload's own size, where a fixed one (a sphere of the
+    fitted mass) scaled the solve badly for large payloads. ``phi`` when it is consistent
+    already."""
     if np.linalg.eigvalsh(pseudo_inertia(phi))[0] >= PSEUDO_INERTIA_EPS:
         return phi
-    # The metric in diagonally scaled coordinates; a small ridge keeps the unexcited
-    # directions where the least-squares solution put them, as far as the constraint allows.
-    d = np.sqrt(np.maximum(np.diag(information), 0.0))
-    d = np.where(d > 0, d, 1.0)
-    Gs = information / np.outer(d, d)
-    w, V = np.linalg.eigh(0.5 * (Gs + Gs.T))
-    w = np.maximum(w, 0.0) + 1e-9 * max(w.max(), 1.0)
-    M = (np.sqrt(w)[:, None] * V.T) * d[None, :]    # ||M (x - phi)||^2 = the metric
-    M /= np.abs(M).max()
-    return consistency_problem().solve(M, phi)
+    base = BaseParameters(_NAMES, np.arange(10), np.eye(10))
+    status = ''
+    for solver in SOLVERS:
+        options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver)
+        result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
+        if result.ok:
+            return result.phi
+        status = result.status
+    raise IdentificationError(f'payload consistency solve failed: {status}')
 
 
 def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
@@ -279,8 +253,8 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
     cov_s = (Vk / lam[keep]) @ Vk.T
     phi_ls = (cov_s @ (b / d)) / d
     cov = cov_s / np.outer(d, d)
-    phi = consistent_payload(phi_ls, G) if keep.any() else np.zeros(10)
-    consistent = bool(np.linalg.eigvalsh(pseudo_inertia(phi))[0] >= 0.5 * PSEUDO_INERTIA_EPS)
+    phi = consistent_payload(ne, w, phi_ls) if keep.any() else np.zeros(10)
+    consistent = bool(np.linalg.eigvalsh(pseudo_inertia(phi))[0] > 0)
     stddev = dict.fromkeys(QUANTITIES, math.inf)
     if keep.any() and phi[0] > 0:
         Jq = _jacobian(phi)

@@ -29,7 +29,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from ..errors import IdentificationError
-from ..payload import PayloadEstimate, consistency_problem, payload_parameters
+from ..payload import PayloadEstimate, payload_parameters, prepare_consistency
 from ..payload_monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -66,7 +66,7 @@ class PayloadOutputs:
     def __init__(self, node: Node, settings, pipeline):
         self.node = node
         self.monitor = monitor_from_settings(settings, pipeline.robot)
-        consistency_problem()   # cvxpy's import and canonicalisation: seconds, not in a run
+        prepare_consistency()   # cvxpy's import: seconds, not in a run
         self.pipeline = pipeline
         self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
         self.link = self.monitor.attach.link
