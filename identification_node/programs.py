@@ -3,38 +3,33 @@ package's process-wide environment before numpy loads, then runs its program. Im
 package changes nothing in the process."""
 from __future__ import annotations
 
+import importlib
 import os
 
 
-def _environment() -> None:
+def _run(module: str) -> int:
+    """``main()`` of ``module`` (relative to this package) after setting the environment."""
     # The matrices here are small (tens of columns): threaded BLAS only spins on the few
     # cores a robot computer shares with its controllers. A user's choice wins.
     os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+    return importlib.import_module(module, __package__).main()
 
 
 def identification_node() -> int:
     """``ros2 run identification_node identification_node``."""
-    _environment()
-    from .ros.node import main
-    return main()
+    return _run('.ros.node')
 
 
 def simulated_arm() -> int:
     """``ros2 run identification_node simulated_arm``."""
-    _environment()
-    from .ros.sim_node import main
-    return main()
+    return _run('.ros.sim_node')
 
 
 def payload_forwarder() -> int:
     """``ros2 run identification_node payload_forwarder``: ~/payload to a controller."""
-    _environment()
-    from .ros.payload_forwarder import main
-    return main()
+    return _run('.ros.payload_forwarder')
 
 
 def identification_cli() -> int:
     """``identification_cli VERB ...`` / ``python -m identification_node VERB ...``."""
-    _environment()
-    from .cli import main
-    return main()
+    return _run('.cli')
