@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -386,6 +387,9 @@ class SolverProcess:
         self._args = (base, np.asarray(phi_prior, dtype=float), list(bodies), self.options)
         self._process = self._conn = None
         self._started = False
+        # start and close come from different threads (the node's solve worker and its
+        # shutdown): a child being started is never terminated half made
+        self._lock = threading.Lock()
 
     @classmethod
     def for_robot(cls, robot, base: BaseParameters,
@@ -397,27 +401,30 @@ class SolverProcess:
 
         return cls(base, safe_prior(robot)[0], robot_bodies(robot, options), options)
 
-    def start(self) -> None:
-        """Start the child (solve does when needed); it builds the problem at once."""
-        if self._process is not None and self._process.is_alive():
-            return
-        ctx = multiprocessing.get_context('spawn')
-        self._conn, child = ctx.Pipe()
-        self._process = ctx.Process(target=_serve, args=(child, *self._args), daemon=True,
-                                    name='identification_consistency')
-        self._process.start()
-        child.close()
-        self._started = False
+    def start(self):
+        """Start the child (solve does when needed); it builds the problem at once. Returns
+        the connection to it."""
+        with self._lock:
+            if self._process is not None and self._process.is_alive():
+                return self._conn
+            ctx = multiprocessing.get_context('spawn')
+            self._conn, child = ctx.Pipe()
+            self._process = ctx.Process(target=_serve, args=(child, *self._args),
+                                        daemon=True, name='identification_consistency')
+            self._process.start()
+            child.close()
+            self._started = False
+            return self._conn
 
     def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
               ) -> ConsistentEstimate:
         start = time.perf_counter()
-        self.start()
+        conn = self.start()
         wait = self.options.time_limit + (self.GRACE if self._started else self.STARTUP_GRACE)
         try:
-            self._conn.send((equations, weights))
-            if self._conn.poll(wait):
-                kind, value = self._conn.recv()
+            conn.send((equations, weights))
+            if conn.poll(wait):
+                kind, value = conn.recv()
                 self._started = True
                 if kind == 'ok':
                     return value
@@ -434,12 +441,13 @@ class SolverProcess:
 
     def close(self) -> None:
         """Stop the child."""
-        if self._process is None:
-            return
-        self._process.terminate()   # nothing to keep: quick, also mid-solve
-        self._process.join(timeout=1.0)
-        self._conn.close()
-        self._process = self._conn = None
+        with self._lock:
+            if self._process is None:
+                return
+            self._process.terminate()   # nothing to keep: quick, also mid-solve
+            self._process.join(timeout=1.0)
+            self._conn.close()
+            self._process = self._conn = None
 
 
 def _serve(conn, base, phi_prior, bodies, options) -> None:
