@@ -463,12 +463,14 @@ def weighted_solve(equations: NormalEquations, known: bool = False, iterations: 
                            np.full(n, 1.0 / max(1.0, s2)))
     w = np.ones(n)
     theta, P, rss, lev = solve(w)
+    # rss from the information form is exact only to about 1e-12 of sum tau^2 (cancellation):
+    # below that floor a joint counts as noise-free, and no weight may grow beyond it.
+    floor = np.maximum(1e-12 * equations.sq / np.maximum(counts, 1.0), 1e-300)
     sigma2 = rss / np.maximum(counts - lev, 1.0)
-    if sigma2.max() <= 0:      # noise-free: any weights give the same exact fit
+    if np.all(sigma2 <= floor):      # noise-free: any weights give the same exact fit
         return WeightedFit(theta, np.zeros((b, b)), sigma2, 0.0, w)
     for _ in range(iterations):
-        # Floor: a (nearly) noise-free joint must not get an infinite weight.
-        w = 1.0 / np.maximum(sigma2, 1e-12 * sigma2.max())
+        w = 1.0 / np.maximum(sigma2, floor)
         theta, P, rss, lev = solve(w)
         new = rss / np.maximum(counts - lev, 1.0)
         done = np.max(np.abs(new - sigma2) / np.maximum(new, 1e-300)) < tol
