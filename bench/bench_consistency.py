@@ -20,11 +20,12 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # as the node's entry point,
 
 import numpy as np  # noqa: E402
 
-from identification_node.consistency import ConsistencyOptions, ConsistentSolver  # noqa: E402
-from identification_node.estimators import RecursiveLeastSquares  # noqa: E402
-from identification_node.identifiability import BaseParameters  # noqa: E402
-from identification_node.robot import load_robot  # noqa: E402
-from identification_node.trajectories import FourierTrajectory  # noqa: E402
+from identification_node.estimation.consistency import (ConsistencyOptions,  # noqa: E402
+                                                        ConsistentSolver)
+from identification_node.estimation.estimators import RecursiveLeastSquares  # noqa: E402
+from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
+from identification_node.model.identifiability import BaseParameters  # noqa: E402
+from identification_node.model.robot import load_robot  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ARMS = {'6-DOF crs_a465': 'crs_a465',

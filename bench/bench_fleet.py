@@ -50,7 +50,7 @@ def reset_peak() -> int:
 
 
 def warm_up() -> None:
-    import identification_node.fleet  # noqa: F401
+    import identification_node.offline.fleet  # noqa: F401
 
 
 def cluster(workers: int):
@@ -64,7 +64,7 @@ def cluster(workers: int):
 
 
 def entries(bag: Path, count: int, folder: Path) -> list:
-    from identification_node.fleet import FleetEntry
+    from identification_node.offline.fleet import FleetEntry
 
     out = []
     for k in range(count):
@@ -77,7 +77,7 @@ def entries(bag: Path, count: int, folder: Path) -> list:
 
 def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, int]:
     """(wall s, CPU s of the workers, samples used) of one fleet run."""
-    from identification_node.fleet import run_fleet
+    from identification_node.offline.fleet import run_fleet
 
     client = cluster(workers)
     try:
@@ -99,7 +99,7 @@ def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, int]:
 
 def peak_memory(bag: Path) -> tuple[float, float]:
     """(RSS before, peak RSS above it) of a fresh worker mapping ``bag``, MiB."""
-    from identification_node.fleet import FleetEntry, MapTask, run_task
+    from identification_node.offline.fleet import FleetEntry, MapTask, run_task
 
     client = cluster(1)
     try:

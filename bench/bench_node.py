@@ -46,10 +46,10 @@ def publisher(rate: float, seconds: float, warmup: float, currents: bool) -> Non
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
 
-    from identification_node.robot import load_robot
-    from identification_node.simulation import SensorNoise, simulate_kinematic
-    from identification_node.torque import TorqueConverter
-    from identification_node.trajectories import FourierTrajectory
+    from identification_node.model.robot import load_robot
+    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.model.torque import TorqueConverter
+    from identification_node.excitation.trajectories import FourierTrajectory
 
     robot = load_robot(str(PANDA))
     n = int(rate * (seconds + warmup))

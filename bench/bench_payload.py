@@ -24,18 +24,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from identification_node.offline import identify_bag  # noqa: E402
-from identification_node.payload import PayloadChange, attachment  # noqa: E402
-from identification_node.payload import true_parameter_changes  # noqa: E402
-from identification_node.payload_monitor import PayloadMonitor  # noqa: E402
-from identification_node.payload_monitor import monitor_from_settings  # noqa: E402
+from identification_node.excitation.trajectories import load_trajectory  # noqa: E402
+from identification_node.model.robot import load_robot  # noqa: E402
+from identification_node.model.simulation import (ArmSimulator, SensorNoise,  # noqa: E402
+                                                  simulate_kinematic)
+from identification_node.offline.identification import identify_bag  # noqa: E402
+from identification_node.payload.fit import PayloadChange, attachment  # noqa: E402
+from identification_node.payload.fit import true_parameter_changes  # noqa: E402
+from identification_node.payload.monitor import PayloadMonitor  # noqa: E402
+from identification_node.payload.monitor import monitor_from_settings  # noqa: E402
 from identification_node.pipeline import IdentificationPipeline  # noqa: E402
-from identification_node.records import JointStateRecord  # noqa: E402
-from identification_node.robot import load_robot  # noqa: E402
 from identification_node.settings import Settings, read_parameter_file  # noqa: E402
-from identification_node.simulation import (ArmSimulator, SensorNoise,  # noqa: E402
-                                            simulate_kinematic)
-from identification_node.trajectories import load_trajectory  # noqa: E402
+from identification_node.wire.records import JointStateRecord  # noqa: E402
 
 URDF = str(ROOT / 'test/fixtures/panda_like.urdf')
 NOISE = SensorNoise(torque_std=0.05, encoder_counts=2 ** 20)

@@ -55,12 +55,12 @@ def main() -> None:
     parser.add_argument('--repeat', type=int, default=3)
     args = parser.parse_args()
 
-    from identification_node.bagio import encode_joint_states
+    from identification_node.bags.bagio import encode_joint_states
     from identification_node.pipeline import IdentificationPipeline, PipelineConfig
-    from identification_node.robot import load_robot
-    from identification_node.simulation import SensorNoise, simulate_kinematic
-    from identification_node.torque import JointTorqueConfig
-    from identification_node.trajectories import FourierTrajectory
+    from identification_node.model.robot import load_robot
+    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.model.torque import JointTorqueConfig
+    from identification_node.excitation.trajectories import FourierTrajectory
 
     robot = load_robot(str(PANDA))
     warm = 400

@@ -48,11 +48,11 @@ BAG_VERSION = 1  # bump when the bag recipe changes (cache key)
 
 def make_bag(samples: int) -> Path:
     """The cached benchmark bag of ``samples`` joint states (made on first use)."""
-    from identification_node.bagio import JOINT_STATE, BagWriter
+    from identification_node.bags.bagio import JOINT_STATE, BagWriter
     from identification_node.cli.simulate import true_parameters
     from identification_node.settings import Settings, read_parameter_file
-    from identification_node.simulation import SensorNoise, simulate_kinematic
-    from identification_node.trajectories import load_trajectory
+    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.excitation.trajectories import load_trajectory
 
     path = CACHE / f'crs_a465_v{BAG_VERSION}_{samples}'
     if (path / 'metadata.yaml').is_file():
@@ -75,7 +75,7 @@ def make_bag(samples: int) -> Path:
 
 def run_ours(bag: Path) -> tuple[int, np.ndarray]:
     """Offline identification through the live pipeline; (samples used, base estimate)."""
-    from identification_node.replay import identify_bag
+    from identification_node.offline.replay import identify_bag
     from identification_node.settings import Settings, read_parameter_file
 
     settings = Settings.from_dict(read_parameter_file(CONFIG))

@@ -1,6 +1,6 @@
 """python -m identification_node VERB ..."""
 import sys
 
-from .programs import identification_cli
+from identification_node.programs import identification_cli
 
 sys.exit(identification_cli())

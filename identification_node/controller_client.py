@@ -28,10 +28,10 @@ from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 from rclpy.parameter import parameter_value_to_python
 
-from .errors import IdentificationError
-from .identifiability import BaseParameters
-from .robot import RobotModel
-from .settings import Settings
+from identification_node.errors import IdentificationError
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import RobotModel
+from identification_node.settings import Settings
 
 # The node parameters that define the identified model (see settings.PARAMETERS).
 MODEL_PARAMETERS = ('robot', 'robot_description', 'joints', 'extras', 'coulomb_velocity')

@@ -14,15 +14,15 @@ from typing import TYPE_CHECKING, Any, Mapping
 
 import yaml
 
-from .consistency import ConsistencyOptions
-from .errors import IdentificationError
-from .plausibility import PlausibilitySettings
-from .robot import RobotModel, load_robot
-from .robust import RobustSettings
-from .torque import JointTorqueConfig
+from identification_node.errors import IdentificationError
+from identification_node.estimation.consistency import ConsistencyOptions
+from identification_node.estimation.robust import RobustSettings
+from identification_node.model.plausibility import PlausibilitySettings
+from identification_node.model.robot import RobotModel, load_robot
+from identification_node.model.torque import JointTorqueConfig
 
 if TYPE_CHECKING:   # the pipeline's defaults come from PARAMETERS below: imported when used
-    from .pipeline import IdentificationPipeline, PipelineConfig
+    from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 
 # name: (default, description). Per-joint lists hold one value for every joint, or one per
 # identified joint in the order of `joints`.
@@ -257,7 +257,7 @@ class Settings:
         return out
 
     def pipeline_config(self, joints: list[str]) -> PipelineConfig:
-        from .pipeline import PipelineConfig
+        from identification_node.pipeline import PipelineConfig
         v = self.values
         return PipelineConfig(
             torque=self.torque_configs(joints), forgetting=v['forgetting_factor'],
@@ -281,7 +281,7 @@ class Settings:
 
     def build(self, robot: RobotModel | None = None) -> IdentificationPipeline:
         """The pipeline these settings describe (loading the robot unless given)."""
-        from .pipeline import IdentificationPipeline
+        from identification_node.pipeline import IdentificationPipeline
         robot = robot or self.load_robot()
         try:
             return IdentificationPipeline(robot, self.pipeline_config(robot.joint_names))

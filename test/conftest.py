@@ -25,7 +25,7 @@ def ros(request):
 def mit():
     """The bundled MIT arm and its base parameters (modules wanting other MIT data override
     this fixture with their own)."""
-    from identification_node.identifiability import BaseParameters
-    from identification_node.robot import load_robot
+    from identification_node.model.identifiability import BaseParameters
+    from identification_node.model.robot import load_robot
     robot = load_robot('mit_dd_arm')
     return robot, BaseParameters.from_robot(robot)

@@ -11,8 +11,8 @@ import pytest
 import yaml
 from std_srvs.srv import Trigger
 
-from identification_node.consistency import ConsistentSolver, pipeline_equations
-from identification_node.replay import identify_bag
+from identification_node.estimation.consistency import ConsistentSolver, pipeline_equations
+from identification_node.offline.replay import identify_bag
 from identification_node.settings import Settings, read_parameter_file
 from ros_helpers import wait_for
 from test_bags import BAGS

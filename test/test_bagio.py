@@ -1,4 +1,4 @@
-"""Tests of identification_node.bagio: rosbag2 reading/writing and the fast JointState codec.
+"""Tests of identification_node.bags.bagio: rosbag2 reading/writing and the fast JointState codec.
 
 Independent truths: the rosbags serializer/deserializer and AnyReader, the `mcap` library's
 own reader, rclpy's rmw serializer (if importable), and the values written.
@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability
 from rosbags.rosbag2 import Reader
 
-from identification_node import bagio
+from identification_node.bags import bagio
 from identification_node.errors import IdentificationError
 
 TS = bagio.jazzy_typestore()

@@ -4,12 +4,12 @@ import struct
 
 import numpy as np
 
-from identification_node import bagio
+from identification_node.bags import bagio
 from identification_node.errors import IdentificationError
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
-from identification_node.robot import load_robot
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.trajectories import FourierTrajectory
 
 ARM3 = ('shoulder', 'elbow', 'wrist')
 

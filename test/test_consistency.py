@@ -14,17 +14,17 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from identification_node.consistency import (Body, ConsistencyOptions, ConsistentSolver,
-                                             SolverProcess, from_pseudo_inertia,
-                                             pseudo_inertia, robot_bodies)
 from identification_node.errors import IdentificationError
-from identification_node.estimators import RecursiveLeastSquares
-from identification_node.identifiability import BaseParameters
-from identification_node.normal_equations import NormalEquations
-from identification_node.prior import safe_prior
-from identification_node.robot import load_robot
-from identification_node.trajectories import FourierTrajectory
-from identification_node.urdf_export import consistency_problems, identified_urdf
+from identification_node.estimation.consistency import (Body, ConsistencyOptions, ConsistentSolver,
+                                                        SolverProcess, from_pseudo_inertia,
+                                                        pseudo_inertia, robot_bodies)
+from identification_node.estimation.estimators import RecursiveLeastSquares
+from identification_node.estimation.normal_equations import NormalEquations
+from identification_node.estimation.prior import safe_prior
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import load_robot
+from identification_node.model.urdf_export import consistency_problems, identified_urdf
 
 FIXTURES = Path(__file__).parent / 'fixtures'
 ROOT = Path(__file__).resolve().parents[1]

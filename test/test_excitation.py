@@ -6,16 +6,17 @@ import numpy as np
 import pytest
 import yaml
 
-from identification_node import excitation as ex
-from identification_node.bagio import JOINT_TRAJECTORY, BagReader, iter_messages
+from identification_node.bags.bagio import JOINT_TRAJECTORY, BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.estimators import LeastSquares
-from identification_node.identifiability import BaseParameters
-from identification_node.robot import load_robot
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.trajectories import (FourierTrajectory, FramedTrajectory,
-                                              SampledTrajectory, check_limits, load_trajectory)
+from identification_node.estimation.estimators import LeastSquares
+from identification_node.excitation import design as ex
+from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
+                                                         SampledTrajectory, check_limits,
+                                                         load_trajectory)
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
 
 FINE = 20001  # kinematic check points over one period
 FINE_TORQUE = 3001

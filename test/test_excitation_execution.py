@@ -11,14 +11,15 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from identification_node import excitation as ex
-from identification_node.bagio import BagReader, iter_messages
+from identification_node.bags.bagio import BagReader, iter_messages
 from identification_node.cli import main
-from identification_node.collision import CollisionChecker, has_collision_geometry
 from identification_node.errors import IdentificationError
-from identification_node.robot import load_robot
-from identification_node.trajectories import (FourierTrajectory, FramedTrajectory,
-                                              SampledTrajectory, load_trajectory, match_joints)
+from identification_node.excitation import design as ex
+from identification_node.excitation.collision import CollisionChecker, has_collision_geometry
+from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
+                                                         SampledTrajectory, load_trajectory,
+                                                         match_joints)
+from identification_node.model.robot import load_robot
 
 FIXTURES = Path(__file__).resolve().parent / 'fixtures'
 PANDA = str(FIXTURES / 'panda_collision.urdf')

@@ -13,18 +13,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identification_node import fleet
-from identification_node.bagio import BagWriter, iter_joint_states, open_bag
+from identification_node.bags.bagio import BagWriter, iter_joint_states, open_bag
 from identification_node.cli import main
 from identification_node.cli.identify import result_document
 from identification_node.errors import IdentificationError
-from identification_node.estimators import RecursiveLeastSquares, ResidualStatistics
-from identification_node.normal_equations import NormalEquations
-from identification_node.consistency import ConsistentSolver
-from identification_node.offline import make_consistent, replay_identify
-from identification_node.robot import load_robot
+from identification_node.estimation.consistency import ConsistentSolver
+from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.normal_equations import NormalEquations
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.robot import load_robot
+from identification_node.offline import fleet
+from identification_node.offline.identification import make_consistent, replay_identify
 from identification_node.settings import Settings
-from identification_node.trajectories import FourierTrajectory
 from test_offline import simulate, write_bag
 
 REPO = Path(__file__).resolve().parents[1]

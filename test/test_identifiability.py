@@ -7,10 +7,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from identification_node import papers
 from identification_node.errors import IdentificationError
-from identification_node.identifiability import BaseParameters, sample_motion
-from identification_node.robot import LINK_PARAMS, load_robot
+from identification_node.model import papers
+from identification_node.model.identifiability import BaseParameters, sample_motion
+from identification_node.model.robot import LINK_PARAMS, load_robot
 
 PANDA = str(Path(__file__).resolve().parent / 'fixtures' / 'panda_like.urdf')
 

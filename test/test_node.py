@@ -28,23 +28,23 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from identification_node.consistency import (ConsistencyOptions, ConsistentSolver,
-                                             pipeline_equations)
+from identification_node.bags.bagio import encode_joint_states
 from identification_node.controller_client import IdentifiedModel
 from identification_node.errors import IdentificationError
-from identification_node.identifiability import BaseParameters
+from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentSolver,
+                                                        pipeline_equations)
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.model.torque import TorqueConverter
 from identification_node.pipeline import REJECT_REASONS
-from identification_node.records import JointStateRecord
-from identification_node.robot import load_robot
-from identification_node.bagio import encode_joint_states
 from identification_node.ros import conversions
 from identification_node.ros.conversions import PolledSubscription, wait_for_all_acked
 from identification_node.ros.node import INPUT_QOS, IdentificationNode
 from identification_node.ros.sim_node import SampleSource, SimSetup
 from identification_node.settings import Settings
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.torque import TorqueConverter
-from identification_node.trajectories import FourierTrajectory
+from identification_node.wire.records import JointStateRecord
 from ros_helpers import (LATCHED, RELIABLE, Collector, diagnostic_values,
                          joint_state_msgs, stamp_ns, wait_for)
 

@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from identification_node.bagio import encode_joint_states
+from identification_node.bags.bagio import encode_joint_states
 from identification_node.ros.node import IdentificationNode
 from identification_node.ros.spin import STALLED_EXIT
 from ros_helpers import PYTHON, ROOT, RosHarness, domain_id, wait_for

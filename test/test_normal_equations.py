@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.estimators import RecursiveLeastSquares, ResidualStatistics
-from identification_node.normal_equations import NormalEquations
+from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.normal_equations import NormalEquations
 
 
 def data(rng, N=200, n=3, p=5):

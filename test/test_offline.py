@@ -7,21 +7,21 @@ import numpy as np
 import pytest
 import yaml
 
-from identification_node import offline
-from identification_node.bagio import BagWriter, iter_joint_states, open_bag
+from identification_node.bags.bagio import BagWriter, iter_joint_states, open_bag
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.estimators import ResidualStatistics, weighted_solve
-from identification_node.normal_equations import NormalEquations
-from identification_node.offline import (BagSamples, BatchOptions, Stream, fourier_fit,
-                                         identify_samples, offline_identify, read_samples,
-                                         validate)
-from identification_node.replay import identify_bag
-from identification_node.robot import load_robot
+from identification_node.estimation.estimators import ResidualStatistics, weighted_solve
+from identification_node.estimation.normal_equations import NormalEquations
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.offline import identification as offline
+from identification_node.offline.identification import (BagSamples, BatchOptions, Stream,
+                                                        fourier_fit, identify_samples,
+                                                        offline_identify, read_samples, validate)
+from identification_node.offline.replay import identify_bag
+from identification_node.pipeline.signals import central_derivatives, zero_phase_lowpass
 from identification_node.settings import Settings, read_parameter_file
-from identification_node.signals import central_derivatives, zero_phase_lowpass
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.trajectories import FourierTrajectory
 from test_bags import BAGS
 
 REPO = Path(__file__).resolve().parents[1]

@@ -8,10 +8,11 @@ import yaml
 
 from identification_node.errors import IdentificationError
 from identification_node.fileio import atomic_write_text
-from identification_node.results import save_results
-from identification_node.robot import load_robot
+from identification_node.model.robot import load_robot
+from identification_node.model.urdf_export import (consistency_problems, identified_urdf,
+                                                   link_inertia)
+from identification_node.offline.results import save_results
 from identification_node.settings import Settings, read_parameter_file
-from identification_node.urdf_export import consistency_problems, identified_urdf, link_inertia
 
 REPO = Path(__file__).resolve().parents[1]
 SIX_DOF = str(REPO / 'test' / 'fixtures' / 'six_dof_arm.urdf')

@@ -145,7 +145,7 @@ def test_config_and_robots_installed(install, site_packages):
 
 
 def test_installed_python_package_is_used(install, site_packages, tmp_path):
-    code = ('import identification_node.robot as r; print(r.__file__); '
+    code = ('import identification_node.model.robot as r; print(r.__file__); '
             "print(','.join(r.bundled_robots())); print(r.load_robot('mit_dd_arm').dof)")
     proc = subprocess.run([sys.executable, '-c', code], cwd=tmp_path, capture_output=True,
                           text=True, env=installed_env(site_packages, install), timeout=120)

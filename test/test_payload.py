@@ -10,17 +10,18 @@ import pytest
 import yaml
 
 from identification_node.errors import IdentificationError
-from identification_node.normal_equations import NormalEquations
-from identification_node.payload import (
-    INERTIA_KEYS, PayloadChange, QUANTITIES, attachment, fit_payload, frame_transform,
-    given_payload, payload_regressor, pseudo_inertia, read_payload_changes,
-    true_parameter_changes, urdf_with_payload)
-from identification_node.payload_monitor import MonitorConfig, PayloadMonitor
+from identification_node.estimation.normal_equations import NormalEquations
+from identification_node.excitation.trajectories import load_trajectory
+from identification_node.model.robot import PIN_ORDER, load_robot
+from identification_node.model.simulation import ArmSimulator, SensorNoise, simulate_kinematic
+from identification_node.payload.fit import (INERTIA_KEYS, PayloadChange, QUANTITIES, attachment,
+                                             fit_payload, frame_transform, given_payload,
+                                             payload_regressor, pseudo_inertia,
+                                             read_payload_changes, true_parameter_changes,
+                                             urdf_with_payload)
+from identification_node.payload.monitor import MonitorConfig, PayloadMonitor
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
-from identification_node.records import JointStateRecord
-from identification_node.robot import PIN_ORDER, load_robot
-from identification_node.simulation import ArmSimulator, SensorNoise, simulate_kinematic
-from identification_node.trajectories import load_trajectory
+from identification_node.wire.records import JointStateRecord
 
 SIX = 'test/fixtures/six_dof_arm.urdf'
 SEVEN = 'test/fixtures/panda_like.urdf'

@@ -10,7 +10,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.srv import SetCameraInfo
 
 from identification_node.errors import IdentificationError
-from identification_node.payload_delivery import PRESETS, fill_request, parse_fields
+from identification_node.payload.delivery import PRESETS, fill_request, parse_fields
 from identification_node.ros.payload_forwarder import PayloadForwarder
 from ros_helpers import LATCHED, RosHarness, domain_id, wait_for
 

@@ -142,11 +142,11 @@ def test_arm_from_the_running_estimate_taken_at_reset(ros):
     arm (the full parameter set reproducing it) as the model the payload is fitted against."""
     from rclpy.parameter import Parameter as P
 
-    from identification_node.payload import PayloadChange, true_parameter_changes
-    from identification_node.records import JointStateRecord
+    from identification_node.payload.fit import PayloadChange, true_parameter_changes
+    from identification_node.wire.records import JointStateRecord
     from identification_node.ros.node import IdentificationNode
-    from identification_node.simulation import simulate_kinematic
-    from identification_node.trajectories import load_trajectory
+    from identification_node.model.simulation import simulate_kinematic
+    from identification_node.excitation.trajectories import load_trajectory
     node = ros.add(IdentificationNode('payload_arm', context=ros.context, parameter_overrides=[
         P('robot', value=URDF), P('payload.enabled', value=True),
         P('payload.arm', value='estimate')]))

@@ -3,15 +3,15 @@ import numpy as np
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.estimators import RecursiveLeastSquares, ResidualStatistics
-from identification_node.identifiability import BaseParameters
+from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.pipeline.estimate import OnlineEstimate
-from identification_node.records import JointStateRecord
-from identification_node.robot import load_robot
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.torque import JointTorqueConfig, TorqueConverter
-from identification_node.trajectories import FourierTrajectory
+from identification_node.wire.records import JointStateRecord
 
 RATE = 1000.0
 T0_NS = 1_700_000_000_123_456_789   # epoch-sized stamps: nanoseconds must survive

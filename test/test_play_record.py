@@ -33,7 +33,7 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from identification_node import bagio  # noqa: E402
+from identification_node.bags import bagio  # noqa: E402
 from identification_node.errors import IdentificationError  # noqa: E402
 from identification_node.ros.conversions import wait_for_all_acked  # noqa: E402
 from identification_node.ros.player import BagPlayer, offered_qos  # noqa: E402

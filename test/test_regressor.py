@@ -8,7 +8,7 @@ import pinocchio as pin
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.robot import load_robot
+from identification_node.model.robot import load_robot
 
 from newton_euler import Chain, GRAVITY
 

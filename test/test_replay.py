@@ -5,7 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identification_node import bagio, replay
+from identification_node.bags import bagio
+
+from identification_node.offline import replay
 from identification_node.settings import Settings, read_parameter_file
 
 REPO = Path(__file__).resolve().parents[1]

@@ -6,19 +6,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identification_node.bagio import BagWriter, iter_joint_states, open_bag
+from identification_node.bags.bagio import BagWriter, iter_joint_states, open_bag
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.offline import (BatchOptions, SeriesSampler, offline_identify,
-                                         replay_identify, validate)
-from identification_node.report import (check_writable, convergence_figure_data, is_mit_arm,
-                                        write_report)
-from identification_node.robot import load_robot
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.offline.identification import (BatchOptions, SeriesSampler,
+                                                        offline_identify, replay_identify,
+                                                        validate)
+from identification_node.offline.report import (check_writable, convergence_figure_data,
+                                                is_mit_arm, write_report)
+from identification_node.pipeline.signals import (FixedLagSmoother, central_derivatives,
+                                                  period_average, zero_phase_lowpass)
 from identification_node.settings import Settings, read_parameter_file
-from identification_node.signals import (FixedLagSmoother, central_derivatives,
-                                         period_average, zero_phase_lowpass)
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.trajectories import FourierTrajectory
 
 REPO = Path(__file__).resolve().parents[1]
 CRS = REPO / 'bags' / 'crs_a465_fourier'

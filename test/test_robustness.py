@@ -7,15 +7,15 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from identification_node.bagio import encode_joint_states
-from identification_node.identifiability import BaseParameters
+from identification_node.bags.bagio import encode_joint_states
+from identification_node.estimation.robust import InnovationGate, RobustSettings
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.plausibility import PlausibilityBounds, PlausibilitySettings
+from identification_node.model.robot import BUNDLED_DIR, load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
-from identification_node.plausibility import PlausibilityBounds, PlausibilitySettings
-from identification_node.robot import BUNDLED_DIR, load_robot
-from identification_node.robust import InnovationGate, RobustSettings
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.torque import JointTorqueConfig, TorqueConverter
-from identification_node.trajectories import FourierTrajectory
 
 RATE = 1000.0
 T0_NS = 1_700_000_000_000_000_000
@@ -51,7 +51,7 @@ def run(sim, config=None, position=None, velocity=None, effort=None, cdr=False, 
         if cdr:
             p.add_joint_state_cdr(encode_joint_states(st[b], NAMES, q[b], qd[b], tau[b]))
         else:
-            from identification_node.records import JointStateRecord
+            from identification_node.wire.records import JointStateRecord
             p.add_joint_states(JointStateRecord(st[b], NAMES, q[b], qd[b], tau[b]))
         p.process()
     p.process(flush=True)
@@ -150,7 +150,7 @@ def test_absurd_currents_and_an_infinite_electrical_angle_are_counted():
     theta = np.full_like(cur, np.nan)        # electrical angles not given ...
     theta[4000:4200] = np.inf                # ... but infinite in 200 messages
     st = stamps(sim)
-    from identification_node.records import JointStateRecord
+    from identification_node.wire.records import JointStateRecord
     for a in range(0, len(st), 50):
         b = slice(a, a + 50)
         p.add_joint_states(JointStateRecord(st[b], NAMES, sim.q_meas[b], sim.qd_meas[b],
@@ -228,7 +228,7 @@ def test_a_sustained_shift_is_reported_and_not_hidden():
     p = IdentificationPipeline(ROBOT, config, BASE)
     p.gate.listeners.append(events.append)
     st = stamps(sim)
-    from identification_node.records import JointStateRecord
+    from identification_node.wire.records import JointStateRecord
     for a in range(0, len(st), 50):
         b = slice(a, a + 50)
         p.add_joint_states(JointStateRecord(st[b], NAMES, sim.q_meas[b], sim.qd_meas[b],
@@ -275,7 +275,7 @@ def test_a_failing_update_rolls_back_to_the_last_finite_state(clean, monkeypatch
         raise np.linalg.LinAlgError('Eigenvalues did not converge')
 
     monkeypatch.setattr(rls, 'update_rows', broken)
-    from identification_node.records import JointStateRecord
+    from identification_node.wire.records import JointStateRecord
     st = stamps(sim) + 10**11
     p.add_joint_states(JointStateRecord(st[:500], NAMES, sim.q_meas[:500], sim.qd_meas[:500],
                                         sim.tau_meas[:500]))

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.signals import (
-    FixedLagSmoother, central_derivatives, decimate, period_average, zero_phase_lowpass)
+from identification_node.pipeline.signals import (FixedLagSmoother, central_derivatives, decimate,
+                                                  period_average, zero_phase_lowpass)
 
 
 def _irregular_stamps(rng, n, dt=0.01, jitter=0.4, t0=3.0):

@@ -12,8 +12,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
-from identification_node.robot import load_robot
-from identification_node.torque import JointTorqueConfig, TorqueConverter
+from identification_node.model.robot import load_robot
+from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from ros_helpers import LATCHED, Collector, stamp_ns, wait_for
 
 pytestmark = pytest.mark.ros

@@ -7,10 +7,10 @@ import pinocchio as pin
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.robot import load_robot
-from identification_node.simulation import (
-    ArmSimulator, SensorNoise, default_converter, simulate_kinematic)
-from identification_node.trajectories import FourierTrajectory, QuinticMoves
+from identification_node.excitation.trajectories import FourierTrajectory, QuinticMoves
+from identification_node.model.robot import load_robot
+from identification_node.model.simulation import (ArmSimulator, SensorNoise, default_converter,
+                                                  simulate_kinematic)
 
 CRS_URDF = Path(__file__).resolve().parents[1] / 'identification_node' / 'robots' / \
     'crs_a465.urdf'
@@ -178,7 +178,7 @@ def test_encoder_quantisation_step():
 
 
 def test_currents_convert_back_to_the_applied_torque(mit_full):
-    torque = pytest.importorskip('identification_node.torque')
+    torque = pytest.importorskip('identification_node.model.torque')
     kt, gear, pp, off = 0.5, 3.0, 4, 0.3
     conv = torque.TorqueConverter(mit_full.joint_names, [
         torque.JointTorqueConfig('three_phase', kt=kt, gear_ratio=gear, pole_pairs=pp,

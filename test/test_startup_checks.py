@@ -10,16 +10,17 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from identification_node.bagio import BagWriter
+from identification_node.bags.bagio import BagWriter
+from identification_node.bags.mcap_check import _chunks, verify_chunks
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.mcap_check import _chunks, verify_chunks
+from identification_node.estimation.prior import safe_prior
+from identification_node.excitation.trajectories import FourierTrajectory
+from identification_node.model.robot import BUNDLED_DIR, load_robot
+from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.model.urdf_export import (consistency_problems, identified_urdf,
+                                                   link_inertia)
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
-from identification_node.prior import safe_prior
-from identification_node.robot import BUNDLED_DIR, load_robot
-from identification_node.simulation import SensorNoise, simulate_kinematic
-from identification_node.trajectories import FourierTrajectory
-from identification_node.urdf_export import consistency_problems, identified_urdf, link_inertia
 
 MIT_XML = (BUNDLED_DIR / 'mit_dd_arm.urdf').read_text()
 ROBOT = load_robot('mit_dd_arm')
@@ -92,7 +93,7 @@ def test_degenerate_urdf_prior_warns_and_falls_back(good_bag, tmp_path, mass, in
     p = IdentificationPipeline(robot, PipelineConfig())
     assert p.prior_notes == notes
     sim = simulate(duration=8.0)
-    from identification_node.records import JointStateRecord
+    from identification_node.wire.records import JointStateRecord
     stamps = 10**9 + np.arange(len(sim.t)) * 10**6
     p.add_joint_states(JointStateRecord(stamps, tuple(robot.joint_names), sim.q_meas,
                                         sim.qd_meas, sim.tau_meas))

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.torque import (
-    JointTorqueConfig, TorqueConverter, electrical_angle, phase_currents, three_phase_torque)
+from identification_node.model.torque import (JointTorqueConfig, TorqueConverter, electrical_angle,
+                                              phase_currents, three_phase_torque)
 
 DEG = np.pi / 180.0
 

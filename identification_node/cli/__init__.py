@@ -13,7 +13,7 @@ import os
 import sys
 from typing import Sequence
 
-from ..errors import IdentificationError
+from identification_node.errors import IdentificationError
 
 VERBS = {
     'structure': ('structure', 'identifiability: parameter groups and base parameters'),
@@ -48,7 +48,7 @@ def split_list(text: str | None) -> list[str]:
 
 def robot_from_args(args: argparse.Namespace):
     """The RobotModel named by add_robot_arguments' options."""
-    from ..robot import load_robot
+    from identification_node.model.robot import load_robot
     return load_robot(args.robot or args.urdf, split_list(args.joints) or None,
                       extras=split_list(args.extras))
 
@@ -61,7 +61,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
 
 def settings_from_args(args: argparse.Namespace):
     """Settings from --config, overridden by --robot/--urdf/--joints/--extras when given."""
-    from ..settings import Settings, read_parameter_file
+    from identification_node.settings import Settings, read_parameter_file
     values = read_parameter_file(args.config) if getattr(args, 'config', None) else {}
     if getattr(args, 'robot', None) or getattr(args, 'urdf', None):
         values['robot'] = args.robot or args.urdf

@@ -24,7 +24,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import add_robot_arguments, robot_from_args, split_list
+from identification_node.cli import add_robot_arguments, robot_from_args, split_list
 
 TOPIC = '/excitation_trajectory'
 CONFIG_KEYS = ('limits', 'margin', 'start', 'periods', 'min_distance', 'srdf',
@@ -84,9 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _initial(args: argparse.Namespace, robot):
     """(initial spec for optimize_excitation, harmonics, period)."""
-    from ..excitation import DEFAULT_HARMONICS, DEFAULT_PERIOD
-    from ..errors import IdentificationError
-    from ..trajectories import FourierTrajectory, FramedTrajectory, load_trajectory
+    from identification_node.excitation.design import DEFAULT_HARMONICS, DEFAULT_PERIOD
+    from identification_node.errors import IdentificationError
+    from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
+                                                             load_trajectory)
 
     spec = args.initial.strip()
     if spec in ('lsq', 'table1'):
@@ -106,7 +107,7 @@ def _initial(args: argparse.Namespace, robot):
 
 
 def _numbers(text: str | None, option: str) -> list[float] | None:
-    from ..errors import IdentificationError
+    from identification_node.errors import IdentificationError
     if not text:
         return None
     try:
@@ -126,7 +127,7 @@ def _config(args: argparse.Namespace) -> dict:
     """The --config file's settings, overridden by the command line's."""
     import yaml
 
-    from ..errors import IdentificationError
+    from identification_node.errors import IdentificationError
     conf: dict = {}
     if args.config:
         try:
@@ -150,7 +151,7 @@ def _config(args: argparse.Namespace) -> dict:
 
 
 def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path, Path | None]:
-    from ..errors import IdentificationError
+    from identification_node.errors import IdentificationError
     out = Path(args.out)
     if out.suffix.lower() not in ('.yaml', '.yml'):
         raise IdentificationError(f'--out {args.out} must end in .yaml or .yml')
@@ -169,7 +170,7 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path, Path | None]:
 
 
 def _limits(args: argparse.Namespace, conf: dict, robot):
-    from ..excitation import ExcitationLimits, load_limits
+    from identification_node.excitation.design import ExcitationLimits, load_limits
     limits = (load_limits(args.limits, robot, effort=not args.no_effort) if args.limits
               else ExcitationLimits.from_robot(robot, effort=not args.no_effort))
     if 'limits' in conf:
@@ -180,8 +181,9 @@ def _limits(args: argparse.Namespace, conf: dict, robot):
 def _checker(args: argparse.Namespace, conf: dict, robot):
     """The CollisionChecker for a robot with collision geometry (None without, or with
     --no-collision)."""
-    from ..collision import DEFAULT_MIN_DISTANCE, CollisionChecker, has_collision_geometry
-    from ..errors import IdentificationError
+    from identification_node.excitation.collision import (DEFAULT_MIN_DISTANCE, CollisionChecker,
+                                                          has_collision_geometry)
+    from identification_node.errors import IdentificationError
     wanted = any(k in conf for k in ('srdf', 'package_dirs', 'floor', 'boxes'))
     if args.no_collision:
         return None
@@ -203,14 +205,17 @@ def _ratio_line(result) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..bagio import BagWriter
-    from ..excitation import (DEFAULT_LIMIT_MARGIN, DEFAULT_MAXITER, DEFAULT_PERIODS,
-                              DEFAULT_SAMPLES, TABLE1_PERIOD, criterion_value,
-                              estimate_parameters, optimize_excitation, plot_excitation,
-                              sample_times, table1_trajectory, trajectory_to_joint_trajectory)
-    from ..fileio import atomic_write_yaml
-    from ..identifiability import BaseParameters
-    from ..trajectories import write_motion_csv
+    from identification_node.bags.bagio import BagWriter
+    from identification_node.excitation.design import (DEFAULT_LIMIT_MARGIN, DEFAULT_MAXITER,
+                                                       DEFAULT_PERIODS, DEFAULT_SAMPLES,
+                                                       TABLE1_PERIOD, criterion_value,
+                                                       estimate_parameters, optimize_excitation,
+                                                       plot_excitation, sample_times,
+                                                       table1_trajectory,
+                                                       trajectory_to_joint_trajectory)
+    from identification_node.fileio import atomic_write_yaml
+    from identification_node.model.identifiability import BaseParameters
+    from identification_node.excitation.trajectories import write_motion_csv
 
     out, csv, png, bag = _outputs(args)
     conf = _config(args)

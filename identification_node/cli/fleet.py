@@ -21,7 +21,7 @@ import argparse
 import json
 import sys
 
-from .identify import _table
+from identification_node.cli.identify import _table
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,8 +80,8 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
     from pathlib import Path
 
-    from .. import fleet
-    from ..errors import IdentificationError
+    from identification_node.offline import fleet
+    from identification_node.errors import IdentificationError
 
     if not args.sigma > 0:
         raise IdentificationError(f'--sigma must be > 0, got {args.sigma}')
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise IdentificationError(f'--workers must be >= 1, got {args.workers}')
     if args.report:
-        from ..report import check_writable
+        from identification_node.offline.report import check_writable
         check_writable(args.report)
     source = Path(args.manifest)
     if source.is_dir():
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     result.failed[:0] = failed
     doc = fleet.fleet_document(result, args.sigma)
     if args.report:
-        from ..fleet_report import write_fleet_report
+        from identification_node.offline.fleet_report import write_fleet_report
         doc['report'] = {k: str(p) for k, p in write_fleet_report(args.report, doc).items()}
     if args.json:
         print(json.dumps(doc, indent=2))

@@ -17,5 +17,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.payload_forwarder import main
+    from identification_node.ros.payload_forwarder import main
     return main(['payload_forwarder', *getattr(args, 'ros_args', [])])

@@ -21,7 +21,7 @@ import sys
 
 import numpy as np
 
-from . import add_robot_arguments, add_settings_arguments, settings_from_args
+from identification_node.cli import add_robot_arguments, add_settings_arguments, settings_from_args
 
 BATCH_OPTIONS = ('period', 'trajectory', 'harmonics', 'cutoff', 'decimate',
                  'trajectory_start')
@@ -81,9 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def result_document(result, validation=None) -> dict:
     """The ``--json`` object of an identification (offline.Identification, or the
     replay.ReplayResult of the streaming pipeline), with the validation when given."""
-    from ..offline import Identification, from_replay
-    from ..results import parameters_document, plain
-    from ..urdf_export import consistency_problems
+    from identification_node.offline.identification import Identification, from_replay
+    from identification_node.offline.results import parameters_document, plain
+    from identification_node.model.urdf_export import consistency_problems
 
     ident = result if isinstance(result, Identification) else from_replay(result)
     robot, base = ident.robot, ident.base
@@ -147,7 +147,7 @@ def result_document(result, validation=None) -> dict:
 
 def saved_document(ident) -> dict:
     """estimate.yaml of an identification: what the node's ~/save writes."""
-    from ..results import parameters_document, plain
+    from identification_node.offline.results import parameters_document, plain
 
     doc = parameters_document(ident.robot, ident.base, ident.theta, ident.stddev,
                               ident.consistent, ident.covariance)
@@ -246,7 +246,7 @@ def _per_joint(errors: dict) -> str:
 def paper_table3(fit) -> str:
     """The first paper's Table 3 combinations: identified, model (Table 1) and paper values.
     ``fit``: an offline.Identification or an IdentificationPipeline."""
-    from ..report import paper_table3_rows
+    from identification_node.offline.report import paper_table3_rows
 
     if hasattr(fit, 'rls'):
         theta, cov = fit.rls.theta, fit.covariance
@@ -272,7 +272,7 @@ def _table(header: tuple, rows: list[tuple]) -> list[str]:
 
 
 def _method(args: argparse.Namespace) -> str:
-    from ..errors import IdentificationError
+    from identification_node.errors import IdentificationError
 
     given = [f"--{o.replace('_', '-')}" for o in BATCH_OPTIONS if getattr(args, o) is not None]
     if args.method == 'rls' and given:
@@ -282,9 +282,9 @@ def _method(args: argparse.Namespace) -> str:
 
 def batch_options(args: argparse.Namespace, robot):
     """offline.BatchOptions from --period/--trajectory/--harmonics/--cutoff/--decimate."""
-    from ..errors import IdentificationError
-    from ..offline import DEFAULT_CUTOFF, BatchOptions
-    from ..trajectories import FramedTrajectory, load_trajectory
+    from identification_node.errors import IdentificationError
+    from identification_node.offline.identification import DEFAULT_CUTOFF, BatchOptions
+    from identification_node.excitation.trajectories import FramedTrajectory, load_trajectory
 
     period, least, window = args.period, 1, None
     if args.trajectory_start is not None and not args.trajectory:
@@ -319,15 +319,15 @@ def batch_options(args: argparse.Namespace, robot):
 
 def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
     """The PayloadMonitor of --payload (None without it)."""
-    from ..errors import IdentificationError
+    from identification_node.errors import IdentificationError
     if not args.payload:
         if args.payload_link or args.arm:
             raise IdentificationError('--payload-link and --arm need --payload')
         return None
     if method != 'rls':
         raise IdentificationError('--payload streams the bag: not with --method batch')
-    from ..payload_monitor import monitor_from_settings
-    from ..settings import Settings
+    from identification_node.payload.monitor import monitor_from_settings
+    from identification_node.settings import Settings
     values = dict(settings.values)
     values.update({'payload.link': args.payload_link or values['payload.link'],
                    'payload.arm': args.arm or values['payload.arm']})
@@ -335,19 +335,20 @@ def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..offline import make_consistent, offline_identify, replay_identify, validate
-    from ..replay import bag_robot
+    from identification_node.offline.identification import (make_consistent, offline_identify,
+                                                            replay_identify, validate)
+    from identification_node.offline.replay import bag_robot
 
     settings = settings_from_args(args)
     consistency = None if args.no_physical_consistency else settings.consistency_options()
     method = _method(args)
     if args.report:
-        from ..report import check_writable
+        from identification_node.offline.report import check_writable
         check_writable(args.report)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
-    from ..bagio import open_bag
-    from ..prior import safe_prior
+    from identification_node.bags.bagio import open_bag
+    from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:
         print(f'warning: {note}', file=sys.stderr)
     for bag in [args.bag] + ([args.validate] if args.validate else []):
@@ -370,14 +371,14 @@ def run(args: argparse.Namespace) -> int:
                   if args.validate else None)
     doc = result_document(ident, validation)
     if monitor is not None:
-        from ..payload_monitor import segments_document
-        from ..results import plain
+        from identification_node.payload.monitor import segments_document
+        from identification_node.offline.results import plain
         doc['payload_changes'] = plain(segments_document(monitor.finish()))
     if args.save:
-        from ..results import write_results
+        from identification_node.offline.results import write_results
         doc['saved'] = [str(p) for p in write_results(args.save, saved_document(ident), robot)]
     if args.report:
-        from ..report import write_report
+        from identification_node.offline.report import write_report
         report = write_report(args.report, ident, validation)
         doc['report'] = {k: str(p) for k, p in report.files.items()}
     if args.json:

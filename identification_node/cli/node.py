@@ -16,5 +16,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.node import main
+    from identification_node.ros.node import main
     return main(['identification_node', *getattr(args, 'ros_args', [])])

@@ -7,7 +7,7 @@ import math
 import sys
 from typing import Any, Iterator
 
-from ..errors import IdentificationError
+from identification_node.errors import IdentificationError
 
 ROS_ARGS = True   # the CLI passes unparsed arguments on as args.ros_args
 
@@ -40,7 +40,7 @@ def ros_session(args: argparse.Namespace, node_name: str) -> Iterator[tuple[Any,
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from ..ros.spin import stop_signals
+    from identification_node.ros.spin import stop_signals
 
     ros_args = ros_arguments(args)
     node = None
@@ -77,8 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..bagio import open_bag
-    from ..ros.player import BagPlayer, select_topics
+    from identification_node.bags.bagio import open_bag
+    from identification_node.ros.player import BagPlayer, select_topics
 
     for name, value in (('--rate', args.rate), ('--clock', args.clock),
                         ('--wait-for-subscribers', args.wait_for_subscribers),

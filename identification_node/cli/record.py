@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..errors import IdentificationError
-from .play import add_ros_arguments, ros_session
+from identification_node.errors import IdentificationError
+from identification_node.cli.play import add_ros_arguments, ros_session
 
 ROS_ARGS = True   # the CLI passes unparsed arguments on as args.ros_args
 
@@ -26,8 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.spin import make_executor
-    from ..ros.recorder import BagRecorder
+    from identification_node.ros.spin import make_executor
+    from identification_node.ros.recorder import BagRecorder
 
     for name, value in (('--duration', args.duration),
                         ('--discovery-timeout', args.discovery_timeout)):

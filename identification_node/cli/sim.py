@@ -18,5 +18,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..ros.sim_node import main
+    from identification_node.ros.sim_node import main
     return main(['simulated_arm', *getattr(args, 'ros_args', [])])

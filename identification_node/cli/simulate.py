@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import add_robot_arguments, add_settings_arguments, settings_from_args
+from identification_node.cli import add_robot_arguments, add_settings_arguments, settings_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +50,7 @@ def true_parameters(robot, path: str | None):
     """The robot's own standard parameters with the overrides of a YAML file."""
     import yaml
 
-    from ..errors import IdentificationError
+    from identification_node.errors import IdentificationError
     phi = robot.phi_model
     if not path:
         return phi
@@ -70,13 +70,14 @@ def true_parameters(robot, path: str | None):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..bagio import BagWriter, JOINT_STATE
-    from ..fileio import atomic_write_yaml
-    from ..identifiability import BaseParameters
-    from ..payload import attachment, read_payload_changes, true_parameter_changes
-    from ..simulation import ArmSimulator, SensorNoise
-    from ..torque import TorqueConverter
-    from ..trajectories import load_trajectory
+    from identification_node.bags.bagio import BagWriter, JOINT_STATE
+    from identification_node.fileio import atomic_write_yaml
+    from identification_node.model.identifiability import BaseParameters
+    from identification_node.payload.fit import (attachment, read_payload_changes,
+                                                 true_parameter_changes)
+    from identification_node.model.simulation import ArmSimulator, SensorNoise
+    from identification_node.model.torque import TorqueConverter
+    from identification_node.excitation.trajectories import load_trajectory
 
     settings = settings_from_args(args)
     robot = settings.load_robot()

@@ -12,7 +12,7 @@ import re
 import shutil
 import textwrap
 
-from . import add_robot_arguments, robot_from_args
+from identification_node.cli import add_robot_arguments, robot_from_args
 
 UNITS = {'m': 'kg', 'mx': 'kg m', 'my': 'kg m', 'mz': 'kg m', 'fv': 'N m s/rad', 'fc': 'N m',
          'fo': 'N m', 'Ia': 'kg m^2'}
@@ -87,8 +87,8 @@ def format_report(base, robot) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import IdentificationError
-    from ..identifiability import BaseParameters
+    from identification_node.errors import IdentificationError
+    from identification_node.model.identifiability import BaseParameters
 
     if args.samples is not None and args.samples < 1:
         raise IdentificationError(f'--samples must be a positive count, got {args.samples}')

@@ -15,12 +15,12 @@ everything queued, in batches, one stage per module:
 
 Stages 1-4 together are ``TorqueSamples``, which batch identification (offline) runs too.
 """
-from .config import PipelineConfig
-from .core import IdentificationPipeline, PipelineOutput
-from .estimate import EstimateReport, converged
-from .samples import Samples
-from .torque_samples import TorqueSamples
-from .validate import REJECT_REASONS
+from identification_node.pipeline.config import PipelineConfig
+from identification_node.pipeline.core import IdentificationPipeline, PipelineOutput
+from identification_node.pipeline.estimate import EstimateReport, converged
+from identification_node.pipeline.samples import Samples
+from identification_node.pipeline.torque_samples import TorqueSamples
+from identification_node.pipeline.validate import REJECT_REASONS
 
 __all__ = ['IdentificationPipeline', 'PipelineConfig', 'PipelineOutput', 'EstimateReport',
            'REJECT_REASONS', 'Samples', 'TorqueSamples', 'converged']

@@ -13,10 +13,10 @@ import math
 
 import numpy as np
 
-from ..plausibility import PlausibilityBounds
-from ..torque import TorqueConverter
-from .samples import Samples
-from .validate import Counters
+from identification_node.model.plausibility import PlausibilityBounds
+from identification_node.model.torque import TorqueConverter
+from identification_node.pipeline.samples import Samples
+from identification_node.pipeline.validate import Counters
 
 
 class CurrentAlignment:

@@ -5,11 +5,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
-from ..errors import IdentificationError
-from ..plausibility import PlausibilitySettings
-from ..robust import RobustSettings
-from ..settings import CONFIG_FIELD_PARAMETERS, PARAMETERS
-from ..torque import JointTorqueConfig
+from identification_node.errors import IdentificationError
+from identification_node.estimation.robust import RobustSettings
+from identification_node.model.plausibility import PlausibilitySettings
+from identification_node.model.torque import JointTorqueConfig
+from identification_node.settings import CONFIG_FIELD_PARAMETERS, PARAMETERS
 
 
 def _default(name: str):

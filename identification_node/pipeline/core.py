@@ -8,16 +8,16 @@ from typing import Mapping
 
 import numpy as np
 
-from ..errors import IdentificationError
-from ..estimators import RecursiveLeastSquares, ResidualStatistics
-from ..identifiability import BaseParameters
-from ..prior import safe_prior
-from ..records import JointStateRecord
-from ..robot import RobotModel
-from .config import PipelineConfig
-from .estimate import EstimateReport, OnlineEstimate
-from .rows import RowBuilder
-from .torque_samples import TorqueSamples
+from identification_node.errors import IdentificationError
+from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.prior import safe_prior
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import RobotModel
+from identification_node.pipeline.config import PipelineConfig
+from identification_node.pipeline.estimate import EstimateReport, OnlineEstimate
+from identification_node.pipeline.rows import RowBuilder
+from identification_node.pipeline.torque_samples import TorqueSamples
+from identification_node.wire.records import JointStateRecord
 
 
 @dataclass

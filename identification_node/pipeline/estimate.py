@@ -20,11 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import IdentificationError
-from ..estimators import RecursiveLeastSquares, ResidualStatistics, row_information
-from ..robust import InnovationGate
-from ..signals import smoothing_noise_gain
-from .config import PipelineConfig
+from identification_node.errors import IdentificationError
+from identification_node.estimation.estimators import (RecursiveLeastSquares, ResidualStatistics,
+                                                       row_information)
+from identification_node.estimation.robust import InnovationGate
+from identification_node.pipeline.config import PipelineConfig
+from identification_node.pipeline.signals import smoothing_noise_gain
 
 # What the numerical update may raise on absurd data: caught, the estimator rolled back.
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, IdentificationError)

@@ -12,10 +12,10 @@ import collections
 
 import numpy as np
 
-from ..bagio import JointStateDecoder, decode_joint_states
-from ..errors import IdentificationError
-from ..records import JointStateRecord
-from .validate import Counters
+from identification_node.bags.bagio import JointStateDecoder, decode_joint_states
+from identification_node.errors import IdentificationError
+from identification_node.pipeline.validate import Counters
+from identification_node.wire.records import JointStateRecord
 
 
 class Intake:

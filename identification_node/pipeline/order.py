@@ -11,8 +11,8 @@ from typing import Callable
 
 import numpy as np
 
-from .samples import Samples
-from .validate import Counters
+from identification_node.pipeline.samples import Samples
+from identification_node.pipeline.validate import Counters
 
 
 class StampOrder:

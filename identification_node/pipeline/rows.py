@@ -13,10 +13,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..identifiability import BaseParameters
-from ..robot import RobotModel
-from ..signals import FixedLagSmoother
-from .samples import Samples
+from identification_node.model.identifiability import BaseParameters
+from identification_node.model.robot import RobotModel
+from identification_node.pipeline.samples import Samples
+from identification_node.pipeline.signals import FixedLagSmoother
 
 
 class Rows(NamedTuple):

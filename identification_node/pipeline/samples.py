@@ -10,7 +10,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..records import JointStateRecord
+from identification_node.wire.records import JointStateRecord
 
 
 class Samples:

@@ -6,16 +6,16 @@ collects it. Both run exactly this.
 """
 from __future__ import annotations
 
-from ..plausibility import PlausibilityBounds
-from ..records import JointStateRecord
-from ..robot import RobotModel
-from ..torque import JointTorqueConfig, TorqueConverter
-from .align import CurrentAlignment
-from .config import PipelineConfig
-from .intake import Intake
-from .order import StampOrder
-from .samples import Samples, stack_records
-from .validate import Counters, CurrentValidator, JointStateValidator
+from identification_node.model.plausibility import PlausibilityBounds
+from identification_node.model.robot import RobotModel
+from identification_node.model.torque import JointTorqueConfig, TorqueConverter
+from identification_node.pipeline.align import CurrentAlignment
+from identification_node.pipeline.config import PipelineConfig
+from identification_node.pipeline.intake import Intake
+from identification_node.pipeline.order import StampOrder
+from identification_node.pipeline.samples import Samples, stack_records
+from identification_node.pipeline.validate import Counters, CurrentValidator, JointStateValidator
+from identification_node.wire.records import JointStateRecord
 
 
 class TorqueSamples:

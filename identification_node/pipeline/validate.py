@@ -14,11 +14,11 @@ import sys
 
 import numpy as np
 
-from ..records import JointStateRecord
-from ..plausibility import PlausibilityBounds
-from ..robot import RobotModel
-from ..torque import TorqueConverter
-from .samples import Samples, stack_records
+from identification_node.model.plausibility import PlausibilityBounds
+from identification_node.model.robot import RobotModel
+from identification_node.model.torque import TorqueConverter
+from identification_node.pipeline.samples import Samples, stack_records
+from identification_node.wire.records import JointStateRecord
 
 REJECT_REASONS = (
     'empty', 'length_mismatch', 'duplicate_names', 'missing_joints', 'non_finite',

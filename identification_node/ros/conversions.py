@@ -17,7 +17,7 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
-from ..bagio import encode_joint_states
+from identification_node.bags.bagio import encode_joint_states
 
 
 def time_msg(ns: int) -> Time:

@@ -51,16 +51,17 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
-from ..consistency import ConsistentEstimate, SolverProcess, pipeline_equations
-from ..pipeline import EstimateReport, PipelineOutput
-from ..results import plain, save_results
-from ..errors import IdentificationError
-from ..payload import urdf_with_payload
-from ..settings import PARAMETERS, RANGES, Settings, element_type
-from ..urdf_export import consistency_problems, identified_urdf
-from .payload_outputs import PayloadOutputs
-from .spin import PeriodicThread, run_node
-from .conversions import PolledSubscription, publish_joint_states
+from identification_node.errors import IdentificationError
+from identification_node.estimation.consistency import (ConsistentEstimate, SolverProcess,
+                                                        pipeline_equations)
+from identification_node.model.urdf_export import consistency_problems, identified_urdf
+from identification_node.offline.results import plain, save_results
+from identification_node.payload.fit import urdf_with_payload
+from identification_node.pipeline import EstimateReport, PipelineOutput
+from identification_node.ros.conversions import PolledSubscription, publish_joint_states
+from identification_node.ros.payload_outputs import PayloadOutputs
+from identification_node.ros.spin import PeriodicThread, run_node
+from identification_node.settings import PARAMETERS, RANGES, Settings, element_type
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,

@@ -20,9 +20,9 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..errors import IdentificationError
-from ..payload_delivery import PRESETS, fill_request, parse_fields
-from .spin import run_node
+from identification_node.errors import IdentificationError
+from identification_node.payload.delivery import PRESETS, fill_request, parse_fields
+from identification_node.ros.spin import run_node
 
 PAYLOAD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          reliability=ReliabilityPolicy.RELIABLE,

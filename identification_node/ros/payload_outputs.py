@@ -28,9 +28,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from ..errors import IdentificationError
-from ..payload import PayloadEstimate, payload_parameters, prepare_consistency
-from ..payload_monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
+from identification_node.errors import IdentificationError
+from identification_node.payload.fit import (PayloadEstimate, payload_parameters,
+                                             prepare_consistency)
+from identification_node.payload.monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,

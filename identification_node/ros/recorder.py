@@ -18,9 +18,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
-from ..bagio import BagWriter
-from ..errors import IdentificationError
-from .player import message_class
+from identification_node.bags.bagio import BagWriter
+from identification_node.errors import IdentificationError
+from identification_node.ros.player import message_class
 
 DEPTH = 1000  # reader queue: 1 s at 1 kHz while the callback is late
 DISCOVERY_PERIOD = 0.25  # [s] between graph look-ups for topics not seen yet

@@ -45,17 +45,17 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
-from ..errors import IdentificationError
-from ..robot import RobotModel
-from ..settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
-from ..payload import read_payload_changes, true_parameter_changes
-from ..simulation import ArmSimulator, SensorNoise, SimResult
-from ..torque import TorqueConverter
-from ..trajectories import Trajectory, load_trajectory
-from ..urdf_export import consistency_problems
-from .conversions import publish_joint_states, time_msg, wait_for_all_acked
-from .node import declare_settings, warn_unknown_parameters
-from .spin import run_node
+from identification_node.errors import IdentificationError
+from identification_node.excitation.trajectories import Trajectory, load_trajectory
+from identification_node.model.robot import RobotModel
+from identification_node.model.simulation import ArmSimulator, SensorNoise, SimResult
+from identification_node.model.torque import TorqueConverter
+from identification_node.model.urdf_export import consistency_problems
+from identification_node.payload.fit import read_payload_changes, true_parameter_changes
+from identification_node.ros.conversions import publish_joint_states, time_msg, wait_for_all_acked
+from identification_node.ros.node import declare_settings, warn_unknown_parameters
+from identification_node.ros.spin import run_node
+from identification_node.settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
 
 MAX_BATCH = 20      # samples per catch-up batch
 LINGER = 0.5        # s the process stays up after the acks, for best-effort samples in flight

@@ -26,7 +26,7 @@ import threading
 import time
 from typing import Any, Callable, Iterator
 
-from ..errors import IdentificationError
+from identification_node.errors import IdentificationError
 
 
 class StopSignals:

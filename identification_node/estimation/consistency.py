@@ -1,0 +1,485 @@
+"""Physically consistent estimates: constrained weighted least squares on the normal equations.
+
+The data determine the base parameters beta = K phi (identifiability); the solve looks for the
+full standard parameters phi (robot.py's order) minimising
+
+    sum_j w_j ||tau_j - Y_j K phi||^2                                  (the data, as the WLS)
+    + gamma sum_i d(J_i || J0_i) + gamma sum_k ((x_k - x0_k) / s_k)^2  (toward the prior)
+
+subject to, per body i (an identified link with what is merged into it), its own pseudo-inertia
+J_i - eps_i 1 >= 0 (Wensing, Kim and Slotine 2017: mass > 0, inertia about the centre of mass
+positive definite, triangle inequalities), optional mass bounds and a box for its centre of
+mass, and fv, fc, Ia >= 0 for the per-joint columns x. The pseudo-inertia of a block
+[m, mx, my, mz, Ixx, Ixy, Ixz, Iyy, Iyz, Izz] (inertia I about the frame origin) is
+
+    J = [[Sigma, h], [h', m]],  Sigma = tr(I)/2 1 - I,  h = (mx, my, mz).
+
+d is the log-det (Bregman) divergence of Lee, Wensing and Park 2020,
+d(J || J0) = -log det(J0^-1 J) + tr(J0^-1 J) - 4, toward the description's own inertials: it
+fixes the combinations the data leave free. The data term is in chi-square units when w_j are
+the inverse noise variances (then sum_j w_j Y_j'Y_j is the inverse covariance of the estimate),
+so gamma = 1e-3 moves an identified combination by about a thousandth of its standard deviation
+per unit of divergence. A body's own part excludes constant bodies merged into it (``fixed``,
+e.g. fingers of locked joints, which keep their own inertials in the exported URDF).
+
+Solved by cvxpy (Clarabel, or SCS) on a parametrised problem built once: re-solving with new
+normal equations (the node, at every refresh) skips the canonicalisation, and SCS also starts
+from the previous solution. A failure or time-out is reported in the result's ``status``; the
+caller keeps the unconstrained estimate.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from identification_node.errors import IdentificationError
+from identification_node.estimation.normal_equations import NormalEquations
+from identification_node.model.identifiability import BaseParameters
+
+DEFAULT_WEIGHT = 1e-3      # gamma: regulariser weight, in chi-square units of the data term
+DEFAULT_MARGIN = 1e-6      # eps: J - eps 1 >= 0 (kg, kg m^2), lowered for tiny priors
+DEFAULT_TIME_LIMIT = 5.0   # s per solve
+EXTRA_SCALE = 1e-2         # s_k floor of the per-joint columns' regulariser (SI)
+NONNEGATIVE = ('fv', 'fc', 'Ia')
+SOLVERS = ('CLARABEL', 'SCS')
+NICE = 19                  # the node's solver process: below its processing thread
+
+# phi block (10,) = _FROM_J @ vec(J) (J symmetric 4x4, row-major flattening)
+_FROM_J = np.zeros((10, 16))
+for _row, _terms in enumerate([
+        [(3, 3, 1)], [(0, 3, 1)], [(1, 3, 1)], [(2, 3, 1)],
+        [(1, 1, 1), (2, 2, 1)], [(0, 1, -1)], [(0, 2, -1)],
+        [(0, 0, 1), (2, 2, 1)], [(1, 2, -1)], [(0, 0, 1), (1, 1, 1)]]):
+    for _a, _b, _c in _terms:
+        _FROM_J[_row, 4 * _a + _b] = _c
+
+
+def pseudo_inertia(phi10: np.ndarray) -> np.ndarray:
+    """The 4x4 pseudo-inertia of a link block (about the frame origin; kg m^2, kg m, kg)."""
+    m, h = phi10[0], np.asarray(phi10[1:4])
+    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi10[4:]
+    inertia = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
+    J = np.empty((4, 4))
+    J[:3, :3] = 0.5 * np.trace(inertia) * np.eye(3) - inertia
+    J[:3, 3] = J[3, :3] = h
+    J[3, 3] = m
+    return J
+
+
+def from_pseudo_inertia(J: np.ndarray) -> np.ndarray:
+    """The link block [m, mx, ..., Izz] of a pseudo-inertia (inverse of pseudo_inertia)."""
+    return _FROM_J @ np.asarray(J, dtype=float).reshape(16)
+
+
+@dataclass(frozen=True)
+class Body:
+    """One rigid body of the solve: its 10 columns start at ``start`` in phi. ``fixed``: the
+    standard parameters (10,) of constant bodies merged into it (its own part is the rest);
+    ``mass`` (lo, hi) bounds and ``com_box`` ((3,) lo, (3,) hi, m, in the body frame) apply to
+    the whole body (own part plus fixed)."""
+    name: str
+    start: int
+    fixed: np.ndarray = field(default_factory=lambda: np.zeros(10))
+    mass: tuple[float, float] | None = None
+    com_box: tuple[np.ndarray, np.ndarray] | None = None
+
+
+@dataclass
+class ConsistentEstimate:
+    """Outcome of a solve: ``phi`` the standard parameters (the combinations the data leave
+    free, fixed by the weak regulariser alone, to about sqrt(gap / gamma) ~ 1e-3 relative:
+    they change no torque), ``theta`` = K phi the base estimate
+    and ``stddev`` its standard deviations from the data's information (the unconstrained
+    ones; inf where undetermined); None for phi and theta when the solve failed. ``status``:
+    'optimal', or why it failed ('time_limit', 'infeasible', 'solver_error: ...');
+    ``solve_time`` s; ``notes``: adjustments made (repaired priors, widened boxes)."""
+    status: str
+    phi: np.ndarray | None
+    theta: np.ndarray | None
+    stddev: np.ndarray
+    solve_time: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.phi is not None
+
+
+@dataclass(frozen=True)
+class ConsistencyOptions:
+    """Settings of the solve (config: ``physical_consistency.*``)."""
+    weight: float = DEFAULT_WEIGHT
+    margin: float = DEFAULT_MARGIN
+    solver: str = 'CLARABEL'
+    time_limit: float = DEFAULT_TIME_LIMIT
+    geometry_box: bool = True      # default CoM box from the URDF's collision/visual shapes
+    mass_min: Sequence[float] = ()   # per identified link (kg), or empty
+    mass_max: Sequence[float] = ()
+    com_box: Sequence[float] = ()    # 6 per identified link: lo xyz, hi xyz (m), or empty
+
+    def validate(self, num_links: int | None = None) -> None:
+        """IdentificationError naming the first bad setting (``consistency.<name>``)."""
+        checks = [('weight', self.weight > 0, '> 0'), ('margin', self.margin > 0, '> 0'),
+                  ('time_limit', self.time_limit > 0, '> 0'),
+                  ('solver', self.solver in SOLVERS, f'one of {SOLVERS}')]
+        if num_links is not None:
+            n = num_links
+            checks += [
+                ('mass_min', len(self.mass_min) in (0, n), f'empty or {n} values'),
+                ('mass_max', len(self.mass_max) in (0, n), f'empty or {n} values'),
+                ('com_box', len(self.com_box) in (0, 6 * n), f'empty or {6 * n} values')]
+        lo = np.broadcast_to(np.asarray(self.mass_min, dtype=float), (len(self.mass_min),))
+        hi = np.asarray(self.mass_max, dtype=float)
+        if len(lo) and len(hi) == len(lo):
+            checks.append(('mass_max', bool(np.all(hi > lo)), 'above mass_min'))
+        checks.append(('mass_min', bool(np.all(lo >= 0)), '>= 0'))
+        box = np.asarray(self.com_box, dtype=float).reshape(-1, 6)
+        checks.append(('com_box', bool(np.all(box[:, 3:] > box[:, :3])),
+                       'lo x y z below hi x y z for every link'))
+        for name, ok, expected in checks:
+            value = getattr(self, name)
+            finite = name == 'solver' or np.isfinite(np.asarray(value, dtype=float)).all()
+            if not ok or not finite:
+                raise IdentificationError(
+                    f'parameter consistency.{name} = {value!r} must be {expected}')
+
+
+def _repaired(J: np.ndarray, floor: float) -> np.ndarray:
+    """The nearest pseudo-inertia with eigenvalues >= floor (eigenvalues raised)."""
+    ev, V = np.linalg.eigh(0.5 * (J + J.T))
+    return (V * np.maximum(ev, floor)) @ V.T
+
+
+class ConsistentSolver:
+    """The constrained solve for standard parameters ``param_names`` with base map ``base``
+    (K), prior ``phi_prior`` (the description's own), rigid ``bodies`` and the per-joint
+    columns (every column in no body; named ``<joint>.<fv|fc|fo|Ia>``). Build it once and call
+    ``solve`` with each new set of normal equations (base-parameter order)."""
+
+    def __init__(self, base: BaseParameters, phi_prior: np.ndarray, bodies: Sequence[Body],
+                 options: ConsistencyOptions | None = None):
+        import cvxpy as cp
+
+        self.options = options or ConsistencyOptions()
+        self.options.validate()
+        self.base, self.bodies = base, list(bodies)
+        p, b = base.num_params, base.num_base
+        phi_prior = np.asarray(phi_prior, dtype=float)
+        if phi_prior.shape != (p,) or not np.isfinite(phi_prior).all():
+            raise IdentificationError(f'prior parameters must be {p} finite values')
+        self.notes: list[str] = []
+        in_body = np.zeros(p, dtype=bool)
+        for body in self.bodies:
+            in_body[body.start:body.start + 10] = True
+        self._extra = np.flatnonzero(~in_body)
+        kinds = [base.param_names[k].rsplit('.', 1)[-1] for k in self._extra]
+        self._nonneg = self._extra[[k in NONNEGATIVE for k in kinds]] if kinds else self._extra
+        eps_opt, gamma = self.options.margin, self.options.weight
+
+        # Scaled variables, so that the solver sees numbers of order one: per body Jt with
+        # J = D Jt D (D from the prior's mass and size: J >= 0 iff Jt >= 0), the per-joint
+        # columns x = x0 + s xt, and the base parameters beta = c + S u about the data's own
+        # solution c in units S of their stddev (K phi = beta is an equality constraint).
+        self._J = [cp.Variable((4, 4), symmetric=True, name=f'J_{b_.name}') for b_ in bodies]
+        ne = len(self._extra)
+        self._x = cp.Variable(ne, name='extras') if ne else None
+        self._u = cp.Variable(b, name='base')
+        self._R = cp.Parameter((b, b), name='data_factor')
+        self._z = cp.Parameter(b, name='data_target')
+        self._S = cp.Parameter(b, nonneg=True, name='base_scale')
+        self._c = cp.Parameter(b, name='base_centre')
+        constraints, regulariser = [], 0
+        phi = np.zeros(p)
+        for body, Jt in zip(self.bodies, self._J):
+            own_prior = phi_prior[body.start:body.start + 10] - body.fixed
+            J0 = pseudo_inertia(own_prior)
+            ev = np.linalg.eigvalsh(J0)
+            degenerate = not ev[0] > 1e-9 * max(ev[-1], 0.0)   # also singular to rounding
+            eps = eps_opt if degenerate else min(eps_opt, 1e-2 * ev[0])
+            if degenerate:
+                J0 = _repaired(J0, max(1e-3 * ev[-1], 10 * eps))
+                self.notes.append(f'{body.name}: the prior is not physically consistent '
+                                  f'(pseudo-inertia eigenvalues {np.array2string(ev, precision=3)}'
+                                  '); regularised toward its nearest consistent one')
+            m0 = J0[3, 3]
+            size = np.sqrt(max(np.linalg.eigvalsh(J0[:3, :3])[-1], 1e-12 * m0) / m0)
+            D = np.sqrt(m0) * np.diag([size, size, size, 1.0])
+            Dinv2 = np.diag(1.0 / np.diag(D) ** 2)
+            constraints.append(Jt >> eps * Dinv2)
+            regulariser += -cp.log_det(Jt) + cp.trace((D @ np.linalg.inv(J0) @ D) @ Jt)
+            total = _FROM_J @ cp.vec(D @ Jt @ D, order='C') + body.fixed
+            S = np.zeros((p, 10))
+            S[body.start:body.start + 10] = np.eye(10)
+            phi = phi + S @ total
+            if body.mass is not None:
+                lo, hi = body.mass
+                constraints.append(total[0] >= lo)
+                if np.isfinite(hi):
+                    constraints.append(total[0] <= hi)
+            if body.com_box is not None:
+                lo, hi = body.com_box
+                constraints += [total[1:4] >= total[0] * lo, total[1:4] <= total[0] * hi]
+        if self._x is not None:
+            x0 = phi_prior[self._extra]
+            scale = np.maximum(np.abs(x0), EXTRA_SCALE)
+            x = x0 + cp.multiply(scale, self._x)
+            nonneg = [i for i, k in enumerate(kinds) if k in NONNEGATIVE]
+            if nonneg:
+                constraints.append(x[nonneg] >= 0)
+            regulariser += cp.sum_squares(self._x)
+            S = np.zeros((p, ne))
+            S[self._extra, np.arange(ne)] = 1.0
+            phi = phi + S @ x
+        self._phi = phi
+        constraints.append(base.K @ phi == self._c + cp.multiply(self._S, self._u))
+        objective = cp.sum_squares(self._R @ self._u - self._z) + gamma * regulariser
+        self.problem = cp.Problem(cp.Minimize(objective), constraints)
+        self._beta_prior = base.to_base(phi_prior)
+        self._solved = False
+
+    @classmethod
+    def for_robot(cls, robot, base: BaseParameters,
+                  options: ConsistencyOptions | None = None) -> ConsistentSolver:
+        """The solver for a RobotModel: one body per identified link (its locked subtrees
+        fixed at their URDF inertials), the description's parameters as the prior."""
+        from identification_node.estimation.prior import safe_prior
+
+        options = options or ConsistencyOptions()
+        options.validate(robot.dof)
+        return cls(base, safe_prior(robot)[0], robot_bodies(robot, options), options)
+
+    def data_factor(self, equations: NormalEquations, weights: np.ndarray | float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(R (b, b), z (b,), covariance (b, b)) with sum_j w_j ||tau_j - Y_j beta||^2 =
+        ||R beta - z||^2 + const, from the information's eigenvectors; the covariance is its
+        pseudo-inverse, inf on the diagonal where the data determine nothing."""
+        if equations.num_params != self.base.num_base:
+            raise IdentificationError(
+                f'normal equations of {equations.num_params} parameters, expected '
+                f'{self.base.num_base} base parameters')
+        w = np.broadcast_to(np.asarray(weights, dtype=float), (equations.num_joints,))
+        if not (np.isfinite(w).all() and (w >= 0).all()):
+            raise IdentificationError('weights must be finite and >= 0')
+        G, g, _ = equations.combined(w)
+        if not (np.isfinite(G).all() and np.isfinite(g).all()):
+            raise IdentificationError('normal equations are not finite')
+        s, V = np.linalg.eigh(0.5 * (G + G.T))
+        keep = s > 1e-12 * max(s[-1], 0.0) if s[-1] > 0 else np.zeros(len(s), dtype=bool)
+        root = np.where(keep, np.sqrt(np.where(keep, s, 1.0)), 0.0)
+        R = root[:, None] * V.T
+        z = np.where(keep, (V.T @ g) / np.where(keep, root, 1.0), 0.0)
+        cov = (V[:, keep] / s[keep]) @ V[:, keep].T
+        var = np.diag(cov).copy()
+        undetermined = np.abs(V[:, ~keep]).max(axis=1, initial=0.0) > 1e-9
+        var[undetermined] = np.inf
+        np.fill_diagonal(cov, var)
+        return R, z, cov
+
+    def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
+              ) -> ConsistentEstimate:
+        """The consistent estimate for ``equations`` (base-parameter order) with per-joint
+        ``weights`` (inverse noise variances: the unconstrained WLS's objective)."""
+        import cvxpy as cp
+
+        start = time.perf_counter()
+        R, z, cov = self.data_factor(equations, weights)
+        stddev = np.sqrt(np.diag(cov))
+        centre = np.linalg.lstsq(R, z, rcond=None)[0]
+        scale = np.where(np.isfinite(stddev) & (stddev > 0), stddev,
+                         np.maximum(np.abs(self._beta_prior), EXTRA_SCALE))
+        # ||R beta - z|| = ||R S u - (z - R c)||
+        self._R.value = R * scale
+        self._z.value = z - R @ centre
+        self._S.value = scale
+        self._c.value = centre
+        opts = {'solver': self.options.solver, 'warm_start': self._solved}
+        if self.options.solver == 'CLARABEL':
+            opts['time_limit'] = self.options.time_limit
+        else:   # first order, ~1e-5 accurate: its answers may miss the margin (violations)
+            opts['time_limit_secs'] = self.options.time_limit
+        try:
+            self.problem.solve(**opts)
+            status = self.problem.status
+        except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
+            status = f'solver_error: {exc}'
+        elapsed = time.perf_counter() - start
+        if status == cp.USER_LIMIT:   # the solver stopped early: time or iterations
+            status = ('time_limit' if elapsed >= 0.5 * self.options.time_limit
+                      else 'iteration_limit')
+        phi = self._phi.value if status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) else None
+        if phi is not None:
+            phi = np.asarray(phi, dtype=float).reshape(-1)
+            # fv, fc, Ia >= 0 hold to the solver's tolerance (-1e-12): exactly, after this
+            phi[self._nonneg] = np.maximum(phi[self._nonneg], 0.0)
+            problems = self.violations(phi)
+            if not np.isfinite(phi).all() or problems:
+                status, phi = 'infeasible_result: ' + '; '.join(problems[:3]), None
+            else:
+                status = 'optimal'
+                self._solved = True
+        return ConsistentEstimate(status, phi, None if phi is None else self.base.to_base(phi),
+                                  stddev, elapsed, list(self.notes))
+
+    def violations(self, phi: np.ndarray, tol: float = 1e-9) -> list[str]:
+        """What in ``phi`` breaks the hard constraints beyond ``tol`` (empty when feasible):
+        each body's own pseudo-inertia positive definite, the non-negative columns."""
+        out = []
+        for body in self.bodies:
+            J = pseudo_inertia(phi[body.start:body.start + 10] - body.fixed)
+            ev = np.linalg.eigvalsh(J)
+            if ev[0] <= -tol * max(1.0, ev[-1]):
+                out.append(f'{body.name}: pseudo-inertia eigenvalue {ev[0]:.3g}')
+        for k in self._extra:
+            name = self.base.param_names[k]
+            if name.rsplit('.', 1)[-1] in NONNEGATIVE and phi[k] < -tol:
+                out.append(f'{name} = {phi[k]:.3g}')
+        return out
+
+
+def robot_bodies(robot, options: ConsistencyOptions) -> list[Body]:
+    """The Bodies of a RobotModel's identified links, with the bounds of ``options``; the
+    default CoM box is the bounding box of the link's collision and visual primitives (with
+    what is merged into it), widened to hold the description's own centre of mass."""
+    from identification_node.model.urdf_export import merged_bodies
+
+    bodies = []
+    box = np.asarray(options.com_box, dtype=float).reshape(-1, 6)
+    phi = robot.phi_model
+    for i, link in enumerate(robot.link_names):
+        fixed, corners = merged_bodies(robot, i)
+        com_box = None
+        if len(box):
+            com_box = box[i, :3], box[i, 3:]
+        elif options.geometry_box and corners is not None:
+            lo, hi = corners.min(axis=0), corners.max(axis=0)
+            m = phi[10 * i]
+            if m > 0:
+                c = phi[10 * i + 1:10 * i + 4] / m
+                lo, hi = np.minimum(lo, c), np.maximum(hi, c)
+            com_box = lo, hi
+        mass = None
+        if len(options.mass_min) or len(options.mass_max):
+            mass = (float(options.mass_min[i]) if len(options.mass_min) else 0.0,
+                    float(options.mass_max[i]) if len(options.mass_max) else np.inf)
+        bodies.append(Body(link, 10 * i, fixed, mass, com_box))
+    return bodies
+
+
+class SolverProcess:
+    """A ConsistentSolver in a child process of its own (spawned), with ``solve`` as the
+    solver's: the node's processing thread never waits for the GIL while it solves. A child
+    that dies or overruns ``time_limit`` (+ STARTUP_GRACE for the first solve, which builds the
+    problem) is stopped and the solve reported failed; the next one starts a new child."""
+
+    STARTUP_GRACE = 60.0   # s: spawn, imports and the problem's canonicalisation
+    GRACE = 10.0           # s over the solver's own time limit
+
+    def __init__(self, base: BaseParameters, phi_prior: np.ndarray, bodies: Sequence[Body],
+                 options: ConsistencyOptions | None = None):
+        self.options = options or ConsistencyOptions()
+        self.options.validate()
+        self._args = (base, np.asarray(phi_prior, dtype=float), list(bodies), self.options)
+        self._process = self._conn = None
+        self._started = False
+        # start and close come from different threads (the node's solve worker and its
+        # shutdown): a child being started is never terminated half made
+        self._lock = threading.Lock()
+
+    @classmethod
+    def for_robot(cls, robot, base: BaseParameters,
+                  options: ConsistencyOptions | None = None) -> SolverProcess:
+        """As ConsistentSolver.for_robot (the bodies are read here, from the robot)."""
+        options = options or ConsistencyOptions()
+        options.validate(robot.dof)
+        from identification_node.estimation.prior import safe_prior
+
+        return cls(base, safe_prior(robot)[0], robot_bodies(robot, options), options)
+
+    def start(self):
+        """Start the child (solve does when needed); it builds the problem at once. Returns
+        the connection to it."""
+        with self._lock:
+            if self._process is not None and self._process.is_alive():
+                return self._conn
+            ctx = multiprocessing.get_context('spawn')
+            self._conn, child = ctx.Pipe()
+            self._process = ctx.Process(target=_serve, args=(child, *self._args),
+                                        daemon=True, name='identification_consistency')
+            self._process.start()
+            child.close()
+            self._started = False
+            return self._conn
+
+    def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
+              ) -> ConsistentEstimate:
+        start = time.perf_counter()
+        conn = self.start()
+        wait = self.options.time_limit + (self.GRACE if self._started else self.STARTUP_GRACE)
+        try:
+            conn.send((equations, weights))
+            if conn.poll(wait):
+                kind, value = conn.recv()
+                self._started = True
+                if kind == 'ok':
+                    return value
+                status = f'solver_error: {value}'
+            else:
+                status = 'time_limit'
+                self.close()
+        except (EOFError, OSError, BrokenPipeError) as exc:
+            status = f'solver_error: solver process ended ({exc or type(exc).__name__})'
+            self.close()
+        b = self._args[0].num_base
+        return ConsistentEstimate(status, None, None, np.full(b, np.inf),
+                                  time.perf_counter() - start)
+
+    def close(self) -> None:
+        """Stop the child."""
+        with self._lock:
+            if self._process is None:
+                return
+            self._process.terminate()   # nothing to keep: quick, also mid-solve
+            self._process.join(timeout=1.0)
+            self._conn.close()
+            self._process = self._conn = None
+
+
+def _serve(conn, base, phi_prior, bodies, options) -> None:
+    """The child of SolverProcess: build the solver, then answer (equations, weights) with
+    ('ok', ConsistentEstimate) or ('error', message) until None or the pipe closes. It runs
+    at a lower priority (nice +NICE) than the node, whose 1 kHz processing comes first."""
+    os.nice(NICE)
+    solver, error = None, ''
+    try:
+        solver = ConsistentSolver(base, phi_prior, bodies, options)
+    except Exception as exc:  # noqa: BLE001 - reported to the parent with every request
+        error = f'{type(exc).__name__}: {exc}'
+    while True:
+        try:
+            request = conn.recv()
+        except (EOFError, OSError):
+            return
+        if request is None:
+            return
+        if solver is None:
+            conn.send(('error', error))
+            continue
+        try:
+            conn.send(('ok', solver.solve(*request)))
+        except Exception as exc:  # noqa: BLE001 - the parent keeps the unconstrained estimate
+            conn.send(('error', f'{type(exc).__name__}: {exc}'))
+
+
+def pipeline_equations(pipeline) -> tuple[NormalEquations, float]:
+    """An IdentificationPipeline's current information: its RLS's normal equations (forgotten,
+    weighted rows) and the weight that makes their information its covariance's inverse,
+    1 / the mean long-run residual variance (1 while that is not known)."""
+    equations = pipeline.rls.normal_equations()
+    noise = float(np.mean(pipeline.noise_variance()))
+    return equations, (1.0 / noise if np.isfinite(noise) and noise > 0 else 1.0)

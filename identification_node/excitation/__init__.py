@@ -1,0 +1,1 @@
+"""Excitation trajectories: Fourier design, framing, limits and collisions."""

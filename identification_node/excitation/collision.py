@@ -1,0 +1,198 @@
+"""Self-collision and environment distances of a robot, from its URDF collision geometry.
+
+pinocchio's collision support (coal): the URDF's ``<collision>`` elements are attached to the
+identified joints of the RobotModel (its reduced model: geometry on locked links rides on
+their parent), every pair of geometries on different joints is checked except pairs on
+joints adjacent in the chain (parent and child, which touch at the joint by design), pairs
+an SRDF disables (MoveIt ``<disable_collisions>``), and geometry fixed to the world against
+the environment. The environment: an optional floor (a half space, z >= height in the world
+frame) and boxes (size, centre xyz, rpy, world frame). Distances in m, signed (negative when
+penetrating); joint arrays in the robot's joint order.
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from identification_node.errors import IdentificationError
+
+DEFAULT_MIN_DISTANCE = 0.01   # m
+
+
+def has_collision_geometry(robot) -> bool:
+    """Whether the robot's description (URDF) has any <collision> element."""
+    return robot.kind == 'urdf' and '<collision' in robot.description
+
+
+class CollisionChecker:
+    """Distances between the checked geometry pairs of ``robot`` (a RobotModel from a URDF).
+
+    ``package_dirs``: directories resolving ``package://`` mesh paths; ``srdf``: an SRDF file
+    whose disabled pairs are not checked; ``min_distance`` (m): the clearance required by
+    :meth:`clear`; ``floor``: a height (m) or a mapping ``{height: z}``; ``boxes``: mappings
+    ``{size: [x, y, z], xyz: [x, y, z], rpy: [r, p, y], name: str}`` (m, rad, world frame).
+    """
+
+    def __init__(self, robot, package_dirs: Sequence[str | os.PathLike] = (),
+                 srdf: str | os.PathLike | None = None,
+                 min_distance: float = DEFAULT_MIN_DISTANCE,
+                 floor: float | Mapping | None = None, boxes: Sequence[Mapping] = ()):
+        if robot.kind != 'urdf':
+            raise IdentificationError(f'robot {robot.name}: collision checking needs a URDF')
+        if not (isinstance(min_distance, (int, float)) and math.isfinite(min_distance)):
+            raise IdentificationError(f'min_distance must be a number (m), got {min_distance!r}')
+        self.robot = robot
+        self.min_distance = float(min_distance)
+        self.model = robot.model
+        dirs = [str(d) for d in package_dirs]
+        for d in dirs:
+            if not Path(d).is_dir():
+                raise IdentificationError(f'package directory {d} does not exist')
+        try:
+            geom = pin.buildGeomFromUrdfString(self.model, robot.description, pin.COLLISION,
+                                               package_dirs=dirs)
+        except (ValueError, RuntimeError) as exc:  # a mesh not found, a bad geometry
+            raise IdentificationError(f'robot {robot.name}: collision geometry: {exc} '
+                                      '(--package-dir resolves package:// paths)') from None
+        self.robot_geometries = len(geom.geometryObjects)
+        geom.addAllCollisionPairs()   # every pair on different joints
+        parents = self.model.parents
+        # index pairs first: the elements of geom.collisionPairs refer into its vector
+        for i, k in [(p.first, p.second) for p in geom.collisionPairs]:
+            a = geom.geometryObjects[i].parentJoint
+            b = geom.geometryObjects[k].parentJoint
+            if parents[a] == b or parents[b] == a:
+                geom.removeCollisionPair(pin.CollisionPair(i, k))
+        if srdf is not None:
+            try:
+                text = Path(srdf).read_text()
+            except (OSError, UnicodeDecodeError) as exc:
+                raise IdentificationError(f'cannot read SRDF {srdf}: {exc}') from None
+            before = len(geom.collisionPairs)
+            try:
+                pin.removeCollisionPairsFromXML(self.model, geom, text)
+            except (ValueError, RuntimeError) as exc:
+                raise IdentificationError(f'SRDF {srdf}: {exc}') from None
+            self.srdf_removed = before - len(geom.collisionPairs)
+        else:
+            self.srdf_removed = 0
+        robot_objects = list(range(self.robot_geometries))
+        for obstacle in _obstacles(floor, boxes):
+            index = geom.addGeometryObject(obstacle)
+            for k in robot_objects:
+                if geom.geometryObjects[k].parentJoint != 0:
+                    geom.addCollisionPair(pin.CollisionPair(k, index))
+        self.geometry = geom
+        self.geometry_data = pin.GeometryData(geom)
+        self.data = self.model.createData()
+        self.pairs = [(geom.geometryObjects[p.first].name, geom.geometryObjects[p.second].name)
+                      for p in geom.collisionPairs]
+        self._joints = np.array([[geom.geometryObjects[p.first].parentJoint,
+                                  geom.geometryObjects[p.second].parentJoint]
+                                 for p in geom.collisionPairs], dtype=int).reshape(-1, 2)
+
+    @property
+    def num_pairs(self) -> int:
+        return len(self.pairs)
+
+    def distances(self, q: np.ndarray) -> np.ndarray:
+        """Signed distances (N, pairs) in m for joint positions q (N, n)."""
+        Q = self.robot.configuration(np.atleast_2d(q))
+        out = np.empty((Q.shape[0], self.num_pairs))
+        for k in range(Q.shape[0]):
+            pin.computeDistances(self.model, self.data, self.geometry, self.geometry_data, Q[k])
+            out[k] = [r.min_distance for r in self.geometry_data.distanceResults]
+        return out
+
+    def distances_and_gradients(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (N, pairs) and their gradients in the joint positions (N, pairs, n):
+        d(distance)/dq = normal . (J_p2 - J_p1), J_p the Jacobian of each witness point."""
+        Q = self.robot.configuration(np.atleast_2d(q))
+        N, n = Q.shape[0], self.robot.dof
+        dist = np.empty((N, self.num_pairs))
+        grad = np.zeros((N, self.num_pairs, n))
+        if not self.num_pairs:
+            return dist, grad
+        model, data, cols = self.model, self.data, self.robot.idx_v
+        world = pin.ReferenceFrame.WORLD
+        joints = np.unique(self._joints)
+        slot = np.searchsorted(joints, self._joints)            # (pairs, 2) into joints
+        J = np.zeros((len(joints), 6, n))
+        for k in range(N):
+            pin.computeDistances(model, data, self.geometry, self.geometry_data, Q[k])
+            pin.computeJointJacobians(model, data, Q[k])
+            for s, j in enumerate(joints):
+                if j != 0:   # the world's geometry does not move
+                    J[s] = pin.getJointJacobian(model, data, int(j), world)[:, cols]
+            results = self.geometry_data.distanceResults
+            dist[k] = [r.min_distance for r in results]
+            normal = np.array([r.normal for r in results])                   # (P, 3)
+            grad_k = 0.0
+            for side, get in ((0, 'getNearestPoint1'), (1, 'getNearestPoint2')):
+                p = np.array([getattr(r, get)() for r in results])          # (P, 3) world
+                Jj = J[slot[:, side]]                                        # (P, 6, n)
+                # velocity of the world point p carried by the joint: v + w x p
+                Jp = Jj[:, :3] - np.cross(p[:, :, None], Jj[:, 3:], axisa=1, axisb=1, axisc=1)
+                grad_k = grad_k + (1 if side else -1) * np.einsum('pi,pin->pn', normal, Jp)
+            grad[k] = grad_k
+        return dist, grad
+
+    def clearance(self, q: np.ndarray) -> dict[str, Any]:
+        """The smallest distance over samples q (N, n) and where: {'distance': m, 'pair':
+        (name, name), 'sample': index}; distance inf when no pair is checked."""
+        if not self.num_pairs or len(q) == 0:
+            return {'distance': math.inf, 'pair': None, 'sample': None}
+        d = self.distances(q)
+        k, i = np.unravel_index(int(np.argmin(d)), d.shape)
+        return {'distance': float(d[k, i]), 'pair': self.pairs[i], 'sample': int(k)}
+
+    def summary(self) -> dict:
+        """Plain data for YAML: pairs checked, SRDF-disabled count, minimum distance."""
+        return {'pairs': self.num_pairs, 'robot_geometries': self.robot_geometries,
+                'srdf_disabled': self.srdf_removed, 'min_distance': self.min_distance}
+
+
+def _vector(where: str, value: Any, size: int) -> np.ndarray:
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        v = np.array([])
+    if v.shape != (size,) or not np.all(np.isfinite(v)):
+        raise IdentificationError(f'{where} must be {size} finite numbers, got {value!r}')
+    return v
+
+
+def _obstacles(floor: float | Mapping | None, boxes: Sequence[Mapping]) -> list:
+    import coal
+    out = []
+    if floor is not None:
+        height = floor.get('height', 0.0) if isinstance(floor, Mapping) else floor
+        if isinstance(height, bool) or not isinstance(height, (int, float)) \
+                or not math.isfinite(height):
+            raise IdentificationError(f'floor height must be a number (m), got {floor!r}')
+        # the solid half space n.x <= d, n = +z: everything below the floor's height
+        out.append(pin.GeometryObject('floor', 0, 0, pin.SE3.Identity(),
+                                      coal.Halfspace(np.array([0.0, 0.0, 1.0]),
+                                                     float(height))))
+    if not isinstance(boxes, (list, tuple)):
+        raise IdentificationError(f'boxes must be a list of {{size, xyz, rpy}}, got {boxes!r}')
+    for k, box in enumerate(boxes):
+        if not isinstance(box, Mapping) or 'size' not in box:
+            raise IdentificationError(f'box {k}: expected a mapping with size, xyz, rpy')
+        unknown = set(box) - {'size', 'xyz', 'rpy', 'name'}
+        if unknown:
+            raise IdentificationError(f'box {k}: unknown keys {sorted(map(str, unknown))}')
+        size = _vector(f'box {k} size', box['size'], 3)
+        if not np.all(size > 0):
+            raise IdentificationError(f'box {k} size must be > 0, got {box["size"]!r}')
+        xyz = _vector(f'box {k} xyz', box.get('xyz', [0, 0, 0]), 3)
+        rpy = _vector(f'box {k} rpy', box.get('rpy', [0, 0, 0]), 3)
+        placement = pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
+        out.append(pin.GeometryObject(str(box.get('name', f'box{k}')), 0, 0, placement,
+                                      coal.Box(*size)))
+    return out

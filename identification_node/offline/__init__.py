@@ -1,0 +1,1 @@
+"""Identification of recorded bags: batch and replay, validation, reports, fleet."""

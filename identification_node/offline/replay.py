@@ -1,0 +1,134 @@
+"""Offline identification: a recorded bag streamed through the live pipeline, without DDS.
+
+The bag's messages go through the same IdentificationPipeline (validation, alignment,
+smoother, RLS) as the node feeds, in log-time order and fixed-size batches, so the
+result is deterministic and memory does not grow with the bag's length.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass, field
+from typing import Callable, Iterator
+
+import numpy as np
+
+from identification_node.bags.bagio import (iter_joint_state_blocks, iter_joint_states, open_bag,
+                                            read_string_topic)
+from identification_node.errors import IdentificationError
+from identification_node.model.robot import RobotModel, load_robot
+from identification_node.pipeline import IdentificationPipeline, PipelineOutput
+from identification_node.settings import Settings
+from identification_node.wire.records import JointStateRecord
+
+JOINT_STATES = '/joint_states'
+MOTOR_CURRENTS = '/motor_currents'
+ROBOT_DESCRIPTION = '/robot_description'
+
+
+@dataclass
+class Checkpoint:
+    """The running estimate after ``num_samples`` samples (for convergence plots)."""
+    num_samples: int
+    stamp: float
+    values: np.ndarray
+    stddev: np.ndarray
+
+
+@dataclass
+class ReplayResult:
+    """The pipeline after the whole bag, and the estimate's history."""
+    bag: str
+    pipeline: IdentificationPipeline
+    messages: int
+    history: list[Checkpoint] = field(default_factory=list)
+
+
+def bag_robot(bag: str | os.PathLike, settings: Settings) -> RobotModel:
+    """The robot of the bag's /robot_description (URDF), with the settings' joints and extras."""
+    with open_bag(bag) as reader:
+        xml = read_string_topic(reader, ROBOT_DESCRIPTION)
+    if not xml:
+        raise IdentificationError(f'bag {bag} has no {ROBOT_DESCRIPTION}: name the robot '
+                                  '(--robot or --urdf, or robot in --config)')
+    return load_robot(xml, settings['joints'] or None, extras=settings['extras'],
+                      coulomb_velocity=settings['coulomb_velocity'])
+
+
+def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                 joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
+                 batch: int = 1000, checkpoints: int = 50,
+                 on_output: Callable[[PipelineOutput], None] | None = None,
+                 pipeline: IdentificationPipeline | None = None) -> ReplayResult:
+    """Identify ``robot`` from the bag's joint states (and motor currents when the settings'
+    torque sources need them). ``on_output`` sees every batch the pipeline outputs;
+    ``pipeline``: the one to feed (default: the settings' own, new)."""
+    pipeline = pipeline or settings.build(robot)
+    topics = [joint_states]
+    if pipeline.converter.needs_currents:
+        topics.append(motor_currents)
+    with open_bag(bag) as reader:
+        counts = reader.topic_counts
+        every = max(batch, counts.get(joint_states, 0) // max(checkpoints, 1))
+        result = ReplayResult(str(bag), pipeline, 0)
+        next_checkpoint = every
+        for add, count in _records(reader, pipeline, topics, batch):
+            add()
+            result.messages += count
+            if result.messages % batch == 0:
+                out = pipeline.process()
+                if on_output is not None:
+                    on_output(out)
+                if pipeline.used >= next_checkpoint:
+                    result.history.append(_checkpoint(pipeline))
+                    next_checkpoint = pipeline.used + every
+    out = pipeline.process(flush=True)
+    if on_output is not None:
+        on_output(out)
+    check_usable(pipeline.used, pipeline.rejected, bag, topics, counts)
+    result.history.append(_checkpoint(pipeline))
+    return result
+
+
+def check_usable(used: int, rejected: dict[str, int], bag, topics: list[str],
+                 counts: dict[str, int]) -> None:
+    """IdentificationError saying why, when no sample of the bag could be used (``used``
+    samples, ``rejected`` messages per reason)."""
+    if used == 0:
+        rejected = {k: v for k, v in rejected.items() if v}
+        raise IdentificationError(
+            f'no usable samples in {bag} (messages on {", ".join(topics)}: '
+            f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}); check '
+            'the joint names and the torque sources (--config)')
+
+
+def _records(reader, pipeline: IdentificationPipeline, topics: list[str], batch: int
+             ) -> Iterator[tuple[Callable[[], None], int]]:
+    """(add, number of messages): what feeds the pipeline the bag's messages in log-time
+    order. Joint states alone are read in blocks (iter_joint_state_blocks), cut where a
+    batch of ``batch`` messages ends: the pipeline sees the same batches as message by
+    message."""
+    if len(topics) > 1:
+        add = {topics[0]: pipeline.add_joint_state, topics[1]: pipeline.add_currents}
+        for topic, _, record in iter_joint_states(reader, topics):
+            yield functools.partial(add[topic], record), 1
+        return
+    done = 0
+    for _, block in iter_joint_state_blocks(reader, topics[0]):
+        if not np.ndim(block.stamp_ns):
+            done += 1
+            yield functools.partial(pipeline.add_joint_state, block), 1
+            continue
+        start = 0
+        while start < len(block.stamp_ns):
+            stop = min(len(block.stamp_ns), start + batch - done % batch)
+            part = JointStateRecord(block.stamp_ns[start:stop], block.names,
+                                    *(a[start:stop] for a in block[2:]))
+            done += stop - start
+            yield functools.partial(pipeline.add_joint_states, part), stop - start
+            start = stop
+
+
+def _checkpoint(pipeline: IdentificationPipeline) -> Checkpoint:
+    est = pipeline.estimate()
+    return Checkpoint(est.num_samples, est.stamp, est.values, est.stddev)

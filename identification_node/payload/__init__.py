@@ -1,0 +1,1 @@
+"""Payload identification: change detection, the one-body fit, delivery."""

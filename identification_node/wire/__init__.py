@@ -1,0 +1,1 @@
+"""The input record, as copied from the wire (sensor_msgs/JointState)."""
