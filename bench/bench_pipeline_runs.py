@@ -55,12 +55,12 @@ def main() -> None:
     parser.add_argument('--repeat', type=int, default=3)
     args = parser.parse_args()
 
-    from identification_node.bags.bagio import encode_joint_states
-    from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+    from identification_node.excitation.trajectories import FourierTrajectory
     from identification_node.model.robot import load_robot
     from identification_node.model.simulation import SensorNoise, simulate_kinematic
     from identification_node.model.torque import JointTorqueConfig
-    from identification_node.excitation.trajectories import FourierTrajectory
+    from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+    from identification_node.wire.cdr import encode_joint_states
 
     robot = load_robot(str(PANDA))
     warm = 400

@@ -48,11 +48,12 @@ BAG_VERSION = 1  # bump when the bag recipe changes (cache key)
 
 def make_bag(samples: int) -> Path:
     """The cached benchmark bag of ``samples`` joint states (made on first use)."""
-    from identification_node.bags.bagio import JOINT_STATE, BagWriter
+    from identification_node.bags.writer import BagWriter
     from identification_node.cli.simulate import true_parameters
-    from identification_node.settings import Settings, read_parameter_file
-    from identification_node.model.simulation import SensorNoise, simulate_kinematic
     from identification_node.excitation.trajectories import load_trajectory
+    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.settings import Settings, read_parameter_file
+    from identification_node.wire.cdr import JOINT_STATE
 
     path = CACHE / f'crs_a465_v{BAG_VERSION}_{samples}'
     if (path / 'metadata.yaml').is_file():

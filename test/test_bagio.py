@@ -1,4 +1,5 @@
-"""Tests of identification_node.bags.bagio: rosbag2 reading/writing and the fast JointState codec.
+"""Tests of bags.reader, bags.writer and wire.cdr: rosbag2 reading/writing and the fast JointState
+CDR codec.
 
 Independent truths: the rosbags serializer/deserializer and AnyReader, the `mcap` library's
 own reader, rclpy's rmw serializer (if importable), and the values written.
@@ -14,10 +15,19 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability
 from rosbags.rosbag2 import Reader
 
-from identification_node.bags import bagio
+from identification_node.bags.reader import (STORAGES, iter_joint_state_blocks, iter_joint_states,
+                                             iter_messages, open_bag, read_string_topic)
+from identification_node.bags.writer import (BagWriter, make_diagnostic_array,
+                                             make_float64_multi_array, make_joint_state,
+                                             make_joint_trajectory, make_string)
 from identification_node.errors import IdentificationError
+from identification_node.wire.cdr import (CLOCK, DIAGNOSTIC_ARRAY, FLOAT64_MULTI_ARRAY,
+                                          JOINT_STATE, JOINT_TRAJECTORY, JointStateDecoder, STRING,
+                                          decode_joint_state, decode_joint_state_reference,
+                                          encode_joint_state, encode_joint_states, jazzy_typestore)
+from identification_node.wire.records import JointStateRecord
 
-TS = bagio.jazzy_typestore()
+TS = jazzy_typestore()
 T0 = 1_700_000_000_000_000_000  # log time origin [ns]
 ARM = ('shoulder', 'elbow', 'wrist')
 
@@ -54,15 +64,15 @@ def _assert_msg(msg, stamp, names, arrays):
 
 def test_encoder_byte_identical_to_rosbags_and_decoders_agree():
     rng = np.random.default_rng(1)
-    dec = bagio.JointStateDecoder()  # one instance: exercises the names cache across msgs
+    dec = JointStateDecoder()  # one instance: exercises the names cache across msgs
     for k in range(600):
         stamp, names, arrays, frame = _random_joint_state(rng, k)
-        ref_msg = bagio.make_joint_state(stamp, names, *arrays, frame_id=frame)
-        ref = bytes(TS.serialize_cdr(ref_msg, bagio.JOINT_STATE, little_endian=True))
-        assert bagio.encode_joint_state(stamp, names, *arrays, frame_id=frame) == ref
+        ref_msg = make_joint_state(stamp, names, *arrays, frame_id=frame)
+        ref = bytes(TS.serialize_cdr(ref_msg, JOINT_STATE, little_endian=True))
+        assert encode_joint_state(stamp, names, *arrays, frame_id=frame) == ref
         fast = dec(ref)
-        slow = bagio.decode_joint_state_reference(ref)
-        rb = TS.deserialize_cdr(ref, bagio.JOINT_STATE)
+        slow = decode_joint_state_reference(ref)
+        rb = TS.deserialize_cdr(ref, JOINT_STATE)
         exact = rb.header.stamp.sec * 1_000_000_000 + rb.header.stamp.nanosec
         assert fast.stamp_ns == slow.stamp_ns == exact
         assert fast.names == slow.names == tuple(rb.name)
@@ -83,23 +93,23 @@ def test_batch_encoder_byte_identical_to_rosbags():
         if N and n and fields[0] is not None:
             fields[0] = np.asfortranarray(fields[0])   # any memory layout
             fields[0][0, 0] = np.nan
-        got = bagio.encode_joint_states(stamps, names, *fields)
+        got = encode_joint_states(stamps, names, *fields)
         assert len(got) == N
         for i, raw in enumerate(got):
             sec, nsec = divmod(int(stamps[i]), 10**9)
-            msg = TS.types[bagio.JOINT_STATE](Header(Time(sec, nsec), ''), list(names), *(
+            msg = TS.types[JOINT_STATE](Header(Time(sec, nsec), ''), list(names), *(
                 np.empty(0) if f is None else np.ascontiguousarray(f[i]) for f in fields))
-            assert raw == bytes(TS.serialize_cdr(msg, bagio.JOINT_STATE, little_endian=True))
+            assert raw == bytes(TS.serialize_cdr(msg, JOINT_STATE, little_endian=True))
 
 
 def test_fast_decoder_on_repeated_names_with_shifting_alignment():
     # same names, frame_id lengths shift the name block by 0..3 bytes: cache must stay right
-    dec = bagio.JointStateDecoder()
+    dec = JointStateDecoder()
     for k in range(40):
         frame = 'f' * (k % 7)
         names = ARM if k % 5 else ('a', 'bb', 'ccc')
         pos = np.arange(len(names)) + k
-        raw = bagio.encode_joint_state(k * 0.01, names, pos, (), pos * 2, frame_id=frame)
+        raw = encode_joint_state(k * 0.01, names, pos, (), pos * 2, frame_id=frame)
         msg = dec(raw)
         assert msg.names == tuple(names)
         np.testing.assert_array_equal(msg.position, pos)
@@ -108,19 +118,19 @@ def test_fast_decoder_on_repeated_names_with_shifting_alignment():
 
 
 def test_big_endian_falls_back_to_rosbags():
-    msg = bagio.make_joint_state(12.25, ARM, [1.0, -2.0, np.nan], [], [0.5, 0.25, 8.0])
-    raw = bytes(TS.serialize_cdr(msg, bagio.JOINT_STATE, little_endian=False))
+    msg = make_joint_state(12.25, ARM, [1.0, -2.0, np.nan], [], [0.5, 0.25, 8.0])
+    raw = bytes(TS.serialize_cdr(msg, JOINT_STATE, little_endian=False))
     assert raw[:2] == b'\x00\x00'
-    out = bagio.JointStateDecoder()(raw)
+    out = JointStateDecoder()(raw)
     _assert_msg(out, 12.25, ARM, ([1.0, -2.0, np.nan], [], [0.5, 0.25, 8.0]))
     assert out.stamp_ns == 12_250_000_000
 
 
 def test_trailing_padding_is_tolerated():
-    raw = bagio.encode_joint_state(1.5, ARM, [1, 2, 3], [4, 5, 6], [])
+    raw = encode_joint_state(1.5, ARM, [1, 2, 3], [4, 5, 6], [])
     for extra in (b'\0' * 4, b'\0' * 8, b'\0' * 16):
-        _assert_msg(bagio.decode_joint_state(raw + extra), 1.5, ARM, ([1, 2, 3], [4, 5, 6], []))
-        ref = bagio.decode_joint_state_reference(raw + extra)
+        _assert_msg(decode_joint_state(raw + extra), 1.5, ARM, ([1, 2, 3], [4, 5, 6], []))
+        ref = decode_joint_state_reference(raw + extra)
         _assert_msg(ref, 1.5, ARM, ([1, 2, 3], [4, 5, 6], []))
 
 
@@ -128,7 +138,7 @@ def test_rclpy_serialized_messages_decode():
     serialization = pytest.importorskip('rclpy.serialization')
     sensor_msgs = pytest.importorskip('sensor_msgs.msg')
     rng = np.random.default_rng(7)
-    dec = bagio.JointStateDecoder()
+    dec = JointStateDecoder()
     for k in range(200):
         stamp, names, arrays, frame = _random_joint_state(rng, k)
         stamp = abs(stamp)
@@ -141,16 +151,16 @@ def test_rclpy_serialized_messages_decode():
         msg.position, msg.velocity, msg.effort = (a.tolist() for a in arrays)
         raw = bytes(serialization.serialize_message(msg))
         _assert_msg(dec(raw), sec + nsec * 1e-9, names, arrays)
-        _assert_msg(bagio.decode_joint_state_reference(raw), sec + nsec * 1e-9, names, arrays)
+        _assert_msg(decode_joint_state_reference(raw), sec + nsec * 1e-9, names, arrays)
 
 
 @pytest.mark.parametrize('cut', [1, 3, 9, 20, 30])
 def test_truncated_or_garbage_cdr_raises(cut):
-    raw = bagio.encode_joint_state(1.0, ARM, [1, 2, 3], [4, 5, 6], [7, 8, 9])
+    raw = encode_joint_state(1.0, ARM, [1, 2, 3], [4, 5, 6], [7, 8, 9])
     with pytest.raises(IdentificationError, match='JointState'):
-        bagio.decode_joint_state(raw[:-cut] if cut < 30 else raw[:cut])
+        decode_joint_state(raw[:-cut] if cut < 30 else raw[:cut])
     with pytest.raises(IdentificationError, match='not CDR'):
-        bagio.decode_joint_state(b'\x07\x07' + raw[2:])
+        decode_joint_state(b'\x07\x07' + raw[2:])
 
 
 # ---------------------------------------------------------------------------------------
@@ -183,23 +193,23 @@ def _expected_stream():
 
 def _write_bag(path, storage):
     rows = _expected_stream()
-    with bagio.BagWriter(path, storage) as w:
+    with BagWriter(path, storage) as w:
         w.write_string('/robot_description', T0 - 1, 'old')
         w.write_string('/robot_description', T0, URDF)
         for topic, t_ns, stamp, names, pos, vel, eff in reversed(rows):
             w.write_joint_state(topic, t_ns, stamp, names, pos, vel, eff)
         for j in range(3):
             w.write_clock(T0 + j)
-        w.write('/cmd', T0 + 5, bagio.make_float64_multi_array([[1.0, 2.0], [3.0, 4.5]],
-                                                               ('row', 'col')))
-        w.write('/diagnostics', T0 + 6, bagio.make_diagnostic_array(
+        w.write('/cmd', T0 + 5, make_float64_multi_array([[1.0, 2.0], [3.0, 4.5]],
+                                                         ('row', 'col')))
+        w.write('/diagnostics', T0 + 6, make_diagnostic_array(
             1.5, [(1, 'ident', 'warm-up', 'arm', {'cond': '1e3'})]))
-        w.write('/trajectory', T0 + 7, bagio.make_joint_trajectory(
+        w.write('/trajectory', T0 + 7, make_joint_trajectory(
             2.0, ARM, [0.5, 1.0], np.ones((2, 3)), velocities=np.zeros((2, 3))))
     return rows
 
 
-@pytest.fixture(params=bagio.STORAGES)
+@pytest.fixture(params=STORAGES)
 def written(request, tmp_path):
     path = tmp_path / f'bag_{request.param}'
     rows = _write_bag(path, request.param)
@@ -222,29 +232,29 @@ def test_layout_and_metadata(written):
 
 def test_our_reader(written):
     path, _, rows = written
-    with bagio.open_bag(path) as bag:
+    with open_bag(path) as bag:
         assert bag.topics == {
-            '/robot_description': bagio.STRING, '/joint_states': bagio.JOINT_STATE,
-            '/arm/joint_states': bagio.JOINT_STATE, '/clock': bagio.CLOCK,
-            '/cmd': bagio.FLOAT64_MULTI_ARRAY, '/diagnostics': bagio.DIAGNOSTIC_ARRAY,
-            '/trajectory': bagio.JOINT_TRAJECTORY}
+            '/robot_description': STRING, '/joint_states': JOINT_STATE,
+            '/arm/joint_states': JOINT_STATE, '/clock': CLOCK,
+            '/cmd': FLOAT64_MULTI_ARRAY, '/diagnostics': DIAGNOSTIC_ARRAY,
+            '/trajectory': JOINT_TRAJECTORY}
         assert bag.topic_counts['/joint_states'] == 50
         assert bag.topic_counts['/arm/joint_states'] == 25
         assert bag.message_count == len(rows) + 8
         assert bag.start_ns == T0 - 1
         assert bag.end_ns == rows[-1][1]
         assert bag.duration == pytest.approx((rows[-1][1] - T0 + 1) * 1e-9)
-        got = list(bagio.iter_joint_states(bag, ['/joint_states', '/arm/joint_states']))
+        got = list(iter_joint_states(bag, ['/joint_states', '/arm/joint_states']))
         assert len(got) == len(rows)
         for (topic, log_ns, msg), (etopic, t_ns, stamp, names, pos, vel, eff) in zip(got, rows):
             assert topic == etopic
             assert log_ns == t_ns
             _assert_msg(msg, stamp, names, (pos, vel, eff))
-        only = [m for _, _, m in bagio.iter_joint_states(bag, '/arm/joint_states')]
+        only = [m for _, _, m in iter_joint_states(bag, '/arm/joint_states')]
         assert [m.names for m in only] == [('gripper',)] * 25
-        assert bagio.read_string_topic(bag, '/robot_description') == URDF
-        assert bagio.read_string_topic(bag, '/not_there') is None
-        generic = {t: (ty, ns, m) for t, ty, ns, m in bagio.iter_messages(
+        assert read_string_topic(bag, '/robot_description') == URDF
+        assert read_string_topic(bag, '/not_there') is None
+        generic = {t: (ty, ns, m) for t, ty, ns, m in iter_messages(
             bag, ['/cmd', '/diagnostics', '/trajectory', '/clock'])}
     _check_generic(generic)
 
@@ -268,14 +278,14 @@ def _check_generic(generic):
     np.testing.assert_array_equal(traj.points[0].velocities, np.zeros(3))
     assert traj.points[0].accelerations.size == 0
     ty, ns, clock = generic['/clock']  # the last one
-    assert ty == bagio.CLOCK and ns == T0 + 2
+    assert ty == CLOCK and ns == T0 + 2
     assert (clock.clock.sec, clock.clock.nanosec) == divmod(T0 + 2, 10**9)
 
 
 def test_rosbags_anyreader_reads_our_bag(written):
     path, _, rows = written
     with AnyReader([path]) as reader:  # uses the definitions embedded in the bag
-        conns = [c for c in reader.connections if c.msgtype == bagio.JOINT_STATE]
+        conns = [c for c in reader.connections if c.msgtype == JOINT_STATE]
         got = [(c.topic, t, reader.deserialize(raw, c.msgtype))
                for c, t, raw in reader.messages(connections=conns)]
         robot = [reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages(
@@ -302,10 +312,10 @@ def test_mcap_library_reads_our_mcap(tmp_path):
         got = [(ch.topic, m.log_time, sc.name, m.data) for sc, ch, m in reader.iter_messages(
             topics=['/joint_states', '/arm/joint_states'])]
         schemas = {s.name: s.encoding for s in summary.schemas.values()}
-    assert schemas[bagio.JOINT_STATE] == 'ros2msg'
+    assert schemas[JOINT_STATE] == 'ros2msg'
     assert len(got) == len(rows)
     for (topic, t_ns, schema, data), (etopic, et, stamp, names, pos, vel, eff) in zip(got, rows):
-        assert (topic, t_ns, schema) == (etopic, et, bagio.JOINT_STATE)
+        assert (topic, t_ns, schema) == (etopic, et, JOINT_STATE)
         msg = TS.deserialize_cdr(data, schema)
         assert list(msg.name) == list(names)
         np.testing.assert_array_equal(msg.position, pos)
@@ -317,8 +327,8 @@ def test_write_raw_rclpy_bytes_roundtrip(tmp_path):
     serialization = pytest.importorskip('rclpy.serialization')
     sensor_msgs = pytest.importorskip('sensor_msgs.msg')
     path = tmp_path / 'rec'
-    with bagio.BagWriter(path) as w:
-        w.add_topic('/joint_states', bagio.JOINT_STATE)
+    with BagWriter(path) as w:
+        w.add_topic('/joint_states', JOINT_STATE)
         for i in range(20):
             msg = sensor_msgs.JointState()
             msg.header.stamp.sec, msg.header.stamp.nanosec = i, 250_000_000
@@ -326,8 +336,8 @@ def test_write_raw_rclpy_bytes_roundtrip(tmp_path):
             msg.position = [float(i), 0.0, -1.0]
             msg.effort = [] if i % 2 else [1.0, 2.0, 3.0]
             w.write_raw('/joint_states', T0 + i, serialization.serialize_message(msg))
-    with bagio.open_bag(path) as bag:
-        got = [m for _, _, m in bagio.iter_joint_states(bag, '/joint_states')]
+    with open_bag(path) as bag:
+        got = [m for _, _, m in iter_joint_states(bag, '/joint_states')]
     assert [m.stamp_ns for m in got] == [i * 1_000_000_000 + 250_000_000 for i in range(20)]
     assert [m.position[0] for m in got] == list(range(20))
     assert [m.effort.size for m in got] == [0 if i % 2 else 3 for i in range(20)]
@@ -338,9 +348,9 @@ def test_lone_mcap_without_metadata(tmp_path):
     rows = _write_bag(path, 'mcap')
     (path / 'metadata.yaml').unlink()
     for target in (path, path / 'bag.mcap'):
-        with bagio.open_bag(target) as bag:
+        with open_bag(target) as bag:
             assert bag.topic_counts['/joint_states'] == 50
-            n = sum(1 for _ in bagio.iter_joint_states(bag, '/joint_states'))
+            n = sum(1 for _ in iter_joint_states(bag, '/joint_states'))
             assert n == 50
             assert bag.message_count == len(rows) + 8
 
@@ -350,7 +360,7 @@ def test_lone_mcap_without_metadata(tmp_path):
 # ---------------------------------------------------------------------------------------
 
 def _one_topic_bag(path, storage='mcap', n=200):
-    with bagio.BagWriter(path, storage) as w:
+    with BagWriter(path, storage) as w:
         for i in range(n):
             w.write_joint_state('/joint_states', T0 + i * 1000, i * 1e-3, ARM, [i, 0, 0])
     return path
@@ -358,20 +368,20 @@ def _one_topic_bag(path, storage='mcap', n=200):
 
 def test_missing_and_non_bag_paths(tmp_path):
     with pytest.raises(IdentificationError, match='does not exist'):
-        bagio.open_bag(tmp_path / 'nope')
+        open_bag(tmp_path / 'nope')
     (tmp_path / 'empty_dir').mkdir()
     with pytest.raises(IdentificationError, match='no metadata.yaml'):
-        bagio.open_bag(tmp_path / 'empty_dir')
+        open_bag(tmp_path / 'empty_dir')
     (tmp_path / 'notes.txt').write_text('hi')
     with pytest.raises(IdentificationError, match='.mcap/.db3'):
-        bagio.open_bag(tmp_path / 'notes.txt')
+        open_bag(tmp_path / 'notes.txt')
     two = tmp_path / 'two'
     two.mkdir()
     for name in ('a', 'b'):
         _one_topic_bag(tmp_path / name)
         shutil.copy(tmp_path / name / f'{name}.mcap', two)
     with pytest.raises(IdentificationError, match='several storage files.*a.mcap, b.mcap'):
-        bagio.open_bag(two)
+        open_bag(two)
 
 
 @pytest.mark.parametrize('keep', [0.0, 0.3, 0.7, 0.99])
@@ -381,14 +391,14 @@ def test_truncated_mcap(tmp_path, keep):
     data = f.read_bytes()
     f.write_bytes(data[:int(len(data) * keep)])
     with pytest.raises(IdentificationError, match=r"bag '.*bag'.*(truncated|empty)"):
-        bagio.open_bag(path)
+        open_bag(path)
 
 
 def test_garbage_sqlite(tmp_path):
     path = _one_topic_bag(tmp_path / 'bag', 'sqlite3')
     (path / 'bag.db3').write_bytes(np.random.default_rng(0).bytes(5000))
     with pytest.raises(IdentificationError, match='sqlite3 storage file is corrupt'):
-        bagio.open_bag(path)
+        open_bag(path)
 
 
 def test_unknown_storage_and_bad_metadata(tmp_path):
@@ -397,54 +407,54 @@ def test_unknown_storage_and_bad_metadata(tmp_path):
     text = meta.read_text()
     meta.write_text(text.replace('storage_identifier: mcap', 'storage_identifier: foo'))
     with pytest.raises(IdentificationError, match="unsupported storage.*'foo'"):
-        bagio.open_bag(path)
+        open_bag(path)
     meta.write_text('{{{ not yaml')
     with pytest.raises(IdentificationError, match='metadata'):
-        bagio.open_bag(path)
+        open_bag(path)
 
 
-@pytest.mark.parametrize('storage', bagio.STORAGES)
+@pytest.mark.parametrize('storage', STORAGES)
 def test_empty_bag(tmp_path, storage):
     path = tmp_path / 'bag'
-    with bagio.BagWriter(path, storage) as w:
-        w.add_topic('/joint_states', bagio.JOINT_STATE)
+    with BagWriter(path, storage) as w:
+        w.add_topic('/joint_states', JOINT_STATE)
     with pytest.raises(IdentificationError, match='contains no messages'):
-        bagio.open_bag(path)
-    with bagio.open_bag(path, allow_empty=True) as bag:
-        assert bag.message_count == 0 and bag.topics == {'/joint_states': bagio.JOINT_STATE}
-        assert list(bagio.iter_joint_states(bag, '/joint_states')) == []
+        open_bag(path)
+    with open_bag(path, allow_empty=True) as bag:
+        assert bag.message_count == 0 and bag.topics == {'/joint_states': JOINT_STATE}
+        assert list(iter_joint_states(bag, '/joint_states')) == []
     (tmp_path / 'zero.mcap').write_bytes(b'')
     with pytest.raises(IdentificationError, match='empty'):
-        bagio.open_bag(tmp_path / 'zero.mcap')
+        open_bag(tmp_path / 'zero.mcap')
 
 
 def test_missing_topic_and_wrong_type(tmp_path):
     path = tmp_path / 'bag'
-    with bagio.BagWriter(path) as w:
+    with BagWriter(path) as w:
         w.write_joint_state('/joint_states', T0, 0.0, ARM, [0, 0, 0])
         w.write_string('/robot_description', T0, URDF)
-    with bagio.open_bag(path) as bag:
+    with open_bag(path) as bag:
         with pytest.raises(IdentificationError) as err:
-            list(bagio.iter_joint_states(bag, ['/joint_states', '/arm/joint_states']))
+            list(iter_joint_states(bag, ['/joint_states', '/arm/joint_states']))
         assert "'/arm/joint_states'" in str(err.value)
         assert '/joint_states [sensor_msgs/msg/JointState]' in str(err.value)
         assert '/robot_description [std_msgs/msg/String]' in str(err.value)
         with pytest.raises(IdentificationError,
                            match="'/robot_description'.*std_msgs/msg/String.*JointState"):
-            list(bagio.iter_joint_states(bag, '/robot_description'))
+            list(iter_joint_states(bag, '/robot_description'))
         with pytest.raises(IdentificationError, match="'/joint_states'.*JointState.*String"):
-            bagio.read_string_topic(bag, '/joint_states')
+            read_string_topic(bag, '/joint_states')
 
 
 def test_corrupt_message_in_bag_names_topic(tmp_path):
     path = tmp_path / 'bag'
-    good = bagio.encode_joint_state(0.0, ARM, [1, 2, 3])
-    with bagio.BagWriter(path) as w:
-        w.add_topic('/joint_states', bagio.JOINT_STATE)
+    good = encode_joint_state(0.0, ARM, [1, 2, 3])
+    with BagWriter(path) as w:
+        w.add_topic('/joint_states', JOINT_STATE)
         w.write_raw('/joint_states', T0, good)
         w.write_raw('/joint_states', T0 + 1, good[:-5])
-    with bagio.open_bag(path) as bag:
-        it = bagio.iter_joint_states(bag, '/joint_states')
+    with open_bag(path) as bag:
+        it = iter_joint_states(bag, '/joint_states')
         assert next(it)[2].names == ARM
         with pytest.raises(IdentificationError, match=f"'/joint_states' at log time {T0 + 1}"):
             next(it)
@@ -454,11 +464,11 @@ def test_corrupt_message_in_bag_names_topic(tmp_path):
 # Atomic writing
 # ---------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize('storage', bagio.STORAGES)
+@pytest.mark.parametrize('storage', STORAGES)
 def test_exception_leaves_no_output(tmp_path, storage):
     path = tmp_path / 'bag'
     with pytest.raises(RuntimeError, match='boom'):
-        with bagio.BagWriter(path, storage) as w:
+        with BagWriter(path, storage) as w:
             w.write_joint_state('/joint_states', T0, 0.0, ARM, [0, 0, 0])
             raise RuntimeError('boom')
     assert list(tmp_path.iterdir()) == []
@@ -467,17 +477,17 @@ def test_exception_leaves_no_output(tmp_path, storage):
 def test_overwrite_refused_and_replaced_only_on_success(tmp_path):
     path = _one_topic_bag(tmp_path / 'bag', n=10)
     with pytest.raises(IdentificationError, match='exists already.*overwrite=True'):
-        bagio.BagWriter(path)
+        BagWriter(path)
     with pytest.raises(RuntimeError):
-        with bagio.BagWriter(path, 'sqlite3', overwrite=True) as w:
+        with BagWriter(path, 'sqlite3', overwrite=True) as w:
             w.write_joint_state('/joint_states', T0, 0.0, ARM, [0, 0, 0])
             raise RuntimeError('boom')
-    with bagio.open_bag(path) as bag:  # the old bag is intact
+    with open_bag(path) as bag:  # the old bag is intact
         assert bag.message_count == 10
-    with bagio.BagWriter(path, 'sqlite3', overwrite=True) as w:
+    with BagWriter(path, 'sqlite3', overwrite=True) as w:
         w.write_joint_state('/joint_states', T0, 0.0, ARM, [0, 0, 0])
     assert sorted(p.name for p in path.iterdir()) == ['bag.db3', 'metadata.yaml']
-    with bagio.open_bag(path) as bag:
+    with open_bag(path) as bag:
         assert bag.message_count == 1
     assert [p.name for p in tmp_path.iterdir()] == ['bag']
     assert not any(p.name.startswith('.') for p in tmp_path.iterdir())
@@ -485,15 +495,15 @@ def test_overwrite_refused_and_replaced_only_on_success(tmp_path):
 
 def test_writer_input_errors(tmp_path):
     with pytest.raises(IdentificationError, match='unknown bag storage'):
-        bagio.BagWriter(tmp_path / 'x', 'rosbag1')
-    with bagio.BagWriter(tmp_path / 'bag') as w:
+        BagWriter(tmp_path / 'x', 'rosbag1')
+    with BagWriter(tmp_path / 'bag') as w:
         with pytest.raises(IdentificationError, match='add_topic'):
             w.write_raw('/joint_states', T0, b'\x00\x01\x00\x00')
         with pytest.raises(IdentificationError, match='unknown message type'):
             w.add_topic('/x', 'my_msgs/msg/Nope')
-        w.add_topic('/joint_states', bagio.JOINT_STATE)
+        w.add_topic('/joint_states', JOINT_STATE)
         with pytest.raises(IdentificationError, match='already added'):
-            w.add_topic('/joint_states', bagio.STRING)
+            w.add_topic('/joint_states', STRING)
         with pytest.raises(IdentificationError, match='not finite'):
             w.write_joint_state('/joint_states', T0, math.nan, ARM, [0, 0, 0])
     with pytest.raises(IdentificationError, match='closed'):
@@ -505,22 +515,22 @@ def test_writer_input_errors(tmp_path):
 # ---------------------------------------------------------------------------------------
 
 @pytest.mark.slow
-@pytest.mark.parametrize('storage', bagio.STORAGES)
+@pytest.mark.parametrize('storage', STORAGES)
 def test_streaming_read_memory_is_flat(tmp_path, storage):
     n = 100_000
     path = tmp_path / 'big'
-    raw = bagio.encode_joint_state(0.0, ARM, [0.1, 0.2, 0.3], [0.0] * 3, [1.0] * 3)
-    with bagio.BagWriter(path, storage) as w:
-        w.add_topic('/joint_states', bagio.JOINT_STATE)
+    raw = encode_joint_state(0.0, ARM, [0.1, 0.2, 0.3], [0.0] * 3, [1.0] * 3)
+    with BagWriter(path, storage) as w:
+        w.add_topic('/joint_states', JOINT_STATE)
         for i in range(n):
             w.write_raw('/joint_states', T0 + i * 1_000_000, raw)
     bag_bytes = sum(p.stat().st_size for p in path.iterdir())
     assert bag_bytes > n * len(raw)
-    with bagio.open_bag(path) as bag:
+    with open_bag(path) as bag:
         tracemalloc.start()
         try:
             count, last = 0, None
-            for _, log_ns, msg in bagio.iter_joint_states(bag, '/joint_states'):
+            for _, log_ns, msg in iter_joint_states(bag, '/joint_states'):
                 count += 1
                 last = log_ns
             _, peak = tracemalloc.get_traced_memory()
@@ -528,11 +538,11 @@ def test_streaming_read_memory_is_flat(tmp_path, storage):
             tracemalloc.stop()
     assert count == n and last == T0 + (n - 1) * 1_000_000
     assert peak < bag_bytes / 4, (peak, bag_bytes)
-    with bagio.open_bag(path) as bag:  # blocks: one chunk (1 MiB) at a time
+    with open_bag(path) as bag:  # blocks: one chunk (1 MiB) at a time
         tracemalloc.start()
         try:
             count = 0
-            for log_ns, _ in bagio.iter_joint_state_blocks(bag, '/joint_states'):
+            for log_ns, _ in iter_joint_state_blocks(bag, '/joint_states'):
                 count += len(log_ns)
             _, peak = tracemalloc.get_traced_memory()
         finally:
@@ -540,7 +550,7 @@ def test_streaming_read_memory_is_flat(tmp_path, storage):
     assert count == n and peak < bag_bytes / 4, (peak, bag_bytes)
 
 
-@pytest.mark.parametrize('storage', bagio.STORAGES)
+@pytest.mark.parametrize('storage', STORAGES)
 def test_custom_type_read_from_embedded_definition(tmp_path, storage):
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
     store = get_typestore(Stores.ROS2_JAZZY)
@@ -548,12 +558,12 @@ def test_custom_type_read_from_embedded_definition(tmp_path, storage):
                                       'my_msgs/msg/Foo'))
     path = tmp_path / 'bag'
     foo = store.types['my_msgs/msg/Foo']
-    with bagio.BagWriter(path, storage, typestore=store) as w:
+    with BagWriter(path, storage, typestore=store) as w:
         w.write('/foo', T0 + 1, foo(x=1.5, label='b', ids=np.array([3, 4], np.int32)))
         w.write('/foo', T0, foo(x=-2.0, label='a', ids=np.array([], np.int32)))
-    with bagio.open_bag(path) as bag:  # its typestore is Jazzy, without my_msgs
-        assert 'my_msgs/msg/Foo' not in bagio.jazzy_typestore().types
-        got = [(t, ns, m.x, m.label, list(m.ids)) for t, _, ns, m in bagio.iter_messages(bag)]
+    with open_bag(path) as bag:  # its typestore is Jazzy, without my_msgs
+        assert 'my_msgs/msg/Foo' not in jazzy_typestore().types
+        got = [(t, ns, m.x, m.label, list(m.ids)) for t, _, ns, m in iter_messages(bag)]
     assert got == [('/foo', T0, -2.0, 'a', []), ('/foo', T0 + 1, 1.5, 'b', [3, 4])]
 
 
@@ -564,7 +574,7 @@ def test_custom_type_read_from_embedded_definition(tmp_path, storage):
 def _blocks_as_messages(bag, topic):
     """iter_joint_state_blocks flattened to (log ns, record), and how many items it yielded."""
     out, items = [], 0
-    for log, rec in bagio.iter_joint_state_blocks(bag, topic):
+    for log, rec in iter_joint_state_blocks(bag, topic):
         items += 1
         if np.ndim(rec.stamp_ns) == 0:
             assert len(log) == 1
@@ -573,7 +583,7 @@ def _blocks_as_messages(bag, topic):
         assert rec.position.ndim == rec.velocity.ndim == rec.effort.ndim == 2
         assert len(log) == len(rec.stamp_ns) == len(rec.position) > 1
         for i in range(len(log)):
-            out.append((int(log[i]), bagio.JointStateRecord(
+            out.append((int(log[i]), JointStateRecord(
                 int(rec.stamp_ns[i]), rec.names, rec.position[i], rec.velocity[i],
                 rec.effort[i])))
     return out, items
@@ -582,9 +592,9 @@ def _blocks_as_messages(bag, topic):
 def _assert_blocks_match(path, topic):
     """Same messages, order, log times, stamps, names and values (NaN included) as
     iter_joint_states; returns how many items the block reader yielded."""
-    with bagio.open_bag(path) as bag:
-        want = [(t, m) for _, t, m in bagio.iter_joint_states(bag, [topic])]
-    with bagio.open_bag(path) as bag:
+    with open_bag(path) as bag:
+        want = [(t, m) for _, t, m in iter_joint_states(bag, [topic])]
+    with open_bag(path) as bag:
         got, items = _blocks_as_messages(bag, topic)
     assert len(got) == len(want)
     for (t, m), (et, em) in zip(got, want):
@@ -617,15 +627,15 @@ def _long_bag(path, n, compression=None, order=None, frame=lambda i: 'base'):
     if compression is not None:
         writer.set_compression(compression, CompressionFormat.ZSTD)
     with writer:
-        js = writer.add_connection('/joint_states', bagio.JOINT_STATE, typestore=TS)
-        text = writer.add_connection('/text', bagio.STRING, typestore=TS)
+        js = writer.add_connection('/joint_states', JOINT_STATE, typestore=TS)
+        text = writer.add_connection('/text', STRING, typestore=TS)
         for i in (range(n) if order is None else order):
             t = T0 + i * 1_000_000
-            writer.write(js, t, bagio.encode_joint_state(
+            writer.write(js, t, encode_joint_state(
                 i * 1e-3, ARM, *vals[i], frame_id=frame(i)))
             if i % 100 == 0:
-                writer.write(text, t, TS.serialize_cdr(bagio.make_string('x' * (i % 7)),
-                                                       bagio.STRING))
+                writer.write(text, t, TS.serialize_cdr(make_string('x' * (i % 7)),
+                                                       STRING))
     return path
 
 
@@ -671,18 +681,18 @@ def test_blocks_of_sqlite3_and_lone_mcap(tmp_path):
 
 def test_blocks_corrupt_message_names_topic_and_time(tmp_path):
     path = tmp_path / 'bag'
-    good = bagio.encode_joint_state(0.0, ARM, [1, 2, 3])
-    with bagio.BagWriter(path) as w:
-        w.add_topic('/joint_states', bagio.JOINT_STATE)
+    good = encode_joint_state(0.0, ARM, [1, 2, 3])
+    with BagWriter(path) as w:
+        w.add_topic('/joint_states', JOINT_STATE)
         for i in range(10):
             w.write_raw('/joint_states', T0 + i, good)
         w.write_raw('/joint_states', T0 + 10, good[:-5])
-    with bagio.open_bag(path) as bag:
-        it = bagio.iter_joint_state_blocks(bag, '/joint_states')
+    with open_bag(path) as bag:
+        it = iter_joint_state_blocks(bag, '/joint_states')
         log, block = next(it)
         assert len(log) == 10 and block.names == ARM
         with pytest.raises(IdentificationError, match=f"'/joint_states' at log time {T0 + 10}"):
             next(it)
-    with bagio.open_bag(path) as bag:
+    with open_bag(path) as bag:
         with pytest.raises(IdentificationError, match='not in bag'):
-            next(bagio.iter_joint_state_blocks(bag, '/nope'))
+            next(iter_joint_state_blocks(bag, '/nope'))

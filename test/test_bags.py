@@ -13,13 +13,14 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from identification_node.bags.bagio import BagWriter, JOINT_STATE
+from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.offline.replay import identify_bag
 from identification_node.settings import Settings, read_parameter_file
+from identification_node.wire.cdr import JOINT_STATE
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = {  # bag: config

@@ -1,15 +1,18 @@
 """The node's input, lists of JointState CDR messages per processing run, decoded in blocks
-(bagio.decode_joint_states) against rosbags' deserializer message by message."""
+(decode_joint_states) against rosbags' deserializer message by message."""
 import struct
 
 import numpy as np
 
-from identification_node.bags import bagio
+from identification_node.bags.writer import make_joint_state
 from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+from identification_node.wire.cdr import (JOINT_STATE, JointStateDecoder,
+                                          decode_joint_state_reference, decode_joint_states,
+                                          encode_joint_state, encode_joint_states, jazzy_typestore)
 
 ARM3 = ('shoulder', 'elbow', 'wrist')
 
@@ -40,22 +43,22 @@ def _cdr_stream(robot, n_samples: int, seed: int):
             frame = 'f' * int(rng.integers(1, 8))
         row_names = [names[i] for i in order] + (['gripper'] if extra else [])
         arrays = [np.append(a[order], np.nan) if extra else a[order] for a in (q, qd, tau)]
-        raw = bagio.encode_joint_state(0.0, row_names, *arrays, frame_id=frame)
+        raw = encode_joint_state(0.0, row_names, *arrays, frame_id=frame)
         messages.append(_stamped(raw, stamp))
 
     def one(k, names=names, q=True, qd=True, tau=True, cut=None):
-        return bagio.encode_joint_states(
+        return encode_joint_states(
             [stamps[k]], names, sim.q_meas[k:k + 1, :cut] if q is True else q,
             sim.qd_meas[k:k + 1, :cut] if qd else None,
             sim.tau_meas[k:k + 1, :cut] if tau else None)[0]
-    msg = bagio.make_joint_state(0.0, names, sim.q_meas[808], sim.qd_meas[808],
-                                 sim.tau_meas[808])
+    msg = make_joint_state(0.0, names, sim.q_meas[808], sim.qd_meas[808],
+                           sim.tau_meas[808])
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamps[808]), 10**9)
     bad = {101: one(101, q=np.full((1, robot.dof), np.nan)), 202: messages[201],
            303: messages[290], 404: b'\x00\x01garbage', 505: one(505, qd=False),
            606: one(606, tau=False), 707: one(707, names=names[:-1], cut=-1),
-           808: bytes(bagio.jazzy_typestore().serialize_cdr(msg, bagio.JOINT_STATE,
-                                                            little_endian=False))}
+           808: bytes(jazzy_typestore().serialize_cdr(msg, JOINT_STATE,
+                                                      little_endian=False))}
     for k, raw in bad.items():
         messages[k] = raw
     return messages
@@ -79,7 +82,7 @@ def test_cdr_runs_give_what_records_decoded_by_rosbags_give():
         cdr.add_joint_state_cdr(messages[k:k + m])
         for raw in messages[k:k + m]:
             try:
-                records.add_joint_state(bagio.decode_joint_state_reference(raw))
+                records.add_joint_state(decode_joint_state_reference(raw))
             except IdentificationError:   # the garbage message
                 records.add_malformed()
         for p, out in zip((cdr, records), outs):
@@ -109,13 +112,13 @@ def test_decode_joint_states_equals_rosbags_message_by_message():
     one; messages of other layouts, big-endian or broken ones among them come alone (or as
     the error)."""
     rng = np.random.default_rng(11)
-    dec = bagio.JointStateDecoder()
-    good = bagio.encode_joint_states(np.arange(3) * 10**6, ARM3, *[np.ones((3, 3))] * 3)
-    msg = bagio.make_joint_state(0.0, ARM3, [1.0, 2.0, 3.0], [], [])
-    odd = [bagio.encode_joint_state(0.0, ('a', 'b', 'c'), *[[1.0, 2.0, 3.0]] * 3),
-           bagio.encode_joint_state(0.0, ARM3, [1.0, 2.0, 3.0], [], [1.0, 2.0, 3.0]),
-           bytes(bagio.jazzy_typestore().serialize_cdr(msg, bagio.JOINT_STATE,
-                                                       little_endian=False)),
+    dec = JointStateDecoder()
+    good = encode_joint_states(np.arange(3) * 10**6, ARM3, *[np.ones((3, 3))] * 3)
+    msg = make_joint_state(0.0, ARM3, [1.0, 2.0, 3.0], [], [])
+    odd = [encode_joint_state(0.0, ('a', 'b', 'c'), *[[1.0, 2.0, 3.0]] * 3),
+           encode_joint_state(0.0, ARM3, [1.0, 2.0, 3.0], [], [1.0, 2.0, 3.0]),
+           bytes(jazzy_typestore().serialize_cdr(msg, JOINT_STATE,
+                                                 little_endian=False)),
            good[0][:-9], good[0].replace(b'elbow', b'elb\xffw')]
     for k in range(60):
         names = [f'j{i}' + 'x' * int(rng.integers(0, 5)) for i in range(int(rng.integers(1, 8)))]
@@ -128,12 +131,12 @@ def test_decode_joint_states_equals_rosbags_message_by_message():
             values[0][0, 0], values[0][-1, -1] = np.inf, -0.0
         stamps = rng.integers(-3 * 10**9, 2 * 10**18, M)
         frame = 'f' * int(rng.integers(0, 8))
-        messages = [_stamped(bagio.encode_joint_state(0.0, names, *(v[m] for v in values),
-                                                      frame_id=frame), t)
+        messages = [_stamped(encode_joint_state(0.0, names, *(v[m] for v in values),
+                                                frame_id=frame), t)
                     for m, t in enumerate(stamps)]
         extra = [odd[k % len(odd)]] if k % 2 else []
         messages = messages + extra + good
-        decoded = list(bagio.decode_joint_states(messages, dec))
+        decoded = list(decode_joint_states(messages, dec))
         rows = []
         for item in decoded:
             if isinstance(item, IdentificationError):
@@ -148,7 +151,7 @@ def test_decode_joint_states_equals_rosbags_message_by_message():
         assert np.ndim(decoded[0].stamp_ns) == (M > 1)   # a run of one layout: one block
         for raw, row in zip(messages, rows):
             try:
-                ref = bagio.decode_joint_state_reference(raw)
+                ref = decode_joint_state_reference(raw)
             except IdentificationError:
                 assert isinstance(row, IdentificationError)
                 continue

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
-from identification_node.bags.bagio import JOINT_TRAJECTORY, BagReader, iter_messages
+from identification_node.bags.reader import BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.estimation.estimators import LeastSquares
@@ -17,6 +17,7 @@ from identification_node.excitation.trajectories import (FourierTrajectory, Fram
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.wire.cdr import JOINT_TRAJECTORY
 
 FINE = 20001  # kinematic check points over one period
 FINE_TORQUE = 3001

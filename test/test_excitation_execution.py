@@ -11,7 +11,7 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from identification_node.bags.bagio import BagReader, iter_messages
+from identification_node.bags.reader import BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.excitation import design as ex

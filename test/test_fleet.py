@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identification_node.bags.bagio import BagWriter, iter_joint_states, open_bag
+from identification_node.bags.reader import iter_joint_states, open_bag
+from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.cli.identify import result_document
 from identification_node.errors import IdentificationError

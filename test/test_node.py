@@ -28,7 +28,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from identification_node.bags.bagio import encode_joint_states
 from identification_node.controller_client import IdentifiedModel
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentSolver,
@@ -44,6 +43,7 @@ from identification_node.ros.conversions import PolledSubscription, wait_for_all
 from identification_node.ros.node import INPUT_QOS, IdentificationNode
 from identification_node.ros.sim_node import SampleSource, SimSetup
 from identification_node.settings import Settings
+from identification_node.wire.cdr import encode_joint_states
 from identification_node.wire.records import JointStateRecord
 from ros_helpers import (LATCHED, RELIABLE, Collector, diagnostic_values,
                          joint_state_msgs, stamp_ns, wait_for)

@@ -14,9 +14,9 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from identification_node.bags.bagio import encode_joint_states
 from identification_node.ros.node import IdentificationNode
 from identification_node.ros.spin import STALLED_EXIT
+from identification_node.wire.cdr import encode_joint_states
 from ros_helpers import PYTHON, ROOT, RosHarness, domain_id, wait_for
 
 BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
-from identification_node.bags.bagio import BagWriter, iter_joint_states, open_bag
+from identification_node.bags.reader import iter_joint_states, open_bag
+from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.estimation.estimators import ResidualStatistics, weighted_solve

@@ -33,11 +33,13 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from identification_node.bags import bagio  # noqa: E402
+from identification_node.bags.reader import iter_messages, open_bag  # noqa: E402
+from identification_node.bags.writer import BagWriter  # noqa: E402
 from identification_node.errors import IdentificationError  # noqa: E402
 from identification_node.ros.conversions import wait_for_all_acked  # noqa: E402
 from identification_node.ros.player import BagPlayer, offered_qos  # noqa: E402
 from identification_node.ros.recorder import BagRecorder  # noqa: E402
+from identification_node.wire.cdr import JOINT_STATE, STRING, encode_joint_state  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -97,13 +99,13 @@ def bag(tmp_path_factory):
     """A 1.5 s bag: latched /robot_description at the start, JointState at 200 Hz.
     Returns (path, [(log_ns, cdr bytes)] of /joint_states, cdr bytes of the URDF)."""
     path = tmp_path_factory.mktemp('play') / 'bag'
-    with bagio.BagWriter(path) as w:
+    with BagWriter(path) as w:
         w.write_string('/robot_description', T0, URDF)
         for k in range(N_JS):
             t = T0 + k * PERIOD_NS
             w.write_joint_state('/joint_states', t, t * 1e-9, ['shoulder', 'elbow'],
                                 [0.01 * k, -0.02 * k], [0.5, -0.5 + 1e-3 * k], [k, 2.0])
-    with bagio.open_bag(path) as r:
+    with open_bag(path) as r:
         js = [(t, raw) for _, _, t, raw in r.raw_messages(['/joint_states'])]
         (_, _, _, urdf), = r.raw_messages(['/robot_description'])
     assert len(js) == N_JS
@@ -291,8 +293,8 @@ def _publish_mix(node, executor, pubs, n_js=200):
     js_pub, be_pub = pubs
     sent, texts = [], []
     for k in range(n_js):
-        raw = bagio.encode_joint_state(k * 1e-3, ['j1', 'j2', 'j3'], [k, -k, 0.5],
-                                       [0.25 * k], [])
+        raw = encode_joint_state(k * 1e-3, ['j1', 'j2', 'j3'], [k, -k, 0.5],
+                                 [0.25 * k], [])
         sent.append((time.time_ns(), raw))
         js_pub.publish(raw)
         if k % 10 == 0:
@@ -306,12 +308,12 @@ def _publish_mix(node, executor, pubs, n_js=200):
 def _check_recorded(out, sent, texts, t_start, t_stop):
     assert out.is_dir()
     assert not [p for p in out.parent.iterdir() if p.name.startswith('.')]  # no temp dirs
-    with bagio.open_bag(out) as r:
-        assert r.topics == {'/rec/js': bagio.JOINT_STATE, '/rec/be': bagio.STRING,
-                            '/rec/latched': bagio.STRING}
+    with open_bag(out) as r:
+        assert r.topics == {'/rec/js': JOINT_STATE, '/rec/be': STRING,
+                            '/rec/latched': STRING}
         durability = {t: q[0].durability for t, q in offered_qos(r).items()}
         rows = list(r.raw_messages())
-        strings = {t: [m.data for _, _, _, m in bagio.iter_messages(r, [t])]
+        strings = {t: [m.data for _, _, _, m in iter_messages(r, [t])]
                    for t in ('/rec/be', '/rec/latched')}
     assert durability == {'/rec/js': QosDurability.VOLATILE,
                           '/rec/be': QosDurability.VOLATILE,
@@ -402,9 +404,9 @@ def test_recorder_in_process_duration_and_missing_topic(ros, tmp_path):
         rex.shutdown()
         rnode.destroy_node()
     assert rec.missing == ['/rec/nobody'] and 'no publisher seen' in rec.summary()
-    with bagio.open_bag(out) as r:
-        assert r.topics == {'/rec/inproc': bagio.STRING}
-        assert [m.data for _, _, _, m in bagio.iter_messages(r)] == texts
+    with open_bag(out) as r:
+        assert r.topics == {'/rec/inproc': STRING}
+        assert [m.data for _, _, _, m in iter_messages(r)] == texts
 
 
 def test_recorder_without_any_publisher_leaves_no_bag(ros, tmp_path):

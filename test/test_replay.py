@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identification_node.bags import bagio
+from identification_node.bags.reader import iter_joint_state_blocks, iter_joint_states
 
 from identification_node.offline import replay
 from identification_node.settings import Settings, read_parameter_file
@@ -14,7 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _one_by_one(reader, topic):
-    for _, t_ns, record in bagio.iter_joint_states(reader, [topic]):
+    for _, t_ns, record in iter_joint_states(reader, [topic]):
         yield np.array([t_ns]), record
 
 
@@ -30,7 +30,7 @@ def test_block_reading_equals_message_by_message(monkeypatch, batch):
     settings = Settings.from_dict(read_parameter_file(REPO / 'config' / 'crs_a465.yaml'))
     bag = REPO / 'bags' / 'crs_a465_fourier'
     calls = []
-    blocks = bagio.iter_joint_state_blocks
+    blocks = iter_joint_state_blocks
     monkeypatch.setattr(replay, 'iter_joint_state_blocks',
                         lambda *a: calls.append(1) or blocks(*a))
     fast, fast_out = _run(bag, settings, batch)

@@ -7,7 +7,6 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from identification_node.bags.bagio import encode_joint_states
 from identification_node.estimation.robust import InnovationGate, RobustSettings
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
@@ -16,6 +15,7 @@ from identification_node.model.robot import BUNDLED_DIR, load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+from identification_node.wire.cdr import encode_joint_states
 
 RATE = 1000.0
 T0_NS = 1_700_000_000_000_000_000

@@ -10,8 +10,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from identification_node.bags.bagio import BagWriter
 from identification_node.bags.mcap_check import _chunks, verify_chunks
+from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.estimation.prior import safe_prior

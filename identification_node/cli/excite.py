@@ -205,7 +205,7 @@ def _ratio_line(result) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from identification_node.bags.bagio import BagWriter
+    from identification_node.bags.writer import BagWriter
     from identification_node.excitation.design import (DEFAULT_LIMIT_MARGIN, DEFAULT_MAXITER,
                                                        DEFAULT_PERIODS, DEFAULT_SAMPLES,
                                                        TABLE1_PERIOD, criterion_value,

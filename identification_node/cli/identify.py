@@ -347,7 +347,7 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.report)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
-    from identification_node.bags.bagio import open_bag
+    from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:
         print(f'warning: {note}', file=sys.stderr)

@@ -77,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from identification_node.bags.bagio import open_bag
+    from identification_node.bags.reader import open_bag
     from identification_node.ros.player import BagPlayer, select_topics
 
     for name, value in (('--rate', args.rate), ('--clock', args.clock),

@@ -70,7 +70,8 @@ def true_parameters(robot, path: str | None):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from identification_node.bags.bagio import BagWriter, JOINT_STATE
+    from identification_node.bags.writer import BagWriter
+    from identification_node.wire.cdr import JOINT_STATE
     from identification_node.fileio import atomic_write_yaml
     from identification_node.model.identifiability import BaseParameters
     from identification_node.payload.fit import (attachment, read_payload_changes,

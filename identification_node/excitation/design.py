@@ -1180,7 +1180,7 @@ def trajectory_to_joint_trajectory(traj: Trajectory, rate: float = 100.0, period
     (Hz) over ``periods`` passes including the end point: positions, velocities,
     accelerations and time_from_start per point. The motion starts at q(0) with velocity
     qd(0) (at rest for a FramedTrajectory): bring the robot there first."""
-    from identification_node.bags.bagio import make_joint_trajectory
+    from identification_node.bags.writer import make_joint_trajectory
     names = list(joint_names or traj.joint_names or [])
     if len(names) != traj.dof:
         raise IdentificationError(f'need {traj.dof} joint names, got {names}')

@@ -114,7 +114,7 @@ def scan_directory(path: str | os.PathLike, config: str | None = None
     description each carries: robot '<URDF name>-<8 hex of model_key>', period the UTC day of the
     bag's first message, ``config`` the parameter file of every entry (joints, extras, ...).
     Returns (entries, failures: the bags that cannot be read or carry no description)."""
-    from identification_node.bags.bagio import open_bag
+    from identification_node.bags.reader import open_bag
 
     settings = entry_settings(FleetEntry('', '', '', config=config))
     entries, failed = [], []
@@ -379,7 +379,7 @@ def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = No
                ) -> list[MapTask]:
     """One task per bag, or per ``segment_seconds`` of its log time (the first and last
     segment open-ended, so every row belongs to exactly one)."""
-    from identification_node.bags.bagio import open_bag
+    from identification_node.bags.reader import open_bag
 
     tasks = []
     for e in entries:

@@ -37,7 +37,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from identification_node.bags.bagio import iter_joint_states, open_bag, read_string_topic
+from identification_node.bags.reader import iter_joint_states, open_bag, read_string_topic
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentEstimate,
                                                         ConsistentSolver, pipeline_equations)

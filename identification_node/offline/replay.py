@@ -13,8 +13,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from identification_node.bags.bagio import (iter_joint_state_blocks, iter_joint_states, open_bag,
-                                            read_string_topic)
+from identification_node.bags.reader import (iter_joint_state_blocks, iter_joint_states, open_bag,
+                                             read_string_topic)
 from identification_node.errors import IdentificationError
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.pipeline import IdentificationPipeline, PipelineOutput

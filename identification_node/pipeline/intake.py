@@ -12,7 +12,7 @@ import collections
 
 import numpy as np
 
-from identification_node.bags.bagio import JointStateDecoder, decode_joint_states
+from identification_node.wire.cdr import JointStateDecoder, decode_joint_states
 from identification_node.errors import IdentificationError
 from identification_node.pipeline.validate import Counters
 from identification_node.wire.records import JointStateRecord

@@ -17,7 +17,7 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 
-from identification_node.bags.bagio import encode_joint_states
+from identification_node.wire.cdr import encode_joint_states
 
 
 def time_msg(ns: int) -> Time:
@@ -40,7 +40,7 @@ def wait_for_all_acked(publishers: Iterable[Publisher], timeout: float) -> bool:
 def publish_joint_states(publisher, stamps_ns: np.ndarray, names: Sequence[str], position=None,
                          velocity=None, effort=None) -> None:
     """Publish one JointState per row of the given (N, n) arrays, stamped with ``stamps_ns``.
-    The messages are serialized together (bagio.encode_joint_states) and published as CDR
+    The messages are serialized together (wire.cdr.encode_joint_states) and published as CDR
     bytes, which rclpy hands to the middleware as they are."""
     for raw in encode_joint_states(stamps_ns, names, position, velocity, effort):
         publisher.publish(raw)

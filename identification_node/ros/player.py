@@ -23,9 +23,10 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosReliability
 
-from identification_node.bags.bagio import CLOCK, BagReader, open_bag
+from identification_node.bags.reader import BagReader, open_bag
 from identification_node.errors import IdentificationError
 from identification_node.ros.conversions import wait_for_all_acked
+from identification_node.wire.cdr import CLOCK
 
 DEFAULT_CLOCK_HZ = 40.0
 BATCH = 2e-4  # [s] messages due this close to now are published without sleeping

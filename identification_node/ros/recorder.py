@@ -18,7 +18,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
-from identification_node.bags.bagio import BagWriter
+from identification_node.bags.writer import BagWriter
 from identification_node.errors import IdentificationError
 from identification_node.ros.player import message_class
 
