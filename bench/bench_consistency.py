@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 
 from identification_node.estimation.consistency import (ConsistencyOptions,  # noqa: E402
                                                         ConsistentSolver)
-from identification_node.estimation.estimators import RecursiveLeastSquares  # noqa: E402
+from identification_node.estimation.rls import RecursiveLeastSquares  # noqa: E402
 from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
 from identification_node.model.identifiability import BaseParameters  # noqa: E402
 from identification_node.model.robot import load_robot  # noqa: E402

@@ -9,7 +9,8 @@ import time
 import numpy as np
 import scipy.linalg as sl
 
-from identification_node.estimation.estimators import LeastSquares, RecursiveLeastSquares
+from identification_node.estimation.batch import LeastSquares
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.model.robot import load_robot
 
 BATCH = 1000

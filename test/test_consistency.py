@@ -18,7 +18,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (Body, ConsistencyOptions, ConsistentSolver,
                                                         SolverProcess, from_pseudo_inertia,
                                                         pseudo_inertia, robot_bodies)
-from identification_node.estimation.estimators import RecursiveLeastSquares
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.estimation.prior import safe_prior
 from identification_node.excitation.trajectories import FourierTrajectory

@@ -6,9 +6,10 @@ import scipy.linalg as sl
 from scipy.stats import chi2
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import (Estimate, LeastSquares,
-                                                       RecursiveLeastSquares, RidgeRegression,
-                                                       WeightedLeastSquares)
+from identification_node.estimation.batch import (LeastSquares, RidgeRegression,
+                                                  WeightedLeastSquares)
+from identification_node.estimation.lsq import Estimate
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.model.robot import load_robot
 
 
@@ -493,7 +494,7 @@ def test_errors_for_bad_input(mit):
 
 
 def test_residual_statistics_for_any_theta_and_long_run_variance():
-    from identification_node.estimation.estimators import ResidualStatistics
+    from identification_node.estimation.residuals import ResidualStatistics
     rng = np.random.default_rng(11)
     N, n, p, m = 60000, 2, 3, 9
     Y = rng.standard_normal((N, n, p))
@@ -519,7 +520,7 @@ def test_residual_statistics_for_any_theta_and_long_run_variance():
 
 # -- RLS update paths: information form (Cholesky) and QR --------------------------------------
 def _count_qr(monkeypatch):
-    import identification_node.estimation.estimators as est
+    import identification_node.estimation.rls as est
     calls = []
     qr = est._qr_r
     monkeypatch.setattr(est, '_qr_r', lambda a: calls.append(a.shape) or qr(a))
@@ -528,7 +529,7 @@ def _count_qr(monkeypatch):
 
 @pytest.mark.parametrize('lam', [1.0, 0.995])
 def test_rls_information_form_equals_qr_update_when_well_conditioned(mit, monkeypatch, lam):
-    import identification_node.estimation.estimators as est
+    import identification_node.estimation.rls as est
     rng = np.random.default_rng(31)
     Y = np.concatenate([mit['Yb']] * 4)
     tau = noisy(Y, mit['beta'], 0.5, rng)

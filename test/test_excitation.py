@@ -9,7 +9,7 @@ import yaml
 from identification_node.bags.reader import BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import LeastSquares
+from identification_node.estimation.batch import LeastSquares
 from identification_node.excitation import design as ex
 from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
                                                          SampledTrajectory, check_limits,

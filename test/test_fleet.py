@@ -19,7 +19,8 @@ from identification_node.cli import main
 from identification_node.cli.identify import result_document
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistentSolver
-from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot

@@ -11,7 +11,8 @@ from identification_node.bags.reader import iter_joint_states, open_bag
 from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import ResidualStatistics, weighted_solve
+from identification_node.estimation.batch import weighted_solve
+from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import scipy.linalg as sl
 
-from identification_node.estimation.estimators import LeastSquares, RecursiveLeastSquares
+from identification_node.estimation.batch import LeastSquares
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.model.robot import load_robot
 from test_estimators import sines_trajectory
 

@@ -46,7 +46,8 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.robot import RobotModel
 from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, Checkpoint,

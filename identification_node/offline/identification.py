@@ -41,8 +41,8 @@ from identification_node.bags.reader import iter_joint_states, open_bag, read_st
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentEstimate,
                                                         ConsistentSolver, pipeline_equations)
-from identification_node.estimation.estimators import (ResidualStatistics, WeightedFit,
-                                                       weighted_solve)
+from identification_node.estimation.batch import WeightedFit, weighted_solve
+from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.estimation.prior import safe_prior
 from identification_node.model.identifiability import (BaseParameters, sample_motion,

@@ -23,7 +23,7 @@ from typing import Mapping
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import ResidualStatistics
+from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.model.robot import RobotModel
 from identification_node.payload.change_detection import (DEFAULT_CONFIRM, DEFAULT_MIN_CHANGE,
                                                           DEFAULT_MIN_Z, DEFAULT_THRESHOLD,

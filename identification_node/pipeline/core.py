@@ -9,7 +9,8 @@ from typing import Mapping
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import RecursiveLeastSquares, ResidualStatistics
+from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.prior import safe_prior
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel

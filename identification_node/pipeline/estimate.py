@@ -21,8 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.estimators import (RecursiveLeastSquares, ResidualStatistics,
-                                                       row_information)
+from identification_node.estimation.lsq import row_information
+from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.robust import InnovationGate
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.signals import smoothing_noise_gain
