@@ -10,7 +10,11 @@ from identification_node.bags.reader import BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.estimation.batch import LeastSquares
+from identification_node.excitation.criteria import (CRITERIA, condition_number, criterion_value,
+                                                     d_optimality)
 from identification_node.excitation import design as ex
+from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits, limit_ratios,
+                                                   load_limits)
 from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
                                                          SampledTrajectory, check_limits,
                                                          load_trajectory)
@@ -33,7 +37,7 @@ def crs():
 def crs_results(crs):
     robot, base = crs
     return {c: ex.optimize_excitation(robot, 5, 10.0, c, base=base, maxiter=20)
-            for c in ex.CRITERIA}
+            for c in CRITERIA}
 
 
 def assert_within_limits(traj, robot, limits):
@@ -67,25 +71,25 @@ def test_criteria_closed_form():
     V = np.linalg.qr(rng.normal(size=(5, 5)))[0]
     s = np.array([9.0, 4.0, 2.0, 1.5, 0.5])
     W = U @ np.diag(s) @ V.T
-    assert ex.condition_number(W) == pytest.approx(18.0)
-    assert ex.d_optimality(W) == pytest.approx(-2 * np.log(s).sum())
+    assert condition_number(W) == pytest.approx(18.0)
+    assert d_optimality(W) == pytest.approx(-2 * np.log(s).sum())
     scaled = W / np.linalg.norm(W, axis=0)
     sv = np.linalg.svd(scaled, compute_uv=False)
-    assert ex.condition_number(W, scaled=True) == pytest.approx(sv[0] / sv[-1])
+    assert condition_number(W, scaled=True) == pytest.approx(sv[0] / sv[-1])
     # noise weights: information sum_j W_j'W_j / sigma_j^2
     Y = rng.normal(size=(30, 2, 4))
     sigma = np.array([0.5, 2.0])
     info = sum(Y[:, j].T @ Y[:, j] / sigma[j] ** 2 for j in range(2))
-    assert ex.d_optimality(Y, sigma) == pytest.approx(-np.linalg.slogdet(info)[1])
-    assert ex.condition_number(np.c_[W, np.zeros(40)]) == math.inf
+    assert d_optimality(Y, sigma) == pytest.approx(-np.linalg.slogdet(info)[1])
+    assert condition_number(np.c_[W, np.zeros(40)]) == math.inf
     with pytest.raises(IdentificationError, match='noise_std'):
-        ex.d_optimality(Y, [1.0, -1.0])
+        d_optimality(Y, [1.0, -1.0])
 
 
-@pytest.mark.parametrize('criterion', ex.CRITERIA)
+@pytest.mark.parametrize('criterion', CRITERIA)
 def test_design_gradients_match_finite_differences(mit, criterion):
     robot, base = mit
-    limits = ex.ExcitationLimits.from_robot(robot)
+    limits = ExcitationLimits.from_robot(robot)
     design = ex._Design(robot, base, limits, 3, 2.0, 40, criterion, [1.0, 2.0, 0.5], 1.0)
     x = ex._to_x(ex.initial_trajectory(robot, None, limits, 3, 2.0, 1))
     grad, J = design.gradient(x)
@@ -103,7 +107,7 @@ def test_design_gradients_match_finite_differences(mit, criterion):
 
 def test_least_squares_guess_solves_the_papers_normal_equations(crs):
     robot, _ = crs
-    limits = ex.ExcitationLimits.from_robot(robot)
+    limits = ExcitationLimits.from_robot(robot)
     guess = ex.least_squares_guess(limits, 5, 10.0, seed=4, num_points=100)
     # regenerate the random targets: A delta - qd is orthogonal to A's columns (eq. 8)
     rng = np.random.default_rng(4)
@@ -121,7 +125,7 @@ def test_least_squares_guess_solves_the_papers_normal_equations(crs):
 
 def test_table1_in_our_joint_zeros(crs):
     robot, base = crs
-    limits = ex.ExcitationLimits.from_robot(robot)
+    limits = ExcitationLimits.from_robot(robot)
     paper = FourierTrajectory.crs_table1()
     ours = ex.table1_trajectory(robot)
     np.testing.assert_allclose(ours.q0 - paper.q0, [0, -np.pi / 2, np.pi / 2, 0, 0, 0])
@@ -130,7 +134,7 @@ def test_table1_in_our_joint_zeros(crs):
     assert raw[1] > 1 and raw[2] > 1  # the paper's zeros leave our joint 2 and 3 ranges
     assert_within_limits(ours, robot, limits)
     # its default accelerations (2 /s x velocity limit) hold Table I's peaks
-    assert ex.limit_ratios(ours, robot, limits)['acceleration'] < 1
+    assert limit_ratios(ours, robot, limits)['acceleration'] < 1
     with pytest.raises(IdentificationError, match='6 joints'):
         ex.table1_trajectory(load_robot('mit_dd_arm'))
 
@@ -140,13 +144,13 @@ def test_limits_file_and_overrides(crs, tmp_path):
     path = tmp_path / 'limits.yaml'
     path.write_text('joint2: {position: [-0.5, 0.8], velocity: 1.5}\n'
                     'joint3: {acceleration: 3.0, effort: .inf}\n')
-    lim = ex.load_limits(path, robot)
+    lim = load_limits(path, robot)
     np.testing.assert_allclose(lim.position_limits[1], [-0.5, 0.8])
     assert lim.velocity_limits[1] == 1.5 and lim.acceleration_limits[2] == 3.0
     assert lim.acceleration_limits[1] == pytest.approx(3.0)  # default: 2 /s x velocity
     assert lim.acceleration_limits[0] == pytest.approx(2 * np.pi)
     assert lim.effort_limits[2] == np.inf and lim.effort_limits[1] == 120.0
-    assert np.all(np.isinf(ex.ExcitationLimits.from_robot(robot, effort=False).effort_limits))
+    assert np.all(np.isinf(ExcitationLimits.from_robot(robot, effort=False).effort_limits))
     for text, match in [('jointX: {velocity: 1}', 'unknown joint'),
                         ('joint1: {speed: 1}', 'unknown keys'),
                         ('joint1: {velocity: -1}', 'finite number > 0'),
@@ -158,15 +162,15 @@ def test_limits_file_and_overrides(crs, tmp_path):
                         ('joint1: {velocity: [1', 'cannot read')]:
         path.write_text(text)
         with pytest.raises(IdentificationError, match=match):
-            ex.load_limits(path, robot)
+            load_limits(path, robot)
 
 
 # -- optimisation --------------------------------------------------------------------------------
 def test_mit_arm_optimisation(mit):
     robot, base = mit
     tight = {'joint1': {'effort': 120.0}, 'joint2': {'position': [-1.0, 1.5]}}
-    limits = ex.ExcitationLimits.from_robot(robot).updated(tight)
-    for criterion in ex.CRITERIA:
+    limits = ExcitationLimits.from_robot(robot).updated(tight)
+    for criterion in CRITERIA:
         res = ex.optimize_excitation(robot, 3, 2.0, criterion, limits, base=base, maxiter=30,
                                      num_samples=60)
         assert res.improved and res.value < res.initial_value
@@ -175,22 +179,22 @@ def test_mit_arm_optimisation(mit):
         assert_within_limits(res.trajectory, robot, limits)
         assert_within_limits(res.initial, robot, limits)
         assert res.value == pytest.approx(
-            ex.criterion_value(robot, res.trajectory, criterion, base, 60))
-        assert max(res.ratios[k] for k in ex.LIMIT_KINDS) <= ex.VERIFY_RATIO
+            criterion_value(robot, res.trajectory, criterion, base, 60))
+        assert max(res.ratios[k] for k in LIMIT_KINDS) <= ex.VERIFY_RATIO
 
 
-@pytest.mark.parametrize('criterion', ex.CRITERIA)
+@pytest.mark.parametrize('criterion', CRITERIA)
 def test_crs_beats_initial_and_table1(crs, crs_results, criterion):
     robot, base = crs
     res = crs_results[criterion]
-    limits = ex.ExcitationLimits.from_robot(robot)
+    limits = ExcitationLimits.from_robot(robot)
     assert_within_limits(res.trajectory, robot, limits)
-    table1 = ex.criterion_value(robot, ex.table1_trajectory(robot), criterion, base)
+    table1 = criterion_value(robot, ex.table1_trajectory(robot), criterion, base)
     assert res.value < res.initial_value
     assert res.value < table1
     # the same with many more samples than the optimiser saw
-    more = ex.criterion_value(robot, res.trajectory, criterion, base, 400)
-    assert more < ex.criterion_value(robot, ex.table1_trajectory(robot), criterion, base, 400)
+    more = criterion_value(robot, res.trajectory, criterion, base, 400)
+    assert more < criterion_value(robot, ex.table1_trajectory(robot), criterion, base, 400)
 
 
 def test_crs_from_table1(crs):
@@ -199,15 +203,15 @@ def test_crs_from_table1(crs):
                                  initial='table1', margin=0.0)  # Table I fits, not with 10 %
     np.testing.assert_allclose(res.initial.a, FourierTrajectory.crs_table1().a)
     assert res.initial_value == pytest.approx(
-        ex.criterion_value(robot, ex.table1_trajectory(robot), 'cond', base))
+        criterion_value(robot, ex.table1_trajectory(robot), 'cond', base))
     assert res.value < res.initial_value
-    assert_within_limits(res.trajectory, robot, ex.ExcitationLimits.from_robot(robot))
+    assert_within_limits(res.trajectory, robot, ExcitationLimits.from_robot(robot))
 
 
 @pytest.mark.slow
 def test_shrink_into_tight_effort_limits(crs):
     robot, _ = crs
-    limits = ex.ExcitationLimits.from_robot(robot).updated({'joint2': {'effort': 25.0}})
+    limits = ExcitationLimits.from_robot(robot).updated({'joint2': {'effort': 25.0}})
     traj, scale, ratios = ex.shrink_into_limits(ex.table1_trajectory(robot), robot, limits)
     assert 0 < scale < 1 and ratios['effort'] <= ex.VERIFY_RATIO
     assert_within_limits(traj, robot, limits)
@@ -216,12 +220,12 @@ def test_shrink_into_tight_effort_limits(crs):
                               limits.updated({'joint2': {'effort': 1e-3}}))
 
 
-@pytest.mark.parametrize('criterion', ex.CRITERIA)
+@pytest.mark.parametrize('criterion', CRITERIA)
 def test_optimised_trajectory_identifies_better_than_random(crs, crs_results, criterion):
     """Simulated identification, same noise and sample count: the optimised excitation gives
     smaller standard deviations than a random Fourier trajectory inside the same limits."""
     robot, base = crs
-    limits = ex.ExcitationLimits.from_robot(robot)
+    limits = ExcitationLimits.from_robot(robot)
     beta = base.to_base(robot.phi_model)
     big = np.abs(beta) > 1e-3 * np.abs(beta).max()
     random = ex.shrink_into_limits(FourierTrajectory.random(limits, 5, 10.0, seed=1), robot,
@@ -246,7 +250,7 @@ def test_optimised_trajectory_identifies_better_than_random(crs, crs_results, cr
 
 def test_joint_trajectory_message(mit):
     robot, _ = mit
-    traj = FourierTrajectory.random(ex.ExcitationLimits.from_robot(robot), 2, 1.0, seed=0)
+    traj = FourierTrajectory.random(ExcitationLimits.from_robot(robot), 2, 1.0, seed=0)
     msg = ex.trajectory_to_joint_trajectory(traj, rate=50.0, periods=2)
     assert list(msg.joint_names) == robot.joint_names and len(msg.points) == 101
     t = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points])
@@ -284,15 +288,15 @@ def test_cli_writes_yaml_csv_and_bag(crs, tmp_path, capsys):
     assert doc['criterion']['value'] < doc['criterion']['initial']
     assert doc['criterion']['value'] < doc['criterion']['table1']
     assert doc['limits']['joint1']['velocity'] == 1.0
-    assert all(doc['limit_ratios'][k]['worst'] <= 1 for k in ex.LIMIT_KINDS)
+    assert all(doc['limit_ratios'][k]['worst'] <= 1 for k in LIMIT_KINDS)
     framed = load_trajectory(str(out), robot)
     assert isinstance(framed, FramedTrajectory) and framed.periods == ex.DEFAULT_PERIODS
     traj = framed.periodic
     assert isinstance(traj, FourierTrajectory) and traj.period == 10.0
-    lim = ex.load_limits(limits, robot)
+    lim = load_limits(limits, robot)
     assert_within_limits(traj, robot, lim)
     assert doc['criterion']['value'] == pytest.approx(
-        ex.criterion_value(robot, traj, 'dopt', base))
+        criterion_value(robot, traj, 'dopt', base))
     assert doc['durations'] == pytest.approx(framed.parts())
     # samples beside the YAML, ramps included (positions read back by SampledTrajectory)
     sampled = SampledTrajectory.from_csv(out.with_suffix('.csv'))
@@ -326,8 +330,8 @@ def test_cli_initial_file_and_table1(tmp_path, capsys):
     doc = yaml.safe_load(second.read_text())
     assert doc['harmonics'] == 5 and doc['period'] == 10.0
     assert doc['criterion']['initial'] == pytest.approx(
-        ex.criterion_value(load_robot('crs_a465'),
-                           load_trajectory(str(first), load_robot('crs_a465')), 'cond'))
+        criterion_value(load_robot('crs_a465'),
+                        load_trajectory(str(first), load_robot('crs_a465')), 'cond'))
 
 
 @pytest.mark.parametrize('extra, match', [

@@ -14,7 +14,10 @@ import yaml
 from identification_node.bags.reader import BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
+from identification_node.excitation.criteria import _base_of, criterion_value
 from identification_node.excitation import design as ex
+from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits,
+                                                   estimate_parameters, limit_ratios)
 from identification_node.excitation.collision import CollisionChecker, has_collision_geometry
 from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
                                                          SampledTrajectory, load_trajectory,
@@ -116,7 +119,7 @@ def test_starts_and_ends_at_rest(designs, name):
 @pytest.mark.parametrize('name', CASES)
 def test_within_limits_with_margin_densely(designs, name):
     robot, res = designs[name]
-    limits = ex.ExcitationLimits.from_robot(robot)
+    limits = ExcitationLimits.from_robot(robot)
     keep = 1.0 - ex.DEFAULT_LIMIT_MARGIN
     f = res.framed
     t = dense_times(f, DENSE)
@@ -130,7 +133,7 @@ def test_within_limits_with_margin_densely(designs, name):
     k = np.searchsorted(t, dense_times(f, DENSE_TORQUE))
     tau = robot.rnea(q[k], qd[k], qdd[k])   # pinocchio's RNEA, not the regressor
     assert np.all(np.abs(tau) <= keep * limits.effort_limits + 1e-9)
-    assert max(res.ratios[k] for k in ex.LIMIT_KINDS) <= keep + 1e-9
+    assert max(res.ratios[k] for k in LIMIT_KINDS) <= keep + 1e-9
     assert res.margin == ex.DEFAULT_LIMIT_MARGIN
 
 
@@ -138,10 +141,10 @@ def test_within_limits_with_margin_densely(designs, name):
 def test_criterion_beats_initial_guess(designs, name):
     robot, res = designs[name]
     assert res.value < res.initial_value
-    assert res.value == pytest.approx(ex.criterion_value(robot, res.trajectory, 'cond',
-                                                         num_samples=60))
-    assert res.value == pytest.approx(ex.criterion_value(robot, res.framed, 'cond',
-                                                         num_samples=60))
+    assert res.value == pytest.approx(criterion_value(robot, res.trajectory, 'cond',
+                                                      num_samples=60))
+    assert res.value == pytest.approx(criterion_value(robot, res.framed, 'cond',
+                                                      num_samples=60))
 
 
 def _independent_geometry():
@@ -241,8 +244,8 @@ def test_collision_checker_pairs_srdf_obstacles_and_gradients():
 
 def test_design_constraint_jacobian_with_torque_models_and_collisions():
     robot = load_robot(PANDA)
-    limits = ex.ExcitationLimits.from_robot(robot).with_margin(0.1)
-    base = ex._base_of(robot, None)
+    limits = ExcitationLimits.from_robot(robot).with_margin(0.1)
+    base = _base_of(robot, None)
     checker = CollisionChecker(robot, floor=0.0)
     design = ex._Design(robot, base, limits, 2, 4.0, 40, 'cond', None, 1.0,
                         [robot.phi_model, 1.5 * robot.phi_model], checker)
@@ -279,7 +282,7 @@ def test_package_dir_resolves_meshes(tmp_path):
 # -- limits ----------------------------------------------------------------------------------
 def test_assumed_limits_listed_and_overridden(tmp_path):
     robot = load_robot(PANDA)
-    lim = ex.ExcitationLimits.from_robot(robot)
+    lim = ExcitationLimits.from_robot(robot)
     assert set(lim.assumed) == set(robot.joint_names)
     assert all(set(v) == {'acceleration'} for v in lim.assumed.values())   # URDF has none
     assert lim.assumed['joint1']['acceleration'] == pytest.approx(2 * 2.175)
@@ -287,7 +290,7 @@ def test_assumed_limits_listed_and_overridden(tmp_path):
     assert 'joint1' not in over.assumed
     assert over.assumed['joint2'] == {'acceleration': pytest.approx(2.0)}   # follows velocity
     assert any(line.startswith('joint3.acceleration: 4.35') for line in over.assumed_list())
-    crs = ex.ExcitationLimits.from_robot(load_robot('mit_dd_arm'))
+    crs = ExcitationLimits.from_robot(load_robot('mit_dd_arm'))
     assert crs.assumed['joint1']['position'] is None   # continuous joints
     # margins: ranges about their centres, the rest scaled
     m = lim.with_margin(0.2)
@@ -303,13 +306,13 @@ def test_torque_limits_hold_under_an_estimate(tmp_path):
     robot = load_robot('mit_dd_arm')
     heavy = 1.6 * robot.phi_model    # torques exactly 1.6 times the model's
     traj = FourierTrajectory.random(robot, 3, 2.0, seed=2)
-    base_ratio = ex.limit_ratios(traj, robot)['effort']
-    both = ex.limit_ratios(traj, robot, phis=[robot.phi_model, heavy])['effort']
+    base_ratio = limit_ratios(traj, robot)['effort']
+    both = limit_ratios(traj, robot, phis=[robot.phi_model, heavy])['effort']
     assert both == pytest.approx(1.6 * base_ratio, rel=1e-9)
     # effort limits 1.2 times the model's peak torques: the estimate's need more
-    unit = ex.ExcitationLimits.from_robot(robot).updated(
+    unit = ExcitationLimits.from_robot(robot).updated(
         {j: {'effort': 1.0} for j in robot.joint_names})
-    peak = ex.limit_ratios(traj, robot, unit)['per_joint']['effort']     # N m
+    peak = limit_ratios(traj, robot, unit)['per_joint']['effort']     # N m
     limits = unit.updated({j: {'effort': 1.2 * p} for j, p in zip(robot.joint_names, peak)})
     res = ex.optimize_excitation(robot, 3, 2.0, limits=limits, maxiter=10, num_samples=60,
                                  periods=2, phis=[robot.phi_model, heavy])
@@ -321,10 +324,10 @@ def test_torque_limits_hold_under_an_estimate(tmp_path):
     path = tmp_path / 'estimate.yaml'
     path.write_text(yaml.safe_dump({'standard_parameters': dict(zip(
         robot.param_names, map(float, heavy)))}))
-    np.testing.assert_allclose(ex.estimate_parameters(path, robot), heavy)
+    np.testing.assert_allclose(estimate_parameters(path, robot), heavy)
     path.write_text(yaml.safe_dump({'standard_parameters': {'link1.m': 1.0}}))
     with pytest.raises(IdentificationError, match='does not match'):
-        ex.estimate_parameters(path, robot)
+        estimate_parameters(path, robot)
 
 
 # -- outcome ---------------------------------------------------------------------------------
@@ -334,7 +337,7 @@ def test_iteration_limit_is_a_warning_with_the_best_feasible_point():
     assert not res.success and res.status == 9
     assert any('iteration' in w.lower() and 'best feasible' in w for w in res.warnings)
     assert res.value <= res.initial_value
-    assert max(res.ratios[k] for k in ex.LIMIT_KINDS) <= 0.9 + 1e-9
+    assert max(res.ratios[k] for k in LIMIT_KINDS) <= 0.9 + 1e-9
 
 
 def test_start_configuration(designs):
@@ -401,7 +404,7 @@ def test_cli_outputs_a_robot_can_execute(tmp_path, capsys):
     assert 'joint1' not in doc['assumed_limits']
     assert doc['assumed_limits']['joint7'] == {'acceleration': pytest.approx(4.0)}
     assert doc['warnings'] and doc['criterion']['value'] < doc['criterion']['initial']
-    assert all(doc['limit_ratios'][k]['worst'] <= 0.85 + 1e-9 for k in ex.LIMIT_KINDS)
+    assert all(doc['limit_ratios'][k]['worst'] <= 0.85 + 1e-9 for k in LIMIT_KINDS)
     framed = load_trajectory(str(out), robot)
     assert isinstance(framed, FramedTrajectory) and framed.periods == 2
     assert doc['durations'] == pytest.approx(framed.parts())

@@ -170,7 +170,7 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path, Path | None]:
 
 
 def _limits(args: argparse.Namespace, conf: dict, robot):
-    from identification_node.excitation.design import ExcitationLimits, load_limits
+    from identification_node.excitation.limits import ExcitationLimits, load_limits
     limits = (load_limits(args.limits, robot, effort=not args.no_effort) if args.limits
               else ExcitationLimits.from_robot(robot, effort=not args.no_effort))
     if 'limits' in conf:
@@ -206,13 +206,13 @@ def _ratio_line(result) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from identification_node.bags.writer import BagWriter
+    from identification_node.excitation.criteria import DEFAULT_SAMPLES, criterion_value
     from identification_node.excitation.design import (DEFAULT_LIMIT_MARGIN, DEFAULT_MAXITER,
-                                                       DEFAULT_PERIODS, DEFAULT_SAMPLES,
-                                                       TABLE1_PERIOD, criterion_value,
-                                                       estimate_parameters, optimize_excitation,
-                                                       plot_excitation, sample_times,
-                                                       table1_trajectory,
+                                                       DEFAULT_PERIODS, TABLE1_PERIOD,
+                                                       optimize_excitation, plot_excitation,
+                                                       sample_times, table1_trajectory,
                                                        trajectory_to_joint_trajectory)
+    from identification_node.excitation.limits import estimate_parameters
     from identification_node.fileio import atomic_write_yaml
     from identification_node.model.identifiability import BaseParameters
     from identification_node.excitation.trajectories import write_motion_csv

@@ -6,33 +6,10 @@ amplitudes a, b in rad/s, offset q0 in rad, common period); the design picks the
 coefficients per joint that minimise a criterion of the base regressor stacked over N samples of
 one period, subject to the joint limits.
 
-Criteria (smaller is better), on the stacked base regressor W (N n rows, b columns):
-
-- ``cond``: the condition number s_max / s_min of W itself, the paper's cond(phi_tot) (II.D,
-  and what its experiments used), with the base parameters in SI units (kg, kg m, kg m^2). Not
-  the column-scaled number: scaling every column to unit norm makes it blind to how strongly
-  each base parameter is excited, so minimising it balances the directions of the columns
-  while letting weak ones shrink. On the CRS A465 (5 harmonics, 10 s) minimising the
-  column-scaled number took it from 12 to 2.5 but made the largest parameter standard
-  deviation 12 times worse than the starting trajectory's; minimising the plain one (29 -> 7)
-  lowered every summary of the standard deviations (geometric mean 1.5x, largest 2.6x). The
-  plain number depends on the parameters' units, which the package fixes (SI).
-  ``condition_number(W, scaled=True)`` gives the column-scaled number for comparison.
-- ``dopt``: d-optimality, -log det(W'W), W'W the information matrix (II.D). With per-joint
-  torque noise standard deviations the rows of joint j are divided by sigma_j first, so W'W is
-  the Fisher information (phi_tot' Sigma^-1 phi_tot, eq. 5) and the criterion is the log volume
-  of the covariance ellipsoid of the estimates.
-
-Limits (:class:`ExcitationLimits`), each with a margin kept free (default
-DEFAULT_LIMIT_MARGIN, 10 %; ExcitationLimits.with_margin): joint positions (with the offset
-q0), velocities and accelerations on a grid of one period, and joint torques (inverse dynamics
-under the robot's own parameters and, when given, an estimate's) at the criterion samples.
-Each (joint, kind) is one smooth constraint on the Kreisselmeier-Steinhauser maximum of its
-ratios to the limit (see _Design); with a collision.CollisionChecker, one more per checked
-geometry pair on its distances. URDFs carry no acceleration limits: the default is
-``DEFAULT_ACCELERATION_RATE`` (2 /s) times the velocity limit, i.e. full speed reached in 0.5 s
-(6.3 rad/s^2 on the CRS A465's first three joints; Table I's trajectory peaks at 6.1 rad/s^2);
-every limit the description lacks is recorded in ``ExcitationLimits.assumed``. Every result is
+The criteria (``cond``, ``dopt``) are in ``excitation.criteria``, the limits and the limit
+ratios in ``excitation.limits``. Each (joint, kind) of limit is one smooth constraint on the
+Kreisselmeier-Steinhauser maximum of its ratios to the limit (see _Design); with a
+collision.CollisionChecker, one more per checked geometry pair on its distances. Every result is
 verified on a fine grid after the optimisation (torques on EFFORT_POINTS samples) and, where
 needed, its motion is scaled down towards the centre of the position ranges until every ratio
 is below VERIFY_RATIO; then framed by ramps from and back to rest (frame_excitation,
@@ -51,25 +28,24 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import yaml
 
 from identification_node.errors import IdentificationError
-from identification_node.excitation.trajectories import (DEFAULT_VELOCITY, TABLE1_PERIOD,
-                                                         FourierTrajectory, FramedTrajectory,
-                                                         Trajectory, check_limits)
+from identification_node.excitation.criteria import (DEFAULT_SAMPLES, _base_of, _check_criterion,
+                                                     _noise_weights, _objective, _report_value)
+from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, VERIFY_RATE,
+                                                   ExcitationLimits, _as_limits, _numbers,
+                                                   _ranges, _torque_models, _worst,
+                                                   limit_ratios)
+from identification_node.excitation.trajectories import (TABLE1_PERIOD, FourierTrajectory,
+                                                         FramedTrajectory, Trajectory)
 
-CRITERIA = ('cond', 'dopt')
 DEFAULT_HARMONICS = 5
 DEFAULT_PERIOD = 10.0
-DEFAULT_SAMPLES = 100       # criterion samples over one period
 DEFAULT_MAXITER = 200       # SLSQP iterations
-DEFAULT_ACCELERATION_RATE = 2.0  # 1/s: default acceleration limit = rate * velocity limit
-PRISMATIC_VELOCITY = 0.5    # m/s, prismatic joints without a velocity limit
 LSQ_POINTS = 100            # random target velocities of the initial guess (paper: 100)
 MARGIN = 1.0                # the optimiser's constraints: smooth max of the ratios <= MARGIN
 DEFAULT_LIMIT_MARGIN = 0.1  # fraction of every limit kept free (position: of the half range)
 DEFAULT_PERIODS = 5         # periods of the periodic part between the ramps
-VERIFY_RATE = 400.0         # Hz: kinematic check of a framed trajectory (torques at half)
 COLLISION_RATE = 100.0      # Hz: collision check of the final trajectory (and 10 ms at most)
 COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's constraints
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
@@ -85,10 +61,7 @@ BLENDS = (0.9, 0.75, 0.5, 0.3, 0.15)  # fractions of the way from the initial gu
 GRID_PER_HARMONIC = 40      # constraint grid points per period and harmonic
 KS_RHO = 200.0              # sharpness of the smooth maximum of the limit ratios
 INITIAL_MARGIN = 0.95        # the initial guess reaches this fraction of its tightest limit
-VERIFY_POINTS = 4001        # kinematic check of the result over one period
-EFFORT_POINTS = 2001        # torque check of the result over one period
 VERIFY_RATIO = 0.999        # a verified result stays below this fraction of every limit
-LIMIT_KINDS = ('position', 'velocity', 'acceleration', 'effort')
 # Table I's joint zeros -> ours (crs_a465.urdf: arm straight up at zero), q_ours = q_paper +
 # offset. Table I moves joint 2 over [36, 148] deg and joint 3 over [-163, -10] deg: centred on
 # +90 and -90 deg, where our symmetric +-90 / +-110 deg ranges are centred on 0. With the
@@ -97,370 +70,6 @@ LIMIT_KINDS = ('position', 'velocity', 'acceleration', 'effort')
 TABLE1_OFFSET = (0.0, -math.pi / 2, math.pi / 2, 0.0, 0.0, 0.0)
 _STEP_Q = 1e-6   # rad, finite-difference step of the regressor in q
 _STEP_QD = 1e-6  # rad/s, in qd (qdd enters linearly: exact with step 1)
-_RANK_TOL = 1e-12  # singular value (or diagonal of R) ratio below which W is rank deficient
-
-
-# ---------------------------------------------------------------------------------------------
-# Limits
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class ExcitationLimits:
-    """Joint limits for excitation design, in the robot's joint order (SI units).
-
-    position_limits (n, 2) [lo, hi] (+-inf: none), velocity_limits (n,), acceleration_limits
-    (n,) (finite, > 0), effort_limits (n,) (inf: no torque limit). ``assumed``: the limits the
-    robot description did not give, {joint: {kind: value assumed (None: no limit)}}. Works with
-    :func:`~identification_node.excitation.trajectories.check_limits`.
-    """
-
-    joint_names: list[str]
-    position_limits: np.ndarray
-    velocity_limits: np.ndarray
-    acceleration_limits: np.ndarray
-    effort_limits: np.ndarray
-    assumed: dict = field(default_factory=dict)
-
-    @property
-    def dof(self) -> int:
-        return len(self.joint_names)
-
-    @classmethod
-    def from_robot(cls, robot, effort: bool = True) -> ExcitationLimits:
-        """The robot's limits; joints without a velocity limit get DEFAULT_VELOCITY (rad/s) or
-        PRISMATIC_VELOCITY (m/s), accelerations DEFAULT_ACCELERATION_RATE times the velocity
-        limit; ``effort=False`` (or no effort limit in the description) drops the torque
-        limit. What the description lacks is recorded in ``assumed``."""
-        prismatic = np.asarray(robot.prismatic, dtype=bool)
-        given_vel = np.asarray(robot.velocity_limits, dtype=float)
-        has_vel = np.isfinite(given_vel) & (given_vel > 0)
-        vel = np.where(has_vel, given_vel,
-                       np.where(prismatic, PRISMATIC_VELOCITY, DEFAULT_VELOCITY))
-        given_eff = np.asarray(robot.effort_limits, dtype=float)
-        has_eff = np.isfinite(given_eff) & (given_eff > 0)
-        eff = np.where(has_eff & bool(effort), given_eff, np.inf)
-        pos = np.array(robot.position_limits, dtype=float)
-        # pinocchio fills a URDF joint without <limit> with +-max float: no limit either
-        has_pos = np.isfinite(pos).all(axis=1) & (np.abs(pos) < 1e30).all(axis=1)
-        pos[~has_pos] = [-np.inf, np.inf]
-        acc = DEFAULT_ACCELERATION_RATE * vel
-        assumed: dict = {}
-        for i, j in enumerate(robot.joint_names):
-            entry = {}
-            if not has_pos[i]:
-                entry['position'] = None
-            if not has_vel[i]:
-                entry['velocity'] = float(vel[i])
-            entry['acceleration'] = float(acc[i])   # URDF has no acceleration limits
-            if effort and not has_eff[i]:
-                entry['effort'] = None
-            assumed[j] = entry
-        return cls(list(robot.joint_names), pos, vel, acc, eff, assumed)
-
-    def updated(self, overrides: Mapping[str, Any], source: str = 'limits') -> ExcitationLimits:
-        """A copy with per-joint overrides ``{joint: {position: [lo, hi], velocity: v,
-        acceleration: a, effort: e}}``. Each key is optional; position [-.inf, .inf] and effort
-        .inf remove the limit; a default acceleration limit follows a new velocity limit."""
-        if not isinstance(overrides, Mapping):
-            raise IdentificationError(f'{source}: expected a mapping of joint names to limits, '
-                                      f'got {type(overrides).__name__}')
-        out = ExcitationLimits(list(self.joint_names), self.position_limits.copy(),
-                               self.velocity_limits.copy(), self.acceleration_limits.copy(),
-                               self.effort_limits.copy(),
-                               {j: dict(v) for j, v in self.assumed.items()})
-        for joint, spec in overrides.items():
-            if joint not in self.joint_names:
-                raise IdentificationError(f'{source}: unknown joint {joint!r} (joints: '
-                                          f'{", ".join(self.joint_names)})')
-            if not isinstance(spec, Mapping):
-                raise IdentificationError(f'{source}: limits of {joint} must be a mapping with '
-                                          f'keys {", ".join(LIMIT_KINDS)}')
-            unknown = set(spec) - set(LIMIT_KINDS)
-            if unknown:
-                raise IdentificationError(f'{source}: unknown keys {sorted(map(str, unknown))} '
-                                          f'for {joint}; use {", ".join(LIMIT_KINDS)}')
-            i = self.joint_names.index(joint)
-            for kind, value in spec.items():
-                where = f'{source}: {joint}.{kind}'
-                if kind == 'position':
-                    pos = _numbers(where, value)
-                    if pos.shape != (2,) or np.isnan(pos).any() or not pos[0] < pos[1] \
-                            or np.isfinite(pos).sum() == 1:
-                        raise IdentificationError(f'{where} must be [lo, hi] with lo < hi, both '
-                                                  f'finite or both infinite, got {value!r}')
-                    out.position_limits[i] = pos
-                    continue
-                v = _numbers(where, value)
-                finite_needed = kind != 'effort'
-                if v.shape != () or np.isnan(v) or v <= 0 or \
-                        (finite_needed and not np.isfinite(v)):
-                    need = 'a finite number > 0' if finite_needed else 'a number > 0 (.inf: none)'
-                    raise IdentificationError(f'{where} must be {need}, got {value!r}')
-                if kind == 'velocity' and 'acceleration' not in spec and np.isclose(
-                        out.acceleration_limits[i],
-                        DEFAULT_ACCELERATION_RATE * out.velocity_limits[i]):
-                    out.acceleration_limits[i] = DEFAULT_ACCELERATION_RATE * float(v)
-                    if 'acceleration' in out.assumed.get(joint, {}):
-                        out.assumed[joint]['acceleration'] = float(out.acceleration_limits[i])
-                getattr(out, f'{kind}_limits')[i] = float(v)
-            for kind in spec:
-                out.assumed.get(joint, {}).pop(kind, None)
-            if joint in out.assumed and not out.assumed[joint]:
-                del out.assumed[joint]
-        return out
-
-    def with_margin(self, margin: float) -> ExcitationLimits:
-        """The limits with ``margin`` (0 <= margin < 1) of each kept free: position ranges
-        shrunk about their centres to (1 - margin) of their half widths, velocity,
-        acceleration and effort limits times (1 - margin)."""
-        if isinstance(margin, bool) or not isinstance(margin, (int, float, np.floating)) \
-                or not 0 <= margin < 1:
-            raise IdentificationError(f'limit margin must lie in [0, 1), got {margin!r}')
-        keep = 1.0 - float(margin)
-        limited, centre, half = _ranges(self)
-        pos = self.position_limits.copy()
-        pos[limited] = np.stack([centre - keep * half, centre + keep * half], axis=1)[limited]
-        return ExcitationLimits(list(self.joint_names), pos, keep * self.velocity_limits,
-                                keep * self.acceleration_limits, keep * self.effort_limits,
-                                {j: dict(v) for j, v in self.assumed.items()})
-
-    def assumed_list(self) -> list[str]:
-        """One line per assumed limit, e.g. 'joint1.acceleration: 4.35 rad/s^2'."""
-        units = {'position': '', 'velocity': ' rad/s', 'acceleration': ' rad/s^2',
-                 'effort': ' N m'}
-        return [f'{j}.{k}: ' + ('none' if v is None else f'{v:.4g}{units[k]}')
-                for j, kinds in self.assumed.items() for k, v in kinds.items()]
-
-    def to_dict(self) -> dict:
-        """Plain data for YAML, per joint (None for a missing limit)."""
-        def num(x: float) -> float | None:
-            return float(x) if np.isfinite(x) else None
-        return {j: {'position': [num(self.position_limits[i, 0]),
-                                 num(self.position_limits[i, 1])],
-                    'velocity': num(self.velocity_limits[i]),
-                    'acceleration': num(self.acceleration_limits[i]),
-                    'effort': num(self.effort_limits[i])}
-                for i, j in enumerate(self.joint_names)}
-
-
-def _numbers(where: str, value: Any) -> np.ndarray:
-    if isinstance(value, bool):
-        raise IdentificationError(f'{where} must be numeric, got {value!r}')
-    try:
-        return np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise IdentificationError(f'{where} must be numeric, got {value!r}') from None
-
-
-def load_limits(path: str | os.PathLike, robot, effort: bool = True) -> ExcitationLimits:
-    """The robot's limits (:meth:`ExcitationLimits.from_robot`) overridden by a YAML file of
-    per-joint limits: ``joint: {position: [lo, hi], velocity, acceleration, effort}``."""
-    base = ExcitationLimits.from_robot(robot, effort)
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read limits file {path}: {exc}') from None
-    if data is None:
-        return base
-    return base.updated(data, f'limits file {path}')
-
-
-def _as_limits(robot, limits) -> ExcitationLimits:
-    if limits is None:
-        return ExcitationLimits.from_robot(robot)
-    if isinstance(limits, ExcitationLimits):
-        if limits.joint_names != list(robot.joint_names):
-            raise IdentificationError(f'limits are for joints {limits.joint_names}, the robot '
-                                      f'identifies {robot.joint_names}')
-        return limits
-    if isinstance(limits, (str, os.PathLike)):
-        return load_limits(limits, robot)
-    return ExcitationLimits.from_robot(robot).updated(limits)
-
-
-def limit_ratios(traj: Trajectory, robot, limits: ExcitationLimits | None = None,
-                 num_points: int = VERIFY_POINTS, effort_points: int = EFFORT_POINTS,
-                 phis: Sequence[np.ndarray] | None = None,
-                 window: tuple[float, float] | None = None) -> dict:
-    """Worst limit ratios of ``traj`` over one pass, or over ``window`` (t0, t1) s (1 = at a
-    limit): check_limits' position, velocity and acceleration on ``num_points`` times (at
-    least VERIFY_RATE per second), plus 'effort', |tau| / limit on ``effort_points`` times (at
-    least half that rate), tau the inverse dynamics under each parameter vector of ``phis``
-    (default: the robot's own). Same layout as check_limits: kind -> float, 'worst_joint',
-    'per_joint'."""
-    limits = _as_limits(robot, limits)
-    t0, t1 = (0.0, traj.horizon()) if window is None else window
-    span = t1 - t0
-    num_points = max(num_points, int(math.ceil(span * VERIFY_RATE)) + 1)
-    effort_points = max(effort_points, int(math.ceil(span * VERIFY_RATE / 2)) + 1)
-    out = check_limits(traj, limits, np.linspace(t0, t1, num_points))
-    per = out['per_joint']
-    eff = limits.effort_limits
-    if np.isfinite(eff).any():
-        q, qd, qdd = traj.sample(np.linspace(t0, t1, effort_points))
-        tau = _peak_torques(robot, q, qd, qdd, phis)
-        per['effort'] = np.where(np.isfinite(eff), tau / eff, 0.0)
-    else:
-        per['effort'] = np.zeros(traj.dof)
-    out['effort'] = float(per['effort'].max())
-    out['worst_joint']['effort'] = int(np.argmax(per['effort']))
-    return out
-
-
-def _peak_torques(robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-                  phis: Sequence[np.ndarray] | None) -> np.ndarray:
-    """Largest |tau| per joint (n,) over the samples and the parameter vectors ``phis``."""
-    Y = np.concatenate([robot.regressor(q[k:k + 4096], qd[k:k + 4096], qdd[k:k + 4096])
-                        for k in range(0, len(q), 4096)])
-    P = np.column_stack(_torque_models(robot, phis))
-    return np.abs(Y @ P).max(axis=(0, 2))
-
-
-def _torque_models(robot, phis: Sequence[np.ndarray] | None) -> list[np.ndarray]:
-    if phis is None or len(phis) == 0:
-        return [robot.phi_model]
-    return [robot._check_phi(p) for p in phis]
-
-
-def estimate_parameters(path: str | os.PathLike, robot) -> np.ndarray:
-    """The standard parameters (robot.param_names order) of an estimate file (estimate.yaml
-    of the node or ``identify``: its 'standard_parameters' mapping)."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read estimate {path}: {exc}') from None
-    given = doc.get('standard_parameters') if isinstance(doc, Mapping) else None
-    if not isinstance(given, Mapping):
-        raise IdentificationError(f'estimate {path} has no standard_parameters mapping')
-    missing = [n for n in robot.param_names if n not in given]
-    extra = [n for n in given if n not in robot.param_names]
-    if missing or extra:
-        raise IdentificationError(
-            f'estimate {path} does not match the robot\'s parameters (missing '
-            f'{missing[:4]}, unknown {extra[:4]}): give the same robot, joints and --extras')
-    phi = np.array([_numbers(f'estimate {path}: {n}', given[n]) for n in robot.param_names],
-                   dtype=float)
-    if not np.all(np.isfinite(phi)):
-        raise IdentificationError(f'estimate {path} holds non-finite parameters')
-    return phi
-
-
-def _worst(ratios: dict) -> float:
-    return max(ratios[k] for k in LIMIT_KINDS)
-
-
-def _ranges(limits: ExcitationLimits, default: np.ndarray | float = 0.0
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(limited (n,) bool, centre (n,), half width (n,)) of the position ranges; joints
-    without position limits get centre ``default`` and half width inf."""
-    pos = limits.position_limits
-    limited = np.isfinite(pos).all(axis=1)
-    p = np.where(limited[:, None], pos, 0.0)
-    return (limited, np.where(limited, 0.5 * (p[:, 0] + p[:, 1]), default),
-            np.where(limited, 0.5 * (p[:, 1] - p[:, 0]), np.inf))
-
-
-# ---------------------------------------------------------------------------------------------
-# Criteria
-# ---------------------------------------------------------------------------------------------
-def condition_number(W: np.ndarray, scaled: bool = False) -> float:
-    """Condition number s_max / s_min of a stacked regressor W (rows, b) or (N, n, b): of W
-    itself (default, the paper's cond(phi_tot)) or of W with its columns scaled to unit norm;
-    inf when rank deficient."""
-    W = _rows(W)
-    if scaled:
-        norms = np.linalg.norm(W, axis=0)
-        if not (norms > 0).all():
-            return math.inf
-        W = W / norms
-    s = np.linalg.svd(W, compute_uv=False)
-    return float(s[0] / s[-1]) if s[-1] > 0 else math.inf
-
-
-def d_optimality(W: np.ndarray, noise_std: Sequence[float] | None = None) -> float:
-    """-log det(W'W) of a stacked regressor W (N, n, b) (or (rows, b) without noise weights);
-    with ``noise_std`` (n,), joint j's rows are divided by sigma_j (Fisher information)."""
-    W = np.asarray(W, dtype=float)
-    if noise_std is not None:
-        if W.ndim != 3:
-            raise IdentificationError('noise weights need the regressor as (N, n, b)')
-        W = W * _noise_weights(noise_std, W.shape[1])[None, :, None]
-    s = np.linalg.svd(_rows(W), compute_uv=False)
-    return float(-2.0 * np.log(s).sum()) if s[-1] > 0 else math.inf
-
-
-def _rows(W: np.ndarray) -> np.ndarray:
-    W = np.asarray(W, dtype=float)
-    return W.reshape(-1, W.shape[-1])
-
-
-def _noise_weights(noise_std: Sequence[float] | None, n: int) -> np.ndarray:
-    if noise_std is None:
-        return np.ones(n)
-    std = _numbers('noise_std', noise_std).reshape(-1)
-    if std.shape != (n,) or not (np.isfinite(std) & (std > 0)).all():
-        raise IdentificationError(f'noise_std needs {n} finite values > 0 (one per joint), got '
-                                  f'{np.asarray(noise_std).tolist()}')
-    return 1.0 / std
-
-
-def _objective(W: np.ndarray, criterion: str, grad: bool
-               ) -> tuple[float, np.ndarray | None]:
-    """The optimised function of W (rows, b): log cond(W) or -log det(W'W), and its gradient
-    with respect to W (for simple extreme singular values). Both work on the b x b triangular
-    factor R of W = Q R; the singular vectors of W are u_k = W v_k / s_k."""
-    if criterion == 'cond':
-        _, s, Vt = np.linalg.svd(np.linalg.qr(W, mode='r'))
-        if not s[-1] > _RANK_TOL * s[0]:
-            return math.inf, None
-        f = float(np.log(s[0] / s[-1]))
-        if not grad:
-            return f, None
-        return f, (np.outer(W @ Vt[0], Vt[0]) / s[0] ** 2
-                   - np.outer(W @ Vt[-1], Vt[-1]) / s[-1] ** 2)
-    R = np.linalg.qr(W, mode='r')
-    d = np.abs(np.diag(R))
-    if not d.min() > _RANK_TOL * d.max():
-        return math.inf, None
-    f = float(-2.0 * np.log(d).sum())  # det(W'W) = det(R)^2
-    if not grad:
-        return f, None
-    Rinv = np.linalg.inv(R)
-    return f, -2.0 * (W @ Rinv) @ Rinv.T  # -2 W (W'W)^-1
-
-
-def _report_value(f: float, criterion: str) -> float:
-    """The reported criterion value from the optimised function value."""
-    return float(np.exp(f)) if criterion == 'cond' and np.isfinite(f) else float(f)
-
-
-def criterion_value(robot, traj: Trajectory, criterion: str = 'cond', base=None,
-                    num_samples: int = DEFAULT_SAMPLES,
-                    noise_std: Sequence[float] | None = None) -> float:
-    """``cond`` (condition number) or ``dopt`` (-log det W'W, noise-weighted) of the base
-    regressor stacked over ``num_samples`` equally spaced samples of one pass of ``traj`` (of
-    one period of the periodic part of a FramedTrajectory)."""
-    _check_criterion(criterion)
-    if isinstance(traj, FramedTrajectory):
-        traj = traj.periodic
-    base = _base_of(robot, base)
-    t = np.arange(int(num_samples)) * (traj.horizon() / int(num_samples))
-    q, qd, qdd = traj.sample(t)
-    Yb = base.base_regressor(robot.regressor(q, qd, qdd))
-    W = (Yb * _noise_weights(noise_std, robot.dof)[None, :, None]).reshape(-1, base.num_base)
-    return _report_value(_objective(W, criterion, False)[0], criterion)
-
-
-def _check_criterion(criterion: str) -> None:
-    if criterion not in CRITERIA:
-        raise IdentificationError(f'unknown criterion {criterion!r}; use one of '
-                                  f'{", ".join(CRITERIA)}')
-
-
-def _base_of(robot, base):
-    if base is None:
-        from identification_node.model.identifiability import BaseParameters
-        return BaseParameters.from_robot(robot)
-    return base
 
 
 # ---------------------------------------------------------------------------------------------
