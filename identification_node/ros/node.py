@@ -129,10 +129,14 @@ def warn_unknown_parameters(node: Node) -> list[str]:
     """Log a warning naming the parameters given to ``node`` (command line, parameter files)
     that it never declared, typically misspelt ones, which rclpy otherwise drops silently;
     returns their names. Call once every parameter is declared."""
-    # Trade-off: rclpy has no public accessor for the overrides a node was given (the public
-    # alternative, automatically_declare_parameters_from_overrides, declares them all untyped
-    # and clashes with the QoS override parameters rclpy declares itself). So the attribute is
-    # read, never written; without it (another rclpy) there is no warning, nothing else.
+    # Trade-off: rclpy (Jazzy) has no public accessor for the overrides a node was given.
+    # The public alternative, automatically_declare_parameters_from_overrides, declares every
+    # override before the node's own typed declarations (each would have to be undeclared and
+    # declared again) and declares the QoS override parameters writable instead of read-only;
+    # a misspelt one (qos_overrides./typo...) is then declared like the used ones, so it cannot
+    # be named, and rclpy's own parameters (use_sim_time, start_type_description_service) would
+    # need a hard-coded list. So the attribute is read, never written; without it (another
+    # rclpy) there is no warning, nothing else.
     given = getattr(node, '_parameter_overrides', {})
     unknown = sorted(name for name in given if not node.has_parameter(name))
     if unknown:
