@@ -1,1 +1,2 @@
-"""rosbag2 reading and writing (mcap, sqlite3)."""
+"""rosbag2 bags (mcap, sqlite3): reading (``reader``), writing (``writer``), mcap chunk
+checksums (``mcap_check``)."""

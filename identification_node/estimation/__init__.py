@@ -1,2 +1,3 @@
-"""Estimators on the information form: least squares, recursive least squares, residual statistics,
-robust gating, the physically consistent solve."""
+"""Estimators on the information form: batch least squares (``batch``), recursive least
+squares (``rls``), residual statistics (``residuals``), their shared helpers (``lsq``), robust
+gating, the physically consistent solve."""

@@ -1,1 +1,2 @@
-"""Excitation trajectories: Fourier design, framing, limits and collisions."""
+"""Excitation trajectories: Fourier design (``design``), its criteria and limits, framing and
+collisions."""

@@ -1,1 +1,2 @@
-"""The input record, as copied from the wire (sensor_msgs/JointState)."""
+"""The wire: sensor_msgs/JointState CDR decoded and encoded (``cdr``) and the record it is
+decoded into (``records``)."""
