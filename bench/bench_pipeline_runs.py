@@ -11,10 +11,17 @@ itself are measured the same two ways, so the machine's own wake-up penalty show
 pipeline's. Kinds alternate.
 
     .venv/bin/python bench/bench_pipeline_runs.py [--runs 4000] [--period 0.0025] [--repeat 3]
+        [--profile 30]
+
+``--profile N`` then runs the pipeline's paced runs once more under cProfile and prints the N
+functions with the most time of their own (cProfile's overhead inflates Python-level calls;
+the figures above are the unprofiled ones).
 """
 from __future__ import annotations
 
 import argparse
+import cProfile
+import pstats
 import sys
 import time
 from pathlib import Path
@@ -53,6 +60,8 @@ def main() -> None:
     parser.add_argument('--runs', type=int, default=4000)
     parser.add_argument('--period', type=float, default=0.01, help='s between paced runs')
     parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--profile', type=int, default=0, metavar='N',
+                        help='then profile the paced pipeline runs, print the top N functions')
     args = parser.parse_args()
 
     from identification_node.excitation.trajectories import FourierTrajectory
@@ -106,6 +115,17 @@ def main() -> None:
         hot, paced = np.median(np.array(runs), axis=0)
         ratio = f'{paced / hot:4.1f}x' if hot else '     '
         print(f'{kind:19s}: back to back {hot:6.1f} us, paced {paced:6.1f} us  {ratio}')
+    if args.profile:
+        work = pipeline_work()
+        per_run(work, warm, 0.0)
+        profile = cProfile.Profile()
+
+        def profiled(k: int) -> None:   # the runs only, not the sleeps between them
+            profile.enable()
+            work(k + warm)
+            profile.disable()
+        per_run(profiled, args.runs, args.period)
+        pstats.Stats(profile).sort_stats('tottime').print_stats(args.profile)
 
 
 if __name__ == '__main__':
