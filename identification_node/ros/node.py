@@ -423,11 +423,12 @@ class IdentificationNode(Node):
         msg.layout.dim = [MultiArrayDimension(label='value_stddev_unconstrained', size=3,
                                               stride=3 * b),
                           MultiArrayDimension(label='base_parameter', size=b, stride=b)]
-        msg.data = np.concatenate([values, est.stddev, est.values]).tolist()
+        stddev = np.where(np.isfinite(est.stddev), est.stddev, -1.0)   # -1: not determined yet
+        msg.data = np.concatenate([values, stddev, est.values]).tolist()
         params = [Parameter(ESTIMATE_PREFIX + n, value=float(v))
                   for n, v in zip(est.names, values)]
-        params += [Parameter(STDDEV_PREFIX + n, value=float(s) if np.isfinite(s) else -1.0)
-                   for n, s in zip(est.names, est.stddev)]
+        params += [Parameter(STDDEV_PREFIX + n, value=float(s))
+                   for n, s in zip(est.names, stddev)]
         params += [Parameter(UNCONSTRAINED_PREFIX + n, value=float(v))
                    for n, v in zip(est.names, est.values)]
         with self._publish_lock:
