@@ -309,36 +309,35 @@ def test_validation_error_is_close_to_training_and_grows_with_wrong_parameters(
     train = validation_bags['train']
     ident = (offline_identify(train, mit_settings, mit) if method == 'batch'
              else offline.replay_identify(train, mit_settings, mit))
-    trained = ident.relative_error()
+    trained = validate(ident, train, mit_settings, training=True).relative_error
     same = validate(ident, validation_bags['test'], mit_settings)
     wrong = validate(ident, validation_bags['wrong'], mit_settings)
-    if method == 'batch':   # trimmed 3 / cutoff s at both ends, decimated to 40 Hz
-        assert (same.num_samples, same.rows) == (4000, len(np.arange(150, 3850, 25)))
-    else:                   # the smoother's first and last half windows give no output
-        assert same.num_samples == same.rows == 4000 - 2 * 10
+    # every sample but the smoother's first and last half windows, whatever the method
+    half = mit_settings.build(mit).row_builder.half_window
+    assert same.num_samples == 4000 - 2 * half
     # Another motion has other torques: the relative errors are alike, not equal ...
     assert np.all((same.relative_error > 0.4 * trained) & (same.relative_error < 2.5 * trained))
     # ... and as small as the truth's (the model's own parameters simulated the test bag).
-    np.testing.assert_allclose(same.relative_error, same.model_relative_error, rtol=0.2)
-    assert np.all(wrong.relative_error > 5 * same.relative_error), \
+    np.testing.assert_allclose(same.relative_error, same.errors['model'].per_joint, rtol=0.2)
+    assert np.all(wrong.relative_error > 2 * same.relative_error), \
         (wrong.relative_error, same.relative_error)
 
 
-def test_validate_cli_reports_the_held_out_error(validation_bags, capsys):
+def test_validate_cli_reports_the_held_out_error(validation_bags, mit, mit_settings, capsys):
     train, test = (str(validation_bags[k]) for k in ('train', 'test'))
     assert main(['identify', train, '--robot', 'mit_dd_arm', '--method', 'batch',
                  '--validate', test, '--json']) == 0
     doc = json.loads(capsys.readouterr().out)
-    v = doc['validation']
-    assert v['bag'] == test and v['num_samples'] == 4000
-    assert set(v['relative_error']) == {'joint1', 'joint2', 'joint3'}
-    assert all(0 < e < 10 for e in v['relative_error'].values())
+    (v,) = doc['validation']
+    half = mit_settings.build(mit).row_builder.half_window       # the smoother's edges
+    assert v['bag'] == test and v['num_samples'] == 4000 - 2 * half
+    assert set(v['estimate']['per_joint']) == {'joint1', 'joint2', 'joint3'}
+    assert all(0 < e < 10 for e in v['estimate']['per_joint'].values())
     # Validating on the training bag itself gives the training error exactly.
     assert main(['identify', train, '--robot', 'mit_dd_arm', '--method', 'batch',
                  '--validate', train, '--json']) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc['validation']['relative_error'] == pytest.approx(doc['relative_error'],
-                                                                rel=1e-9)
+    assert doc['validation'][0]['estimate'] == doc['training_error']['estimate']
 
 
 def test_validation_bag_of_another_robot_is_refused(validation_bags, tmp_path, mit, capsys):

@@ -48,7 +48,7 @@ def crs_bag_arrays(crs_settings):
 def crs_batch(crs_settings):
     robot = crs_settings.load_robot()
     ident = offline_identify(CRS, crs_settings, robot)
-    return ident, validate(ident, CRS, crs_settings, BatchOptions())
+    return ident, validate(ident, CRS, crs_settings)
 
 
 def assert_png(path):
@@ -57,20 +57,42 @@ def assert_png(path):
 
 
 @pytest.mark.slow
-def test_report_files_and_tables(crs_batch, tmp_path):
+def test_report_files_and_tables(crs_batch, crs_settings, crs_bag_arrays, tmp_path):
     ident, validation = crs_batch
-    report = write_report(tmp_path / 'rep', ident, validation)
-    assert set(report.files) == {'report', 'torque', 'convergence', 'validation'}
-    for name in ('torque', 'convergence', 'validation'):
+    training = validate(ident, CRS, crs_settings, training=True)
+    report = write_report(tmp_path / 'rep', ident, [validation], training)
+    figures = ('torque', 'convergence', 'estimates', 'validation')
+    assert set(report.files) == {'report', *figures}
+    for name in figures:
         assert_png(report.files[name])
         assert report.files[name].parent == tmp_path / 'rep'
     assert sorted(p.name for p in (tmp_path / 'rep').iterdir()) == [
-        'convergence.png', 'report.md', 'torque.png', 'validation.png']   # no temporaries
+        'convergence.png', 'estimates.png', 'report.md', 'torque.png',
+        'validation.png']   # no temporaries
+    # the torque figure: the raw measured effort of the bag at its samples, the residual
+    stamps, _, _, effort = crs_bag_arrays
+    data = report.data['torque']
+    idx = np.searchsorted(stamps, data['stamps_ns'])
+    np.testing.assert_array_equal(stamps[idx], data['stamps_ns'])
+    np.testing.assert_array_equal(data['measured'], effort[idx])
+    np.testing.assert_allclose(data['residual'], data['measured'] - data['predicted'])
+    # the estimates chart: the estimate and its stddev over one scale per parameter
+    est = report.data['estimates']
+    np.testing.assert_array_equal(est['estimate'], ident.estimate)
+    np.testing.assert_array_equal(est['stddev'], ident.stddev)
+    assert np.all(np.abs(est['estimate']) <= est['scale'])
     md = report.files['report'].read_text()
     for name in ident.base.names:
         assert f'`{name}`' in md
-    for figure in ('torque.png', 'convergence.png', 'validation.png'):
+    for figure in ('torque.png', 'convergence.png', 'estimates.png', 'validation.png'):
         assert f']({figure})' in md
+    # the same errors as the JSON's, stacked and per joint, raw and smoothed torque
+    for what, e in (('training', training), ('validation', validation)):
+        row = (f'| {what} | identified | {e.errors["estimate"].stacked:.4g} | '
+               + ' | '.join(f'{v:.4g}' for v in e.errors['estimate'].per_joint) + ' |')
+        assert row in md
+        assert f'| {what} | identified, smoothed torque | {e.smoothed["estimate"].stacked:.4g}' \
+            in md
     # Table 2 style: every standard parameter name of every link is a row or column.
     for heading in ('| parameter | link1 |', '| joint | fv | fc |', '## Identifiable combinations',
                     '## Validation on a held-out bag', 'excitation condition number'):
@@ -96,9 +118,11 @@ def test_mit_report_has_the_papers_table3_and_the_validation(tmp_path, capsys):
     rows = [line for line in section.splitlines() if line.startswith('| link')]
     assert len(rows) == 6 and '| link3.Ixx - link3.Iyy |' in section
     assert '-1.0589' in section and '-3.0814' in section       # the paper's columns
-    for joint, err in doc['validation']['relative_error'].items():
-        assert f'| {joint} |' in md.split('## Validation')[1]
-        assert 0 < err < 5
+    (v,) = doc['validation']
+    for joint, err in v['estimate']['per_joint'].items():
+        assert f'| {joint} (%) |' in md.split('## Measured')[1]
+        assert 0 < err < 10
+    assert f"| validation | identified | {v['estimate']['stacked']:.4g} |" in md
     for name in ('torque.png', 'convergence.png', 'validation.png'):
         assert_png(out / name)
 
@@ -161,6 +185,13 @@ def test_convergence_figure_data(crs_batch):
     np.testing.assert_allclose(data['rel_stddev'][k], 100 * c.stddev / np.abs(ident.theta))
     # Early estimates are worse than late ones, in final standard deviations.
     assert np.median(np.abs(data['normalised'][1])) > np.median(np.abs(data['normalised'][-2]))
+    # the percentiles over the parameters, and the ten furthest over the second half
+    dev = np.abs((np.array([c.values for c in ident.history]) - ident.theta) / ident.stddev)
+    for p in (50, 90, 100):
+        np.testing.assert_allclose(data['percentiles'][p], np.percentile(dev, p, axis=1))
+    late = dev[len(dev) // 2:].max(axis=0)
+    assert len(data['worst']) == 10
+    assert set(data['worst']) == set(np.argsort(-late)[:10])
 
 
 def test_periodic_report_shows_the_averaged_period(tmp_path):

@@ -56,9 +56,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help='zero-phase low-pass cutoff (default 20 Hz)')
     batch.add_argument('--decimate', type=int, metavar='K',
                        help='keep every K-th filtered sample (default: rate / (2 cutoff))')
-    parser.add_argument('--validate', metavar='TEST_BAG',
-                        help='a held-out bag of the same robot: relative torque error of the '
-                        'estimate on it')
+    parser.add_argument('--validate', metavar='BAG', nargs='+',
+                        help='held-out bags of the same robot: relative torque error of the '
+                        'estimate on each, against the raw torque')
+    parser.add_argument('--start', type=float, metavar='S',
+                        help='use the messages recorded from S seconds after the first of '
+                        'each bag (training and validation)')
+    parser.add_argument('--end', type=float, metavar='S',
+                        help='use the messages recorded up to S seconds after the first of '
+                        'each bag (training and validation)')
+    parser.add_argument('--predictions', metavar='OUT',
+                        help='write measured and predicted torque per sample of every bag: '
+                        'OUT an mcap bag (topics /training/measured_effort, '
+                        '/training/predicted_effort, /validation1/...) and OUT.csv; OUT ending '
+                        'in .csv: the CSV alone')
     payload = parser.add_argument_group('payload')
     payload.add_argument('--payload', action='store_true',
                          help='identify the payload and detect its changes: payload_changes')
@@ -78,9 +89,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'physical_consistency: false)')
 
 
-def result_document(result, validation=None) -> dict:
+def result_document(result, validations=(), training=None) -> dict:
     """The ``--json`` object of an identification (offline.Identification, or the
-    replay.ReplayResult of the streaming pipeline), with the validation when given."""
+    replay.ReplayResult of the streaming pipeline), with the torque errors on the training
+    bag and on the validation bags (validation.BagError) when given."""
     from identification_node.offline.identification import Identification, from_replay
     from identification_node.offline.results import parameters_document, plain
     from identification_node.model.urdf_export import consistency_problems
@@ -133,15 +145,10 @@ def result_document(result, validation=None) -> dict:
         'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
                          'stddev': np.asarray(c.stddev).tolist()} for c in ident.history],
     }
-    if validation is not None:
-        doc['validation'] = {
-            'bag': validation.bag, 'num_samples': validation.num_samples,
-            'rows': validation.rows,
-            'relative_error': dict(zip(robot.joint_names, validation.relative_error.tolist())),
-            'unconstrained_relative_error': dict(zip(
-                robot.joint_names, validation.unconstrained_relative_error.tolist())),
-            'model_relative_error': dict(zip(robot.joint_names,
-                                             validation.model_relative_error.tolist()))}
+    if training is not None:
+        doc['training_error'] = training.document()
+    if validations:
+        doc['validation'] = [v.document() for v in validations]
     return plain(doc)
 
 
@@ -179,7 +186,13 @@ def format_report(doc: dict) -> str:
         + ('' if solver['status'] in ('optimal', 'disabled') else
            ': the unconstrained estimate is given'))
     lines += [f'  note: {n}' for n in solver['notes']]
-    lines += ['', 'relative torque error, percent: ' + _per_joint(doc['relative_error']),
+    lines += ['']
+    for what, e in ([('training bag', doc['training_error'])] if 'training_error' in doc
+                    else []) + [(f"validation bag {v['bag']}", v)
+                                for v in doc.get('validation', [])]:
+        lines += _torque_errors(what, e)
+    lines += [f"on the {doc['processing'].get('processing', '')} rows fitted, percent: "
+              + _per_joint(doc['relative_error']),
               'with the model\'s own parameters: ' + _per_joint(doc['model_relative_error']),
               'excitation condition number: ' + _number(doc['condition_number'])
               + f"   converged: {'yes' if doc['converged'] else 'no'}"]
@@ -194,11 +207,6 @@ def format_report(doc: dict) -> str:
         if doc['model_consistency_problems']:
             lines.append('(the model\'s own parameters, which it stays closest to, are not '
                          'either: ' + '; '.join(doc['model_consistency_problems']) + ')')
-    if 'validation' in doc:
-        v = doc['validation']
-        lines += ['', f"validation on {v['bag']} ({v['num_samples']} samples), relative torque "
-                  'error, percent: ' + _per_joint(v['relative_error']),
-                  'with the model\'s own parameters: ' + _per_joint(v['model_relative_error'])]
     lines += ['', 'convergence (estimate change to final, in final standard deviations):']
     final = np.array([np.nan if b['estimate'] is None else b['estimate']
                       for b in doc['base_parameters']])
@@ -214,9 +222,26 @@ def format_report(doc: dict) -> str:
     return '\n'.join(lines)
 
 
-def _number(value: float | None) -> str:
+def _torque_errors(what: str, e: dict) -> list[str]:
+    """The lines of one bag's torque errors (validation.BagError.document)."""
+    window = e['window_s']
+    span = '' if window is None else ' from {} to {}'.format(
+        f"{window['start'] or 0:g} s", 'the end' if window['end'] is None
+        else f"{window['end']:g} s")
+    lines = [f"relative torque error on the {what}{span} ({e['num_samples']} samples, raw "
+             'torque), percent:']
+    for key, label in (('estimate', 'identified'), ('model', 'model')):
+        lines.append(f"  {label}: stacked {_number(e[key]['stacked'], '.3f')}; "
+                     + _per_joint(e[key]['per_joint']))
+    s = e['smoothed_torque']['estimate']
+    lines.append(f"  identified, against the smoothed torque: stacked "
+                 f"{_number(s['stacked'], '.3f')}; " + _per_joint(s['per_joint']))
+    return lines
+
+
+def _number(value: float | None, spec: str = '.4g') -> str:
     """A JSON number of the document (None: inf or NaN)."""
-    return 'inf' if value is None else f'{value:.4g}'
+    return 'inf' if value is None else format(value, spec)
 
 
 def format_payload_changes(changes: list) -> str:
@@ -240,7 +265,7 @@ def format_payload_changes(changes: list) -> str:
 
 
 def _per_joint(errors: dict) -> str:
-    return ', '.join(f'{j} {e:.2f}' for j, e in errors.items())
+    return ', '.join(f'{j} {_number(e, ".2f")}' for j, e in errors.items())
 
 
 def paper_table3(fit) -> str:
@@ -334,24 +359,47 @@ def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
     return monitor_from_settings(Settings(values, settings.given), robot)
 
 
+def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
+    """The torque errors on the training bag and on each --validate bag (validation.py),
+    with --predictions written as they are computed."""
+    import contextlib
+
+    from identification_node.offline.identification import validate
+    from identification_node.offline.predictions import PredictionsWriter
+
+    with (PredictionsWriter(args.predictions, ident.robot.joint_names) if args.predictions
+          else contextlib.nullcontext()) as writer:
+        training = validate(ident, args.bag, settings, window, *topics, predictions=writer,
+                            label='training', training=True)
+        validations = [validate(ident, bag, settings, window, *topics, predictions=writer,
+                                label=f'validation{k}')
+                       for k, bag in enumerate(args.validate or [], 1)]
+    return training, validations
+
+
 def run(args: argparse.Namespace) -> int:
     from identification_node.offline.identification import (make_consistent, offline_identify,
-                                                            replay_identify, validate)
+                                                            replay_identify)
     from identification_node.offline.replay import bag_robot
+    from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
+    window = TimeWindow(args.start, args.end).validate()
     consistency = None if args.no_physical_consistency else settings.consistency_options()
     method = _method(args)
     if args.report:
         from identification_node.offline.report import check_writable
         check_writable(args.report)
+    if args.predictions:
+        from identification_node.offline.predictions import check_predictions
+        check_predictions(args.predictions)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
     from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:
         print(f'warning: {note}', file=sys.stderr)
-    for bag in [args.bag] + ([args.validate] if args.validate else []):
+    for bag in [args.bag] + (args.validate or []):
         with open_bag(bag) as reader:   # its chunk CRCs verified
             if reader.unverified_chunks:
                 print(f'warning: bag {bag}: {reader.unverified_chunks} mcap chunk(s) carry no '
@@ -362,14 +410,13 @@ def run(args: argparse.Namespace) -> int:
     if method == 'rls':
         ident = replay_identify(args.bag, settings, robot, *topics, on_output=None if (
             monitor is None) else lambda out: monitor.add(
-                out.stamps_ns, out.q, out.qd, out.qdd, out.measured))
+                out.stamps_ns, out.q, out.qd, out.qdd, out.measured), window=window)
     else:
         options = batch_options(args, robot)
-        ident = offline_identify(args.bag, settings, robot, options, *topics)
+        ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
     make_consistent(ident, consistency)
-    validation = (validate(ident, args.validate, settings, options, *topics)
-                  if args.validate else None)
-    doc = result_document(ident, validation)
+    training, validations = evaluate_bags(ident, args, settings, window, topics)
+    doc = result_document(ident, validations, training)
     if monitor is not None:
         from identification_node.payload.monitor import segments_document
         from identification_node.offline.results import plain
@@ -379,7 +426,7 @@ def run(args: argparse.Namespace) -> int:
         doc['saved'] = [str(p) for p in write_results(args.save, saved_document(ident), robot)]
     if args.report:
         from identification_node.offline.report import write_report
-        report = write_report(args.report, ident, validation)
+        report = write_report(args.report, ident, validations, training)
         doc['report'] = {k: str(p) for k, p in report.files.items()}
     if args.json:
         print(json.dumps(doc, indent=2))

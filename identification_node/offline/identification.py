@@ -37,7 +37,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from identification_node.bags.reader import iter_joint_states, open_bag, read_string_topic
+from identification_node.bags.reader import open_bag, read_string_topic
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentEstimate,
                                                         ConsistentSolver, pipeline_equations)
@@ -51,7 +51,9 @@ from identification_node.model.robot import RobotModel, load_robot
 from identification_node.model.urdf_export import consistency_problems
 from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION,
                                                 Checkpoint, ReplayResult, check_usable,
-                                                identify_bag)
+                                                feed_records, identify_bag)
+from identification_node.offline.validation import BagError, evaluate
+from identification_node.offline.windows import TimeWindow
 from identification_node.pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput,
                                           TorqueSamples, converged)
 from identification_node.pipeline.signals import (central_derivatives, period_average,
@@ -104,9 +106,11 @@ class BagSamples:
 
 def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
-                 base: BaseParameters | None = None, batch: int = 1000) -> BagSamples:
+                 base: BaseParameters | None = None, batch: int = 1000,
+                 window: TimeWindow | None = None) -> BagSamples:
     """The bag's joint states (and motor currents when the torque sources need them) validated,
-    ordered, aligned and converted to joint torque exactly as the pipeline does."""
+    ordered, aligned and converted to joint torque exactly as the pipeline does; those
+    recorded in ``window`` only (windows.py)."""
     config = settings.build(robot).config if base is None else \
         settings.pipeline_config(robot.joint_names)
     stages = TorqueSamples(robot, config)
@@ -114,7 +118,6 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     topics = [joint_states]
     if stages.converter.needs_currents:
         topics.append(motor_currents)
-    add = {joint_states: stages.add_joint_state, motor_currents: stages.add_currents}
     parts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def collect(flush: bool = False) -> None:
@@ -125,9 +128,9 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     messages = 0
     with open_bag(bag) as reader:
         counts = reader.topic_counts
-        for topic, _, record in iter_joint_states(reader, topics):
-            add[topic](record)
-            messages += 1
+        for add, count in feed_records(reader, stages, topics, batch, window):
+            add()
+            messages += count
             if messages % batch == 0:
                 collect()
     collect(flush=True)
@@ -597,13 +600,16 @@ def batch_rows(samples: BagSamples, settings: Settings, robot: RobotModel,
 def offline_identify(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                      options: BatchOptions | None = None, joint_states: str = JOINT_STATES,
                      motor_currents: str = MOTOR_CURRENTS, checkpoints: int = 50,
-                     series_points: int = SERIES_POINTS) -> Identification:
-    """Batch identification of ``robot`` from a bag: periodic averaging when
-    ``options.period`` is set, else the zero-phase filtered path (see the module doc)."""
+                     series_points: int = SERIES_POINTS,
+                     window: TimeWindow | None = None) -> Identification:
+    """Batch identification of ``robot`` from a bag (its messages in ``window`` only):
+    periodic averaging when ``options.period`` is set, else the zero-phase filtered path
+    (see the module doc)."""
     options = options or BatchOptions()
     options.validate()
     base = settings.build(robot).base
-    samples = read_samples(bag, settings, robot, joint_states, motor_currents, base)
+    samples = read_samples(bag, settings, robot, joint_states, motor_currents, base,
+                           window=window)
     return identify_samples(samples, settings, robot, base, options, checkpoints,
                             series_points)
 
@@ -700,10 +706,10 @@ def _periodic_history(stream: Stream, robot: RobotModel, base: BaseParameters,
 def replay_identify(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                     joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                     series_points: int = SERIES_POINTS,
-                    on_output: Callable[[PipelineOutput], None] | None = None
-                    ) -> Identification:
-    """identify_bag (the node's pipeline, streaming) with a bounded torque series kept;
-    ``on_output`` sees every batch too."""
+                    on_output: Callable[[PipelineOutput], None] | None = None,
+                    window: TimeWindow | None = None) -> Identification:
+    """identify_bag (the node's pipeline, streaming; the bag's messages in ``window`` only)
+    with a bounded torque series kept; ``on_output`` sees every batch too."""
     sampler = SeriesSampler(series_points)
     sample = _sampling(sampler)
 
@@ -712,7 +718,7 @@ def replay_identify(bag: str | os.PathLike, settings: Settings, robot: RobotMode
         if on_output is not None:
             on_output(out)
     result = identify_bag(bag, settings, robot, joint_states, motor_currents,
-                          on_output=outputs)
+                          on_output=outputs, window=window)
     return from_replay(result, _series(sampler, result.pipeline))
 
 
@@ -758,21 +764,6 @@ def make_consistent(ident: Identification, options: ConsistencyOptions | None
 
 
 # -- validation on a held-out bag ---------------------------------------------------------------
-@dataclass
-class Validation:
-    """The fitted estimate on a held-out bag, processed as the training bag: samples used,
-    rows (after filtering or averaging), per-joint relative torque error (percent) of the
-    estimate (the consistent one when solved), of the model's own parameters and of the
-    unconstrained estimate, and a torque series for plots."""
-    bag: str
-    num_samples: int
-    rows: int
-    relative_error: np.ndarray
-    model_relative_error: np.ndarray
-    series: TorqueSeries | None = None
-    unconstrained_relative_error: np.ndarray | None = None
-
-
 def check_same_robot(bag: str | os.PathLike, robot: RobotModel) -> None:
     """IdentificationError when the bag's /robot_description is not ``robot`` (its identified
     joints missing, or other kinematics: the regressor differs at random motions)."""
@@ -794,34 +785,28 @@ def check_same_robot(bag: str | os.PathLike, robot: RobotModel) -> None:
             f'other dynamics than {robot.name} for the joints {robot.joint_names}')
 
 
+def parameter_sets(ident: Identification) -> dict[str, np.ndarray]:
+    """The base parameter vectors whose torque errors are reported: the estimate (the
+    consistent one when solved), the unconstrained one and the model's own."""
+    return {'estimate': ident.estimate, 'unconstrained': ident.theta,
+            'model': ident.theta_model}
+
+
 def validate(ident: Identification, bag: str | os.PathLike, settings: Settings,
-             options: BatchOptions | None = None, joint_states: str = JOINT_STATES,
-             motor_currents: str = MOTOR_CURRENTS,
-             series_points: int = SERIES_POINTS) -> Validation:
-    """Relative torque errors of ``ident``'s estimate on another bag of the same robot,
-    processed the same way (its samples are not used for fitting)."""
-    robot, base = ident.robot, ident.base
-    check_same_robot(bag, robot)
+             window: TimeWindow | None = None, joint_states: str = JOINT_STATES,
+             motor_currents: str = MOTOR_CURRENTS, predictions=None,
+             label: str = 'validation', series_points: int = SERIES_POINTS,
+             training: bool = False) -> BagError:
+    """Torque errors of ``ident``'s parameter sets on ``bag`` (validation.evaluate: raw
+    torque, every sample with valid motion), its messages in ``window`` only; ``training``:
+    the bag the estimate was fitted to (its robot not checked again)."""
+    if window is not None and not isinstance(window, TimeWindow):
+        raise TypeError(f'window must be a TimeWindow, not {type(window).__name__}')
+    if not training:
+        check_same_robot(bag, ident.robot)
     try:
-        if ident.method == 'rls':
-            sampler = SeriesSampler(series_points)
-            p = identify_bag(bag, settings, robot, joint_states, motor_currents,
-                             on_output=_sampling(sampler)).pipeline
-            stats, series, used = p.residuals, _series(sampler, p), p.used
-        else:
-            samples = read_samples(bag, settings, robot, joint_states, motor_currents, base)
-            _, rows_iter = batch_rows(samples, settings, robot, base, options or BatchOptions())
-            acc = _Accumulator(base.num_base, robot.dof)
-            sampler = SeriesSampler(series_points)
-            for rows in rows_iter:
-                acc.add(rows)
-                sampler.add(stamps_ns=rows.stamps_ns, measured=rows.tau,
-                            regressor=rows.regressor)
-            stats, kept, used = acc.plain, sampler.arrays(), samples.num_samples
-            series = TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
-                                  samples.first_ns)
+        return evaluate(bag, settings, ident.robot, ident.base, parameter_sets(ident), window,
+                        joint_states, motor_currents, predictions, label, series_points)
     except IdentificationError as exc:
-        raise IdentificationError(f'validation bag: {exc}') from None
-    return Validation(str(bag), int(used), int(stats.count), stats.relative_error(ident.estimate),
-                      stats.relative_error(ident.theta_model), series,
-                      stats.relative_error(ident.theta))
+        raise IdentificationError(f'{"training" if training else "validation"} bag: {exc}'
+                                  ) from None

@@ -17,6 +17,7 @@ from identification_node.bags.reader import (iter_joint_state_blocks, iter_joint
                                              read_string_topic)
 from identification_node.errors import IdentificationError
 from identification_node.model.robot import RobotModel, load_robot
+from identification_node.offline.windows import TimeWindow, empty_window_error, in_window
 from identification_node.pipeline import IdentificationPipeline, PipelineOutput
 from identification_node.settings import Settings
 from identification_node.wire.records import JointStateRecord
@@ -59,10 +60,12 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                  batch: int = 1000, checkpoints: int = 50,
                  on_output: Callable[[PipelineOutput], None] | None = None,
-                 pipeline: IdentificationPipeline | None = None) -> ReplayResult:
+                 pipeline: IdentificationPipeline | None = None,
+                 window: TimeWindow | None = None) -> ReplayResult:
     """Identify ``robot`` from the bag's joint states (and motor currents when the settings'
     torque sources need them). ``on_output`` sees every batch the pipeline outputs;
-    ``pipeline``: the one to feed (default: the settings' own, new)."""
+    ``pipeline``: the one to feed (default: the settings' own, new); ``window``: only the
+    messages recorded in it (windows.py)."""
     pipeline = pipeline or settings.build(robot)
     topics = [joint_states]
     if pipeline.converter.needs_currents:
@@ -72,7 +75,7 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         every = max(batch, counts.get(joint_states, 0) // max(checkpoints, 1))
         result = ReplayResult(str(bag), pipeline, 0)
         next_checkpoint = every
-        for add, count in _records(reader, pipeline, topics, batch):
+        for add, count in feed_records(reader, pipeline, topics, batch, window):
             add()
             result.messages += count
             if result.messages % batch == 0:
@@ -102,19 +105,41 @@ def check_usable(used: int, rejected: dict[str, int], bag, topics: list[str],
             'the joint names and the torque sources (--config)')
 
 
-def _records(reader, pipeline: IdentificationPipeline, topics: list[str], batch: int
+def feed_records(reader, pipeline, topics: list[str], batch: int,
+                 window: TimeWindow | None = None
+                 ) -> Iterator[tuple[Callable[[], None], int]]:
+    """(add, number of messages): what feeds ``pipeline`` (an IdentificationPipeline or its
+    input stages, TorqueSamples) the bag's messages in log-time order, those of ``window``
+    only. Joint states alone are read in blocks (iter_joint_state_blocks), cut where a batch
+    of ``batch`` messages ends: the pipeline sees the same batches as message by message.
+    IdentificationError when the window keeps no message."""
+    bounds = None if window is None or window.whole else window.bounds_ns(
+        str(reader.path), reader.start_ns, reader.end_ns)
+    kept = 0
+    for item in _records(reader, pipeline, topics, batch, bounds):
+        kept += item[1]
+        yield item
+    if bounds is not None and kept == 0:
+        raise empty_window_error(str(reader.path), window)
+
+
+def _records(reader, pipeline, topics: list[str], batch: int, bounds: tuple[int, int] | None
              ) -> Iterator[tuple[Callable[[], None], int]]:
-    """(add, number of messages): what feeds the pipeline the bag's messages in log-time
-    order. Joint states alone are read in blocks (iter_joint_state_blocks), cut where a
-    batch of ``batch`` messages ends: the pipeline sees the same batches as message by
-    message."""
     if len(topics) > 1:
         add = {topics[0]: pipeline.add_joint_state, topics[1]: pipeline.add_currents}
-        for topic, _, record in iter_joint_states(reader, topics):
-            yield functools.partial(add[topic], record), 1
+        for topic, t_ns, record in iter_joint_states(reader, topics):
+            if bounds is None or bounds[0] <= t_ns < bounds[1]:
+                yield functools.partial(add[topic], record), 1
         return
     done = 0
-    for _, block in iter_joint_state_blocks(reader, topics[0]):
+    for log_ns, block in iter_joint_state_blocks(reader, topics[0]):
+        if bounds is not None:
+            keep = in_window(log_ns, bounds)
+            if not keep.any():
+                continue
+            if np.ndim(block.stamp_ns) and not keep.all():
+                block = JointStateRecord(block.stamp_ns[keep], block.names,
+                                         *(a[keep] for a in block[2:]))
         if not np.ndim(block.stamp_ns):
             done += 1
             yield functools.partial(pipeline.add_joint_state, block), 1

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,13 +27,17 @@ from identification_node.fileio import atomic_file, atomic_write_text
 from identification_node.model.identifiability import BaseParameters, format_expression
 from identification_node.model.papers import MIT_TABLE1, MIT_TABLE3
 from identification_node.model.robot import LINK_PARAMS, RobotModel
-from identification_node.offline.identification import Identification, TorqueSeries, Validation
+from identification_node.offline.identification import Identification, TorqueSeries
 from identification_node.offline.replay import Checkpoint
+from identification_node.offline.validation import BagError
 
 REPORT_FILE = 'report.md'
 TORQUE_FIGURE = 'torque.png'
 CONVERGENCE_FIGURE = 'convergence.png'
-VALIDATION_FIGURE = 'validation.png'
+VALIDATION_FIGURE = 'validation.png'      # the first validation bag; validation_2.png, ...
+ESTIMATES_FIGURE = 'estimates.png'
+PERCENTILES = (50, 90, 100)               # of |estimate - final| / stddev in the convergence
+WORST = 10                                # parameters drawn by name in the convergence
 
 
 @dataclass
@@ -67,9 +72,11 @@ def torque_figure_data(series: TorqueSeries, theta: np.ndarray, theta_model: np.
     stamps = np.asarray(series.stamps_ns, dtype=np.int64)
     origin = series.origin_ns if series.origin_ns is not None else (
         int(stamps[0]) if len(stamps) else 0)
+    measured = np.asarray(series.measured, dtype=float)
+    predicted = series.predicted(theta)
     return {'joints': list(joints), 'stamps_ns': stamps, 't': (stamps - origin) * 1e-9,
-            'measured': np.asarray(series.measured, dtype=float),
-            'predicted': series.predicted(theta), 'model': series.predicted(theta_model)}
+            'measured': measured, 'predicted': predicted, 'model': series.predicted(theta_model),
+            'residual': measured - predicted}
 
 
 def convergence_figure_data(history: list[Checkpoint], theta: np.ndarray, stddev: np.ndarray,
@@ -83,8 +90,28 @@ def convergence_figure_data(history: list[Checkpoint], theta: np.ndarray, stddev
     with np.errstate(divide='ignore', invalid='ignore'):
         normalised = np.where(stddev > 0, (values - theta) / stddev, np.nan)
         rel = np.where(theta != 0, 100.0 * sds / np.abs(theta), np.nan)
+    dev = np.abs(normalised)
+    finite = np.isfinite(dev).any(axis=0)
+    with np.errstate(invalid='ignore'):
+        percentiles = {p: (np.nanpercentile(dev[:, finite], p, axis=1) if finite.any()
+                           else np.full(len(history), np.nan)) for p in PERCENTILES}
+    # the parameters furthest from their final value over the second half of the checkpoints
+    late = dev[len(history) // 2:]
+    score = np.where(finite, np.nanmax(np.where(np.isfinite(late), late, -1.0), axis=0)
+                     if len(late) else 0.0, -np.inf)
+    worst = [int(k) for k in np.argsort(-score, kind='stable')[:WORST] if finite[k]]
     return {'names': list(names), 'num_samples': samples, 'normalised': normalised,
-            'rel_stddev': rel}
+            'rel_stddev': rel, 'percentiles': percentiles, 'worst': worst}
+
+
+def estimates_figure_data(ident: Identification) -> dict:
+    """The base estimate, its standard deviation and the model's values, each divided by
+    the parameter's scale max(|estimate|, |model|, stddev) so that all share one axis."""
+    estimate, stddev, model = ident.estimate, ident.stddev, ident.theta_model
+    scale = np.maximum.reduce([np.abs(estimate), np.abs(model), stddev])
+    scale = np.where(scale > 0, scale, 1.0)
+    return {'names': list(ident.base.names), 'estimate': estimate, 'stddev': stddev,
+            'model': model, 'scale': scale}
 
 
 # -- figures --------------------------------------------------------------------------------------
@@ -98,22 +125,29 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def plot_torque(data: dict, path: str | os.PathLike, title: str, xlabel: str = 'time (s)'
-                ) -> Path:
-    """One panel per joint: measured, identified and model torque against time."""
+def plot_torque(data: dict, path: str | os.PathLike, title: str, xlabel: str = 'time (s)',
+                measured: str = 'measured (raw)') -> Path:
+    """Per joint: measured, identified and model torque against time, and below it the
+    residual measured - identified."""
     from matplotlib.figure import Figure
 
     n = len(data['joints'])
-    fig = Figure(figsize=(10, 1.0 + 2.2 * n))
-    axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
-    for j, ax in enumerate(axes):
-        ax.plot(data['t'], data['measured'][:, j], color='0.2', lw=0.8, label='measured')
+    fig = Figure(figsize=(10, 1.0 + 3.0 * n))
+    axes = fig.subplots(2 * n, 1, sharex=True, squeeze=False,
+                        gridspec_kw={'height_ratios': [3, 1] * n})[:, 0]
+    for j in range(n):
+        ax, res = axes[2 * j], axes[2 * j + 1]
+        ax.plot(data['t'], data['measured'][:, j], color='0.2', lw=0.8, label=measured)
         ax.plot(data['t'], data['predicted'][:, j], color='tab:blue', lw=1.0,
                 label='identified')
         ax.plot(data['t'], data['model'][:, j], color='tab:red', lw=1.0, ls='--',
                 label='model (URDF/CAD)')
         ax.set_ylabel(f"{data['joints'][j]} (N m)")
-        ax.grid(alpha=0.3)
+        res.plot(data['t'], data['residual'][:, j], color='tab:purple', lw=0.6)
+        res.axhline(0.0, color='0.5', lw=0.5)
+        res.set_ylabel('residual (N m)', fontsize='small')
+        for a in (ax, res):
+            a.grid(alpha=0.3)
     axes[0].legend(loc='upper right', fontsize='small', ncol=3)
     axes[0].set_title(title)
     axes[-1].set_xlabel(xlabel)
@@ -122,27 +156,61 @@ def plot_torque(data: dict, path: str | os.PathLike, title: str, xlabel: str = '
 
 
 def plot_convergence(data: dict, path: str | os.PathLike) -> Path:
-    """Top: estimate minus final estimate, in final standard deviations; bottom: relative
-    standard deviations; both against the samples used."""
+    """Top: percentiles over the parameters of |estimate - final| in final standard
+    deviations; middle: the same for the parameters that stay furthest, by name; bottom:
+    median and largest relative standard deviation; all against the samples used."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(10, 7))
-    top, bottom = fig.subplots(2, 1, sharex=True)
+    fig = Figure(figsize=(10, 9))
+    top, middle, bottom = fig.subplots(3, 1, sharex=True)
     x = data['num_samples']
-    for k, name in enumerate(data['names']):
-        top.plot(x, data['normalised'][:, k], lw=0.8, marker='.', ms=3, label=name)
-        bottom.plot(x, data['rel_stddev'][:, k], lw=0.8, marker='.', ms=3)
-    top.set_yscale('symlog', linthresh=1.0)
-    top.axhspan(-1, 1, color='0.9')
-    top.set_ylabel('(estimate - final) / final stddev')
+    for p, values in data['percentiles'].items():
+        top.plot(x, values, lw=1.2, marker='.', ms=3,
+                 label='largest' if p == 100 else f'{p}th percentile')
+    dev = np.abs(data['normalised'])
+    for k in data['worst']:
+        middle.plot(x, dev[:, k], lw=0.9, marker='.', ms=3, label=data['names'][k])
+    with np.errstate(invalid='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)     # checkpoints without any value
+        rel = data['rel_stddev']
+        bottom.plot(x, np.nanmedian(rel, axis=1), lw=1.2, label='median')
+        bottom.plot(x, np.nanmax(rel, axis=1), lw=1.2, label='largest')
     top.set_title('Convergence of the estimate')
-    if len(data['names']) <= 20:
-        top.legend(fontsize='x-small', ncol=4)
-    bottom.set_yscale('log')
+    top.set_ylabel('|estimate - final| / stddev')
+    middle.set_ylabel(f'the {len(data["worst"])} furthest')
     bottom.set_ylabel('relative stddev (%)')
     bottom.set_xlabel('samples')
-    for ax in (top, bottom):
+    for ax in (top, middle, bottom):
+        ax.set_yscale('symlog', linthresh=1.0) if ax is not bottom else ax.set_yscale('log')
+        if ax is not bottom:
+            ax.axhspan(0, 1, color='0.9')
         ax.grid(alpha=0.3)
+        ax.legend(fontsize='x-small', ncol=5 if ax is middle else 3, loc='upper right')
+    fig.tight_layout()
+    return _save(fig, Path(path))
+
+
+def plot_estimates(data: dict, path: str | os.PathLike) -> Path:
+    """Each base parameter's estimate with +-1 and +-2 standard deviations and the model's
+    value, over the parameter's scale (so all share one axis; the table has the values)."""
+    from matplotlib.figure import Figure
+
+    names, scale = data['names'], data['scale']
+    y = np.arange(len(names))[::-1]
+    fig = Figure(figsize=(8, 1.5 + 0.28 * len(names)))
+    ax = fig.subplots()
+    est, sd = data['estimate'] / scale, data['stddev'] / scale
+    ax.errorbar(est, y, xerr=2 * sd, fmt='none', ecolor='tab:blue', alpha=0.35, lw=4,
+                label='+-2 stddev')
+    ax.errorbar(est, y, xerr=sd, fmt='o', color='tab:blue', ms=4, lw=1.5, capsize=2,
+                label='estimate +-1 stddev')
+    ax.plot(data['model'] / scale, y, 'x', color='tab:red', label='model (URDF/CAD)')
+    ax.axvline(0.0, color='0.5', lw=0.5)
+    ax.set_yticks(y, [f'{n} ({s:.3g})' for n, s in zip(names, scale)], fontsize='x-small')
+    ax.set_xlabel('value / scale (scale in parentheses, SI units)')
+    ax.set_title('Base parameter estimates')
+    ax.grid(alpha=0.3, axis='x')
+    ax.legend(fontsize='small', loc='lower right')
     fig.tight_layout()
     return _save(fig, Path(path))
 
@@ -230,8 +298,30 @@ def combination_table(ident: Identification) -> list[str]:
 
 
 # -- the report -----------------------------------------------------------------------------------
-def markdown(ident: Identification, validation: Validation | None = None,
-             figures: dict[str, Path] | None = None) -> str:
+def error_table(errors: list[tuple[str, BagError]], joints: list[str]) -> list[str]:
+    """Per bag: the stacked and per-joint relative errors (percent) of the estimate and of
+    the model's parameters against the raw torque, and of the estimate against the smoothed
+    torque (labelled)."""
+    rows = []
+    for what, e in errors:
+        for label, err in (('identified', e.errors['estimate']),
+                           ('model (URDF/CAD)', e.errors['model']),
+                           ('identified, smoothed torque', e.smoothed['estimate'])):
+            rows.append([what, label, _fmt(err.stacked, 4)]
+                        + [_fmt(v, 4) for v in err.per_joint])
+    return _table(['bag', 'prediction', 'stacked (%)'] + [f'{j} (%)' for j in joints], rows,
+                  text=2)
+
+
+def _span(e: BagError) -> str:
+    w = e.window
+    if w is None or w.whole:
+        return 'the whole bag'
+    return f"{w.start or 0:g} s to {'the end' if w.end is None else f'{w.end:g} s'}"
+
+
+def markdown(ident: Identification, validations: list[BagError] | tuple = (),
+             figures: dict[str, Path] | None = None, training: BagError | None = None) -> str:
     """The text of report.md (figures referenced by file name)."""
     figures = figures or {}
     robot = ident.robot
@@ -244,27 +334,47 @@ def markdown(ident: Identification, validation: Validation | None = None,
     for k, v in ident.details.items():
         if k != 'processing':
             lines.append(f'- {k.replace("_", " ")}: {_plain(v)}')
-    lines += ['', '## Measured and predicted torque', '',
-              'Measured torque, the torque the identified parameters predict and the torque the '
-              "model's own (URDF/CAD) parameters predict, from the same processed motion (An, "
-              'Atkeson, Hollerbach, Figure 4).', '']
+    lines += ['', '## Measured and predicted torque', '']
+    if training is not None:
+        lines += ['The raw measured torque (or the torque converted from the motor currents, '
+                  'unfiltered) of every sample the smoother gives motion for, the torque the '
+                  "identified parameters and the model's own (URDF/CAD) parameters predict from "
+                  'that motion, and the residual measured - identified (An, Atkeson, '
+                  f'Hollerbach, Figure 4); training bag, {_span(training)}.', '']
+    else:
+        lines += [f'The {ident.processing} torque of the rows fitted and the torque the '
+                  "identified and the model's own parameters predict.", '']
     if TORQUE_FIGURE in figures:
         lines += [f'![torque]({TORQUE_FIGURE})', '']
+    errors = ([('training', training)] if training is not None else []) + [
+        (f'validation {k}' if len(validations) > 1 else 'validation', v)
+        for k, v in enumerate(validations, 1)]
+    if errors:
+        lines += ['Relative error 100 ||tau - tau_predicted|| / ||tau|| against the raw '
+                  'torque, stacked over all joints and per joint; against the smoothed torque '
+                  'for comparison (smoothing the reference flatters it).', '']
+        lines += error_table(errors, robot.joint_names) + ['']
     noise = np.sqrt(ident.noise_variance)
+    lines += [f'On the {ident.processing} rows fitted (filtered torque):', '']
     lines += _table(['joint', 'relative error, identified (%)', 'relative error, model (%)',
                      'residual rms (N m)', 'noise std (N m)'], [
         [j, _fmt(e, 4), _fmt(m, 4), _fmt(r, 4), _fmt(s, 4)] for j, e, m, r, s in zip(
             robot.joint_names, ident.relative_error(), ident.relative_error(ident.theta_model),
             ident.residual_rms, noise)])
-    lines += ['', 'Relative error: 100 ||tau - tau_predicted|| / ||tau|| over the rows fitted.',
-              '', '## Excitation and convergence', '',
+    lines += ['', '## Excitation and convergence', '',
               f'- excitation condition number (information matrix of the rows fitted): '
               f'{_fmt(ident.condition_number, 4)}',
               f"- converged: {'yes' if ident.converged else 'no'}", '']
     if CONVERGENCE_FIGURE in figures:
         lines += [f'![convergence]({CONVERGENCE_FIGURE})', '',
-                  'Top: the estimate at each checkpoint minus the final one, in final standard '
-                  'deviations (grey band: +-1); bottom: relative standard deviations.', '']
+                  'Top: percentiles over the base parameters of |estimate at the checkpoint - '
+                  'final estimate| in final standard deviations (grey band: below 1); middle: '
+                  f'the {WORST} parameters furthest from their final value over the second '
+                  'half, by name; bottom: median and largest relative standard deviation.', '']
+    if ESTIMATES_FIGURE in figures:
+        lines += [f'![estimates]({ESTIMATES_FIGURE})', '',
+                  'Each base parameter\'s estimate with +-1 and +-2 standard deviations and the '
+                  "model's value, divided by the parameter's scale (in parentheses).", '']
     lines += ['## Base parameters', '', 'SI units; model: the base parameters of the '
               "description's own parameters.", ''] + base_parameter_table(ident)
     lines += ['', '## Standard parameters per link', '',
@@ -291,16 +401,14 @@ def markdown(ident: Identification, validation: Validation | None = None,
                                                 else 'not physically consistent:')]
     lines += [f'- {p}' for p in problems]
     lines += [f'- note: {n}' for n in (solver.notes if solver is not None else [])]
-    if validation is not None:
-        lines += ['', '## Validation on a held-out bag', '',
-                  f'`{validation.bag}`: {validation.num_samples} samples ({validation.rows} '
-                  'rows), processed as the training bag and not used for fitting.', '']
-        lines += _table(['joint', 'training (%)', 'validation (%)', 'model on validation (%)'],
-                        [[j, _fmt(a, 4), _fmt(v, 4), _fmt(m, 4)] for j, a, v, m in zip(
-                            robot.joint_names, ident.relative_error(),
-                            validation.relative_error, validation.model_relative_error)])
-        if VALIDATION_FIGURE in figures:
-            lines += ['', f'![validation]({VALIDATION_FIGURE})']
+    for k, v in enumerate(validations, 1):
+        number = f' ({k})' if len(validations) > 1 else ''
+        lines += ['', f'## Validation on a held-out bag{number}', '',
+                  f'`{v.bag}`, {_span(v)}: {v.num_samples} samples, not used for fitting; '
+                  'errors in the table above.', '']
+        name = validation_figure(k)
+        if name in figures:
+            lines += [f'![validation]({name})']
     return '\n'.join(lines) + '\n'
 
 
@@ -312,35 +420,55 @@ def _plain(v) -> str:
     return str(v)
 
 
+def validation_figure(k: int) -> str:
+    """The figure file of the k-th validation bag (1-based)."""
+    return VALIDATION_FIGURE if k == 1 else f'validation_{k}.png'
+
+
 def write_report(directory: str | os.PathLike, ident: Identification,
-                 validation: Validation | None = None) -> Report:
+                 validations: list[BagError] | tuple = (),
+                 training: BagError | None = None) -> Report:
     """Write report.md and its figures into ``directory``; returns the files and the data each
-    figure was drawn from."""
+    figure was drawn from. ``training`` and ``validations``: the torque errors on the
+    training and validation bags (validation.py); the torque figures show their raw
+    torque, else (no ``training``) the rows fitted."""
     report = Report(check_writable(directory))
-    xlabel = 'phase in the averaged period (s)' if ident.processing == 'periodic' else \
-        'time (s)'
-    if ident.series is not None and len(ident.series.stamps_ns):
-        data = torque_figure_data(ident.series, ident.estimate, ident.theta_model,
-                                  ident.robot.joint_names)
+    names = ident.robot.joint_names
+    if training is not None and training.series is not None \
+            and len(training.series.stamps_ns):
+        data = torque_figure_data(training.series, ident.estimate, ident.theta_model, names)
         report.data['torque'] = data
         report.files['torque'] = plot_torque(
             data, report.directory / TORQUE_FIGURE,
-            f'{ident.robot.name}: measured, identified and model torque', xlabel)
+            f'{ident.robot.name}: measured, identified and model torque')
+    elif ident.series is not None and len(ident.series.stamps_ns):
+        xlabel = 'phase in the averaged period (s)' if ident.processing == 'periodic' else \
+            'time (s)'
+        data = torque_figure_data(ident.series, ident.estimate, ident.theta_model, names)
+        report.data['torque'] = data
+        report.files['torque'] = plot_torque(
+            data, report.directory / TORQUE_FIGURE,
+            f'{ident.robot.name}: {ident.processing} torque of the rows fitted', xlabel,
+            measured=f'measured ({ident.processing})')
     if ident.history:
         data = convergence_figure_data(ident.history, ident.theta, ident.stddev,
                                        ident.base.names)
         report.data['convergence'] = data
         report.files['convergence'] = plot_convergence(
             data, report.directory / CONVERGENCE_FIGURE)
-    if validation is not None and validation.series is not None \
-            and len(validation.series.stamps_ns):
-        data = torque_figure_data(validation.series, ident.estimate, ident.theta_model,
-                                  ident.robot.joint_names)
-        report.data['validation'] = data
-        report.files['validation'] = plot_torque(
-            data, report.directory / VALIDATION_FIGURE,
-            'validation bag: measured, identified and model torque', xlabel)
-    names = {p.name: p for p in report.files.values()}
+    data = estimates_figure_data(ident)
+    report.data['estimates'] = data
+    report.files['estimates'] = plot_estimates(data, report.directory / ESTIMATES_FIGURE)
+    for k, v in enumerate(validations, 1):
+        if v.series is None or not len(v.series.stamps_ns):
+            continue
+        key = 'validation' if k == 1 else f'validation_{k}'
+        data = torque_figure_data(v.series, ident.estimate, ident.theta_model, names)
+        report.data[key] = data
+        report.files[key] = plot_torque(
+            data, report.directory / validation_figure(k),
+            f'validation bag {v.bag}: measured, identified and model torque')
+    files = {p.name: p for p in report.files.values()}
     report.files['report'] = atomic_write_text(report.directory / REPORT_FILE,
-                                               markdown(ident, validation, names))
+                                               markdown(ident, validations, files, training))
     return report
