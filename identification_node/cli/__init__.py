@@ -73,13 +73,43 @@ def settings_from_args(args: argparse.Namespace):
     return Settings.from_dict(values)
 
 
+class _ParameterHelp(argparse.Action):
+    """-h/--help of a verb running a ROS node: the usual help, then the node's parameters
+    with defaults and descriptions (the table is loaded only when asked for)."""
+
+    def __init__(self, option_strings, dest, table=None, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+        self.table = table
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import textwrap
+        table = self.table()
+        lines = [parser.epilog or '', '', 'ROS parameters (-p NAME:=VALUE or --params-file FILE; '
+                 'default in parentheses):']
+        for name, (default, text) in table.items():
+            lines.append(f'  {name} ({default!r})')
+            lines += textwrap.wrap(text, 92, initial_indent=' ' * 6,
+                                   subsequent_indent=' ' * 6)
+        parser.formatter_class = argparse.RawDescriptionHelpFormatter
+        parser.epilog = '\n'.join(lines)
+        parser.print_help()
+        parser.exit()
+
+
+def add_parameter_help(parser: argparse.ArgumentParser, table) -> None:
+    """Make -h/--help of ``parser`` list the ROS parameters of ``table()`` (name ->
+    (default, description))."""
+    parser.add_argument('-h', '--help', action=_ParameterHelp, table=table,
+                        help='show this help message and the ROS parameters, and exit')
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='python -m identification_node',
         description='Identify the inertial parameters of a robot arm (ROS 2 Jazzy).')
     sub = parser.add_subparsers(dest='verb', metavar='VERB', required=True)
     for verb, (module, text) in VERBS.items():
-        p = sub.add_parser(verb, help=text, description=text)
+        p = sub.add_parser(verb, help=text, description=text, conflict_handler='resolve')
         importlib.import_module(f'{__name__}.{module}').add_arguments(p)
     return parser
 
