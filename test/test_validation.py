@@ -258,3 +258,40 @@ def test_report_and_atomic_files_get_0644_under_a_normal_umask(tmp_path, bags, c
     finally:
         os.umask(old)
     capsys.readouterr()
+
+
+def test_reference_of_a_current_driven_bag_is_the_converted_torque_unfiltered(tmp_path):
+    """The bundled MIT bag carries 3-phase currents with electrical angles: the reference is
+    the first paper's eq. 10 of each sample's currents (numpy here), not smoothed."""
+    from pathlib import Path
+
+    from identification_node.settings import read_parameter_file
+    repo = Path(__file__).resolve().parents[1]
+    bag = repo / 'bags' / 'mit_paper_moves'
+    values = read_parameter_file(repo / 'config' / 'identification.yaml')
+    settings = Settings.from_dict(values)
+    robot = settings.load_robot()
+    base = settings.build(robot).base
+    with PredictionsWriter(tmp_path / 'p.csv', robot.joint_names) as writer:
+        e = evaluate(bag, settings, robot, base, {'estimate': base.to_base(robot.phi_model)},
+                     predictions=writer, label='training')
+    rows = np.loadtxt(tmp_path / 'p.csv', delimiter=',', skiprows=1,
+                      usecols=range(1, 3 + 2 * robot.dof))
+    with open_bag(bag) as reader:
+        records = iter_joint_states(reader, ['/motor_currents'])
+        currents = {rec.stamp_ns: rec for _, _, rec in records}
+    kt = np.array(values['kt'])
+    want = []
+    for stamp in rows[:, 0].astype(np.int64):
+        rec = currents[int(stamp)]
+        i = rec.effort.reshape(robot.dof, 3)
+        th = rec.position.reshape(robot.dof, 3)[:, 0]
+        want.append(kt * (i[:, 0] * np.sin(th) + i[:, 1] * np.sin(th + 2 * np.pi / 3)
+                          + i[:, 2] * np.sin(th + 4 * np.pi / 3)))
+    want = np.array(want)
+    np.testing.assert_allclose(rows[:, 2:2 + robot.dof], want, rtol=1e-12,
+                               atol=1e-12 * np.abs(want).max())
+    half = settings.build(robot).row_builder.half_window
+    assert e.num_samples == len(rows) == len(currents) - 2 * half
+    err = relative_error(want, rows[:, 2 + robot.dof:])
+    assert err.stacked == pytest.approx(e.errors['estimate'].stacked, rel=1e-9)

@@ -5,9 +5,11 @@ The robot is --robot/--urdf, else the robot of --config, else the bag's /robot_d
 processes the whole bag at once (offline.py): periodic averaging with --period or a periodic
 --trajectory, else zero-phase filtering (--cutoff) and decimation (--decimate), then weighted
 least squares. Prints the base parameter estimate with standard deviations, the per-joint
-relative torque error 100 ||tau_measured - tau_predicted|| / ||tau_measured||, the excitation
-condition number and how the estimate converged; ``--validate TEST_BAG`` adds the relative
-error on a held-out bag, ``--report DIR`` writes report.md with figures, ``--json`` prints the
+relative torque error 100 ||tau_measured - tau_predicted|| / ||tau_measured|| on the training
+bag and on each ``--validate`` bag against the raw torque (offline/validation.py), the
+excitation condition number and how the estimate converged; ``--start``/``--end`` window every
+bag (offline/windows.py), ``--predictions OUT`` writes measured and predicted torque per sample
+(offline/predictions.py), ``--report DIR`` writes report.md with figures, ``--json`` prints the
 same as one object, ``--save DIR`` writes estimate.yaml and identified.urdf as the node's
 ``~/save`` does. The estimate is the physically consistent one (consistency.py) unless
 ``--no-physical-consistency`` (config ``physical_consistency: false``); the unconstrained one
