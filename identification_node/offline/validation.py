@@ -26,6 +26,7 @@ from identification_node.model.robot import RobotModel
 from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, check_usable,
                                                 feed_records)
 from identification_node.offline.windows import TimeWindow
+from identification_node.pipeline import IdentificationPipeline
 from identification_node.settings import Settings
 
 BATCH = 1000   # messages per processing batch
@@ -117,7 +118,8 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                                                             TorqueSeries)
     names = list(thetas)
     Theta = np.array([thetas[k] for k in names], dtype=float).T         # (b, k)
-    pipeline = settings.build(robot)
+    # the pipeline's input stages and smoother, with the estimate's base columns (no estimation)
+    pipeline = IdentificationPipeline(robot, settings.pipeline_config(robot.joint_names), base)
     stages, rows = pipeline.samples, pipeline.row_builder
     counters, n, b = stages.counters, robot.dof, base.num_base
     raw, smooth = ErrorSums(n, len(names)), ErrorSums(n, len(names))
