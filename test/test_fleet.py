@@ -237,23 +237,65 @@ def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, t
     assert plain['consistency_solver']['status'] == 'disabled'
 
 
-def test_segments_give_the_rows_of_the_whole_bag(fleet_dir, robot, settings):
-    """Segments' rows are the whole bag's (the smoother's overlap handled): the normal
-    equations and the estimate agree; only the residual blocks restart at the cuts."""
-    bag = fleet_dir / 'bags/arm_a_day1_1'
-    whole = fleet.bag_statistics(bag, settings, robot)
-    cuts = [None, whole.first_ns + 1_234_567_891, whole.first_ns + 2_500_000_000, None]
-    parts = [fleet.bag_statistics(bag, settings, robot, a, b) for a, b in zip(cuts, cuts[1:])]
-    merged = parts[0] + parts[1] + parts[2]
-    assert merged.used == whole.used and merged.num_samples == whole.num_samples
-    assert merged.messages == whole.messages
+LONG = 250.0        # s of the long bag, at 100 Hz: cut at the residual grid (60 s) 1 to 4 times
+
+
+@pytest.fixture(scope='module')
+def long_bag(tmp_path_factory, robot):
+    t, q, qd, tau = simulate(robot, FourierTrajectory.random(robot, seed=5, period=10.0), LONG,
+                             rate=100.0, seed=21, phi=true_phi(robot, 'arm_a', 'day1'))
+    return write_bag(tmp_path_factory.mktemp('long') / 'long', robot, t, q, qd, tau)
+
+
+def test_segments_give_the_whole_bag_and_identify(long_bag, robot):
+    """A bag cut at multiples of the residual grid into 2 or 5 segments (the smoother's
+    overlap handled) merges to the whole bag's statistics: the same rows, normal equations
+    and residual blocks, so estimate and stddev equal the unsplit run's and identify's on the
+    bag to 1e-9. (Robust gate off: a segment's gate arms on that segment's own fit.)"""
+    from identification_node.pipeline.estimate import RESIDUAL_GRID
+
+    settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
+                                  'robust': {'enabled': False}})
+    whole = fleet.bag_statistics(long_bag, settings, robot)
+    assert whole.residuals.blocks >= 100   # the long-run variance is in use (>= 10 blocks)
+    ref = result_document(make_consistent(replay_identify(long_bag, settings, robot),
+                                          settings.consistency_options()))
+    docs = []
+    for cuts in ([None, None], [None, 2 * RESIDUAL_GRID, None],
+                 [None] + [k * RESIDUAL_GRID for k in range(1, 5)] + [None],
+                 [None, 5 * RESIDUAL_GRID, None]):     # a segment after the bag's end: empty
+        parts = [fleet.bag_statistics(long_bag, settings, robot, a, b)
+                 for a, b in zip(cuts, cuts[1:])]
+        merged = sum(parts[1:], parts[0])
+        assert merged.used == whole.used and merged.messages == whole.messages
+        assert merged.residuals.blocks == whole.residuals.blocks
+        assert merged.residuals.count == whole.residuals.count
+        A, B = merged.normal_equations.augmented, whole.normal_equations.augmented
+        np.testing.assert_allclose(A, B, rtol=1e-11, atol=1e-13 * np.abs(B).max())
+        docs.append(result_document(fleet.identification(merged, settings, robot)))
+    for doc in docs:
+        assert_same_identification(doc, docs[0])
+        assert_same_as_identify(doc, ref)
+    # the unsplit stddev uses the long-run variance: not the white-noise one
+    plain = replay_identify(long_bag, settings, robot).pipeline
+    white = plain.residuals.variance(plain.rls.theta) * plain.estimator._white_scale
+    assert not np.allclose(plain.noise_variance(), white, rtol=0.01)
+
+
+def test_a_cut_off_the_grid_moves_only_the_residual_blocks(long_bag, robot, settings):
+    """Cut elsewhere, the segments still give the whole bag's rows and estimate; only the
+    block partition, and with it the long-run variance, differs (hence the grid)."""
+    whole = fleet.bag_statistics(long_bag, settings, robot)
+    cuts = [None, whole.first_ns + 61_234_567_891, None]
+    parts = [fleet.bag_statistics(long_bag, settings, robot, a, b) for a, b in zip(cuts, cuts[1:])]
+    merged = parts[0] + parts[1]
     A, B = merged.normal_equations.augmented, whole.normal_equations.augmented
     np.testing.assert_allclose(A, B, rtol=1e-11, atol=1e-13 * np.abs(B).max())
-    np.testing.assert_array_equal(merged.normal_equations.count, whole.normal_equations.count)
-    assert whole.residuals.blocks - 2 <= merged.residuals.blocks <= whole.residuals.blocks
-    a = fleet.identification(merged, settings, robot)
-    b = fleet.identification(whole, settings, robot)
+    assert merged.residuals.blocks == whole.residuals.blocks - 1
+    a = fleet.identification(merged, settings, robot, physical_consistency=False)
+    b = fleet.identification(whole, settings, robot, physical_consistency=False)
     np.testing.assert_allclose(a.theta, b.theta, rtol=1e-9, atol=1e-9 * np.abs(b.theta).max())
+    assert not np.allclose(a.stddev, b.stddev, rtol=1e-6)
 
 
 def test_the_solve_seam_takes_normal_equations_and_gives_the_estimate(
@@ -367,24 +409,21 @@ def test_a_folder_of_bags_is_grouped_by_their_robot_description(fleet_dir, robot
     assert all(r.startswith('mit_dd_arm-') for r in groups)
 
 
-def test_a_segmented_run_equals_the_whole_bags(fleet_dir, robot, settings):
+def test_a_segmented_run_equals_the_whole_bags(long_bag, robot, settings):
     from distributed import Client
 
-    entries = [e for e in fleet.read_manifest(fleet_dir / 'manifest.csv')
-               if e.robot == 'arm_a' and e.period == 'day1']
-    tasks = fleet.plan_tasks(entries, segment_seconds=1.5)
-    assert len(tasks) == 2 * 3 and tasks[0].start_ns is None and tasks[-1].stop_ns is None
+    entries = [fleet.FleetEntry(str(long_bag), 'arm', 'day1')]
+    tasks = fleet.plan_tasks(entries, segment_seconds=50.0)     # rounded to the 60 s grid
+    assert [(t.start_ns, t.stop_ns) for t in tasks] == [
+        (a, b) for a, b in zip([None, 60e9, 120e9, 180e9, 240e9],
+                               [60e9, 120e9, 180e9, 240e9, None])]
     with Client(processes=False, n_workers=1, threads_per_worker=2,
                 dashboard_address='127.0.0.1:0') as client:
-        whole = fleet.run_fleet(entries, client)
-        split = fleet.run_fleet(entries, client, segment_seconds=1.5)
-    a = split.identifications['arm_a', 'day1']
-    b = whole.identifications['arm_a', 'day1']
-    assert a.num_samples == b.num_samples
-    np.testing.assert_allclose(a.theta, b.theta, rtol=1e-9, atol=1e-9 * np.abs(b.theta).max())
-    # the residual blocks restart at each cut: on these 23-block bags the long-run variance,
-    # and so the stddev, moves by a few percent
-    np.testing.assert_allclose(a.stddev, b.stddev, rtol=0.1)
+        whole = fleet.run_fleet(entries, client, physical_consistency=False)
+        split = fleet.run_fleet(entries, client, segment_seconds=50.0,
+                                physical_consistency=False)
+    assert_same_identification(result_document(split.identifications['arm', 'day1']),
+                               result_document(whole.identifications['arm', 'day1']))
 
 
 # -- the fleet run on Dask --------------------------------------------------------------------

@@ -414,10 +414,10 @@ class _CheckedEstimate(OnlineEstimate):
         self.weights = super()._row_weights(t, qd, qdd)
         return self.weights
 
-    def add(self, rows, t, qd, qdd):
+    def add(self, rows, t, qd, qdd, stamps_ns=None):
         assert len(rows) >= self.config.update_batch  # (applied at once: same batches)
         Yb, tau = rows[:, :, :-1].copy(), rows[:, :, -1].copy()
-        super().add(rows, t, qd, qdd)
+        super().add(rows, t, qd, qdd, stamps_ns)   # (3 s: no residual grid line crossed)
         w = self.weights
         self.ref_rls.update(Yb, tau, w)
         root = np.sqrt(np.broadcast_to(np.ones(tau.shape) if w is None else w, tau.shape))

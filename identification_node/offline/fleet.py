@@ -296,8 +296,11 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
     rls = pipeline.rls
     if segment:   # the margins' messages are counted by their own segments
         messages = pipeline.messages
+    # an estimator without rows knows no joints yet: the zero sums of this robot's instead
+    equations = (rls.normal_equations() if rls.num_samples else
+                 NormalEquations.zeros(pipeline.base.num_base, robot.dof))
     return BagStatistics(
-        (str(bag),), model_key(robot), rls.normal_equations(), pipeline.residuals,
+        (str(bag),), model_key(robot), equations, pipeline.residuals,
         int(rls.num_samples), int(pipeline.used), int(messages), int(pipeline.received),
         {k: v for k, v in pipeline.rejected.items() if v}, int(pipeline.excluded_rows),
         int(pipeline.restarts), *(span or (None, None)))
@@ -378,9 +381,12 @@ def run_task(task: MapTask) -> BagStatistics | MapFailure:
 def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = None,
                joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS
                ) -> list[MapTask]:
-    """One task per bag, or per ``segment_seconds`` of its log time (the first and last
-    segment open-ended, so every row belongs to exactly one)."""
+    """One task per bag, or per ``segment_seconds`` of its log time, rounded to a multiple of
+    the residual grid (estimate.RESIDUAL_GRID, 60 s) and cut at multiples of it, where the
+    residual blocks restart, so the segments' statistics merge to the whole bag's exactly
+    (the first and last segment open-ended, so every row belongs to exactly one)."""
     from identification_node.bags.reader import open_bag
+    from identification_node.pipeline.estimate import RESIDUAL_GRID
 
     tasks = []
     for e in entries:
@@ -394,8 +400,8 @@ def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = No
         except Exception:           # the map task reports it
             tasks.append(base)
             continue
-        step = int(round(segment_seconds * 1e9))
-        cuts = list(range(start + step, end, step))
+        step = max(1, round(segment_seconds * 1e9 / RESIDUAL_GRID)) * RESIDUAL_GRID
+        cuts = list(range((start // step + 1) * step, end, step))
         bounds = [None] + cuts + [None]
         tasks += [replace(base, index=i, start_ns=a, stop_ns=b)
                   for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))]

@@ -158,10 +158,10 @@ class IdentificationPipeline:
             predicted = predicted[plausible]
             if len(r.t) == 0:
                 return PipelineOutput.empty(self.robot.dof)
-        if not self.frozen:
-            est.add(r.rows, r.t, r.qd, r.qdd)
-            self.used += len(r.t)
         stamps_ns = self.samples.counters.stamps_ns(r.t)
+        if not self.frozen:
+            est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns)
+            self.used += len(r.t)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, r.q, r.qd, r.qdd, r.tau, predicted)
 

@@ -5,7 +5,8 @@ when Coulomb friction is identified), gathered, and fed to the RLS and the resid
 every ``update_batch`` samples in one batch (what sample-by-sample updates give). The torque is
 smoothed, so residuals are correlated over the window: the covariance uses their long-run
 variance (ResidualStatistics' block sums); until there are enough blocks, white raw noise is
-assumed (signals.smoothing_noise_gain).
+assumed (signals.smoothing_noise_gain). The blocks restart at every RESIDUAL_GRID of the
+stamps, so a bag cut there into segments has its blocks (offline/fleet.py).
 
 Before an update, samples whose rows would overflow are dropped ('regressor_overflow') and,
 once the estimate has converged, the robust gate (robust.py) holds outliers back
@@ -30,6 +31,12 @@ from identification_node.pipeline.signals import smoothing_noise_gain
 
 # What the numerical update may raise on absurd data: caught, the estimator rolled back.
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, IdentificationError)
+# The residual blocks restart where the stamps (ns since 1970) cross a multiple of this, 60 s:
+# which block a sample falls in then depends on its stamp and the samples since the last
+# multiple only, not on where its stream began, so a bag cut at multiples merges exactly. The
+# unfinished block is left out there, as at a stream restart: 0.14 % of the samples at 1 kHz
+# with the default half window.
+RESIDUAL_GRID = 60 * 10**9
 
 
 @dataclass
@@ -87,6 +94,7 @@ class OnlineEstimate:
         self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
         self._next_arm = 0                       # samples at which arming is asked next
         self._last_t = math.nan
+        self._cell: int | None = None            # RESIDUAL_GRID cell of the last row added
         self.gate.reset()
 
     @property
@@ -99,9 +107,12 @@ class OnlineEstimate:
         """Whether rows added now are applied within the call (so may live in a work array)."""
         return not self._updates
 
-    def add(self, rows: np.ndarray, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> None:
+    def add(self, rows: np.ndarray, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+            stamps_ns: np.ndarray | None = None) -> None:
         """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n):
-        weighted (in place) and queued; applied once ``update_batch`` samples are gathered."""
+        weighted (in place) and queued; applied once ``update_batch`` samples are gathered.
+        ``stamps_ns`` (N,) int64, the samples' stamps: the residual blocks restart where they
+        cross a multiple of RESIDUAL_GRID."""
         w = self._row_weights(t, qd, qdd)
         self._last_t = float(t[-1]) if len(t) else self._last_t
         used = None
@@ -109,10 +120,21 @@ class OnlineEstimate:
             root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
             rows *= root[:, :, None]
             used = root > 0
-        self._updates.append((rows, used))
-        self._pending_samples += len(rows)
-        if self._pending_samples >= self.config.update_batch:
-            self.apply()
+        cuts: list[int] = []
+        if stamps_ns is not None and len(rows):
+            cell = np.asarray(stamps_ns, dtype=np.int64) // RESIDUAL_GRID
+            before = cell[0] if self._cell is None else self._cell
+            cuts = np.flatnonzero(np.diff(cell, prepend=before)).tolist()
+            self._cell = int(cell[-1])
+        for a, b in zip([0] + cuts, cuts + [len(rows)]):
+            if a in cuts:     # a new cell: the rows before applied, their open block closed
+                self.apply()
+                self._residuals.close_block()
+            if b > a:
+                self._updates.append((rows[a:b], None if used is None else used[a:b]))
+                self._pending_samples += b - a
+        if cuts or self._pending_samples >= self.config.update_batch:
+            self.apply()      # (after a cut too: rows may live in the row builder's work array)
 
     def apply(self) -> None:
         """Feed the rows gathered since the last update to the RLS and residual statistics in
@@ -180,6 +202,7 @@ class OnlineEstimate:
         out, so no block spans two streams (their residuals are not correlated)."""
         self.apply()
         self._residuals.close_block()
+        self._cell = None
 
     def restore(self, rls: RecursiveLeastSquares, residuals: ResidualStatistics,
                 excluded_rows: int = 0) -> None:
