@@ -381,6 +381,53 @@ def test_outliers_need_a_fleet_and_flag_the_odd_robot():
     assert not fleet.outlier_flags(totals, {'r1': 'm', 'r2': 'm', 'r3': 'n', 'r4': 'n'})
 
 
+ODD = 'joint1.fv'     # arm_4's is 4 times the others' (0.5 N m s/rad): a worn joint
+
+
+@pytest.fixture(scope='module')
+def four_arms(tmp_path_factory, robot):
+    """One 4 s bag each of four arms of one model on the same motion (own noise): arm_4's
+    joint1 viscous friction 2.0 instead of 0.5 N m s/rad."""
+    root = tmp_path_factory.mktemp('four')
+    traj = FourierTrajectory.random(robot, seed=3, period=DURATION)
+    (root / 'arm.yaml').write_text(f'robot: mit_dd_arm\nextras: {EXTRAS}\n')
+    entries = []
+    for k in range(1, 5):
+        phi = true_phi(robot, 'arm_a', 'day1')
+        if k == 4:
+            phi[robot.param_index(ODD)] *= 4
+        t, q, qd, tau = simulate(robot, traj, DURATION, seed=40 + k, phi=phi)
+        write_bag(root / f'arm_{k}', robot, t, q, qd, tau)
+        entries.append(fleet.FleetEntry(str(root / f'arm_{k}'), f'arm_{k}', 'day1',
+                                        config=str(root / 'arm.yaml')))
+    return entries
+
+
+def test_the_odd_arm_of_a_simulated_fleet_is_the_outlier(four_arms, robot, settings):
+    """Four simulated arms of one model, one with four times the viscous friction on joint1:
+    it, and only it, is flagged against the fleet, on that parameter, and by about the
+    change over its standard deviation; the three alike arms are not."""
+    from distributed import Client
+
+    with Client(processes=False, n_workers=1, threads_per_worker=2,
+                dashboard_address='127.0.0.1:0') as client:
+        result = fleet.run_fleet(four_arms, client, physical_consistency=False)
+    assert not result.failed
+    doc = fleet.fleet_document(result)
+    assert [(f['robot'], f['parameter'], f['kind']) for f in doc['flags']] == [
+        ('arm_4', ODD, 'fleet_outlier')]
+    flag = doc['flags'][0]
+    names = [p['name'] for p in doc['totals']['arm_4']['base_parameters']]
+    sd = doc['totals']['arm_4']['base_parameters'][names.index(ODD)]['stddev']
+    change = 3 * FRICTION['fv']
+    np.testing.assert_allclose(flag['estimate'] - flag['fleet_median'], change, rtol=0.05)
+    assert flag['change_sigma'] > 5 and flag['change_sigma'] < 1.1 * change / sd
+    # without the odd arm (three alike): nothing is flagged
+    alike = fleet.outlier_flags({r: doc['totals'][r] for r in ('arm_1', 'arm_2', 'arm_3')},
+                                dict.fromkeys(('arm_1', 'arm_2', 'arm_3'), 'm'))
+    assert not alike
+
+
 def test_a_folder_of_bags_is_grouped_by_their_robot_description(fleet_dir, robot, tmp_path):
     folder = tmp_path / 'bags'
     folder.mkdir()
