@@ -19,12 +19,16 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS; workers too
+# One BLAS/OpenMP thread per process, set before numpy loads (the workers inherit it; Dask's
+# nanny sets the same for its workers: distributed.nanny.pre-spawn-environ).
+for _name in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ.setdefault(_name, '1')
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_replay import CONFIG, ROOT, make_bag  # noqa: E402
@@ -75,16 +79,22 @@ def entries(bag: Path, count: int, folder: Path) -> list:
     return out
 
 
-def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, int]:
-    """(wall s, CPU s of the workers, samples used) of one fleet run."""
+def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, float, int]:
+    """(wall s, map wall s: until the last map task is back, CPU s of the workers, samples
+    used) of one fleet run."""
     from identification_node.offline.fleet import run_fleet
 
     client = cluster(workers)
+    mapped = []
+
+    def progress(done: int, total: int) -> None:
+        if done == total:
+            mapped.append(time.perf_counter())
     try:
         run_fleet(fleet_entries[:workers], client)   # warm-up: first tasks load the robot
         cpu0 = client.run(time.process_time)
         start = time.perf_counter()
-        result = run_fleet(fleet_entries, client)
+        result = run_fleet(fleet_entries, client, progress=progress)
         wall = time.perf_counter() - start
         cpu1 = client.run(time.process_time)
     finally:
@@ -94,7 +104,7 @@ def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, int]:
     if result.failed:
         raise SystemExit(f'bench: failed bags {result.failed}')
     cpu = sum(cpu1[w] - cpu0[w] for w in cpu1)
-    return wall, cpu, sum(s.used for s in result.groups.values())
+    return wall, mapped[0] - start, cpu, sum(s.used for s in result.groups.values())
 
 
 def peak_memory(bag: Path) -> tuple[float, float]:
@@ -127,26 +137,32 @@ def main() -> None:
     logging.getLogger('distributed').setLevel(logging.ERROR)
 
     bag = make_bag(args.samples)
+    runs: dict[int, list] = {1: [], 2: []}
     with tempfile.TemporaryDirectory() as tmp:
         fleet_entries = entries(bag, args.bags, Path(tmp))
-        best = {1: float('inf'), 2: float('inf')}
         samples = 0
         for r in range(args.repeat):
             for workers in (1, 2):
-                wall, cpu, samples = timed_run(workers, fleet_entries)
-                best[workers] = min(best[workers], wall)
-                print(f'run {r + 1}: {workers} worker(s) {wall:.2f} s, workers\' CPU '
-                      f'{cpu:.2f} s ({cpu / wall:.2f} cores busy; load average '
+                wall, mapped, cpu, samples = timed_run(workers, fleet_entries)
+                runs[workers].append((wall, mapped))
+                print(f'run {r + 1}: {workers} worker(s) {wall:.2f} s (map {mapped:.2f} s, '
+                      f'reduce and solve {wall - mapped:.2f} s), workers\' CPU {cpu:.2f} s '
+                      f'({cpu / mapped:.2f} cores busy while mapping; load average '
                       f'{os.getloadavg()[0]:.2f})', flush=True)
+    best = {w: min(runs[w]) for w in runs}
     print(f'\n{args.bags} bags of {args.samples} samples ({samples} samples used in all), '
           f'best of {args.repeat}:')
-    print('| workers | wall (s) | bags/s | samples/s |')
-    print('|---:|---:|---:|---:|')
+    print('| workers | wall (s) | map (s) | bags/s | samples/s |')
+    print('|---:|---:|---:|---:|---:|')
     for workers in (1, 2):
-        w = best[workers]
-        print(f'| {workers} | {w:.2f} | {args.bags / w:.2f} | {samples / w:,.0f} |')
-    speedup = best[1] / best[2]
-    print(f'speed-up 1 -> 2 workers: {speedup:.2f}x, scaling efficiency {speedup / 2:.0%}')
+        w, m = best[workers]
+        print(f'| {workers} | {w:.2f} | {m:.2f} | {args.bags / w:.2f} | {samples / w:,.0f} |')
+    speedup = best[1][0] / best[2][0]
+    print(f'speed-up 1 -> 2 workers (best runs): {speedup:.2f}x, scaling efficiency '
+          f'{speedup / 2:.0%}; map alone {best[1][1] / best[2][1]:.2f}x')
+    pairs = sorted(a[0] / b[0] for a, b in zip(runs[1], runs[2]))
+    print('speed-up of each alternating pair (1-worker run / the 2-worker run after it): '
+          + ', '.join(f'{x:.2f}x' for x in pairs) + f'; median {statistics.median(pairs):.2f}x')
     print('\nworker memory while mapping one bag:')
     print('| bag samples | worker RSS before (MiB) | peak above it (MiB) |')
     print('|---:|---:|---:|')

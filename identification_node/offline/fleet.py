@@ -10,10 +10,11 @@ never fits across a gap larger than max_gap).
 
 Reduce: statistics add exactly (sums), in a fixed order (bag, segment), whatever order the
 tasks finish in. Bags are separate recordings: residual blocks restart at each bag, as the
-pipeline's do at a stream restart. A segment's blocks start at its own first row, so cutting
-a bag shifts the block partition, and the long-run variance (hence the stddev) moves within
-its own sampling noise, a few percent on short bags; estimates and every other sum are the
-whole bag's. Whole bags are the default unit.
+pipeline's do at a stream restart. They also restart wherever the stamps cross a multiple of
+estimate.RESIDUAL_GRID (60 s), and segments are cut only there (plan_tasks), so a segment's
+blocks are the whole bag's: the merged statistics, estimate and stddev equal the unsplit
+run's. (A cut elsewhere, bag_statistics' own start_ns/stop_ns, keeps rows and estimate but
+shifts the blocks.) Whole bags are the default unit.
 
 Solve: ``solve_unconstrained(NormalEquations) -> theta`` (the streaming estimator's own least
 squares on the merged normal equations) is the seam of the unconstrained solve (``solve=``);
@@ -46,6 +47,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from identification_node.errors import IdentificationError
+from identification_node.estimation.consistency import ConsistentSolver
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.normal_equations import NormalEquations
@@ -321,10 +323,11 @@ def solve_unconstrained(equations: NormalEquations) -> np.ndarray:
 
 def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
                    label: str | None = None, solve: Solve = solve_unconstrained,
-                   physical_consistency: bool = True):
+                   physical_consistency: bool = True, solver: ConsistentSolver | None = None):
     """The offline.Identification of merged statistics, as ``identify`` gives for their
     bags streamed one after another (one stream each): the physically consistent estimate
-    too unless ``physical_consistency`` is False or ``settings`` turn it off."""
+    too unless ``physical_consistency`` is False or ``settings`` turn it off (``solver``:
+    consistent_solver's for this robot, re-used across its groups)."""
     from identification_node.offline.identification import from_replay, make_consistent
 
     if stats.model != model_key(robot):
@@ -339,7 +342,15 @@ def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
     ident = from_replay(ReplayResult(label or ', '.join(stats.bags), pipeline, stats.messages,
                                      history))
     return make_consistent(ident, settings.consistency_options() if physical_consistency
-                           else None)
+                           else None, solver)
+
+
+def consistent_solver(settings: Settings, robot: RobotModel) -> ConsistentSolver | None:
+    """The physically consistent solver of a robot's groups (None: switched off in
+    ``settings``): made once, so its problem is canonicalised once, not per group."""
+    options = settings.consistency_options()
+    return (None if options is None else
+            ConsistentSolver.for_robot(robot, settings.build(robot).base, options))
 
 
 # -- the fleet run --------------------------------------------------------------------------------
@@ -499,7 +510,7 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
         except IdentificationError as exc:     # one robot name, two models
             failures.append({'bag': ', '.join(stats.bags), 'error': str(exc)})
     entries_of = {(t.entry.robot, t.entry.period): t.entry for t, _ in good}
-    models: dict[str, tuple] = {}
+    models: dict[str, tuple] = {}     # robot: settings, model, consistent solver
     idents, total_idents = {}, {}
     for key, stats in [*groups.items(), *totals.items()]:
         robot = key[0] if isinstance(key, tuple) else key
@@ -507,13 +518,18 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
             if robot not in models:
                 entry = next(e for k, e in entries_of.items() if k[0] == robot)
                 settings = entry_settings(entry)
-                models[robot] = (settings, entry_robot(entry, settings))
+                model = entry_robot(entry, settings)
+                models[robot] = (settings, model,
+                                 consistent_solver(settings, model) if physical_consistency
+                                 else None)
+            settings, model, solver = models[robot]
+            label = f'{robot} {key[1]}' if isinstance(key, tuple) else robot
+            ident = identification(stats, settings, model, label, solve, physical_consistency,
+                                   solver)
             if isinstance(key, tuple):
-                idents[key] = identification(stats, *models[robot], f'{robot} {key[1]}', solve,
-                                             physical_consistency)
+                idents[key] = ident
             else:
-                total_idents[robot] = identification(stats, *models[robot], robot, solve,
-                                                     physical_consistency)
+                total_idents[robot] = ident
         except IdentificationError as exc:
             failures.append({'bag': ', '.join(stats.bags), 'error': str(exc)})
     return FleetResult(groups, totals, idents, total_idents, failures)
