@@ -126,6 +126,29 @@ def peak_memory(bag: Path) -> tuple[float, float]:
     return before / 1024, (peak - before) / 1024
 
 
+def solve_times(bag: Path, repeat: int) -> tuple[float, float]:
+    """(s, s): fleet.identification of the runs' 3 groups (two periods of 2 bags, the total
+    of 4) with a new consistent solver per group, and with one solver for all (run_fleet's),
+    best of ``repeat`` alternating, in this process (the client)."""
+    from identification_node.offline import fleet
+
+    entry = fleet.FleetEntry(str(bag), 'crs', 'p', config=str(CONFIG))
+    stats = fleet.run_task(fleet.MapTask(entry))
+    groups = [stats + stats, stats + stats, stats + stats + stats + stats]
+    settings = fleet.entry_settings(entry)
+    robot = fleet.entry_robot(entry, settings)
+    fleet.identification(stats, settings, robot)    # imports, caches
+    best = [float('inf'), float('inf')]
+    for _ in range(repeat):
+        for k in (0, 1):
+            start = time.perf_counter()
+            solver = fleet.consistent_solver(settings, robot) if k else None
+            for g in groups:
+                fleet.identification(g, settings, robot, solver=solver)
+            best[k] = min(best[k], time.perf_counter() - start)
+    return best[0], best[1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--samples', type=int, default=100000)
@@ -144,7 +167,7 @@ def main() -> None:
         for r in range(args.repeat):
             for workers in (1, 2):
                 wall, mapped, cpu, samples = timed_run(workers, fleet_entries)
-                runs[workers].append((wall, mapped))
+                runs[workers].append((wall, mapped, cpu))
                 print(f'run {r + 1}: {workers} worker(s) {wall:.2f} s (map {mapped:.2f} s, '
                       f'reduce and solve {wall - mapped:.2f} s), workers\' CPU {cpu:.2f} s '
                       f'({cpu / mapped:.2f} cores busy while mapping; load average '
@@ -155,7 +178,7 @@ def main() -> None:
     print('| workers | wall (s) | map (s) | bags/s | samples/s |')
     print('|---:|---:|---:|---:|---:|')
     for workers in (1, 2):
-        w, m = best[workers]
+        w, m, _ = best[workers]
         print(f'| {workers} | {w:.2f} | {m:.2f} | {args.bags / w:.2f} | {samples / w:,.0f} |')
     speedup = best[1][0] / best[2][0]
     print(f'speed-up 1 -> 2 workers (best runs): {speedup:.2f}x, scaling efficiency '
@@ -163,6 +186,16 @@ def main() -> None:
     pairs = sorted(a[0] / b[0] for a, b in zip(runs[1], runs[2]))
     print('speed-up of each alternating pair (1-worker run / the 2-worker run after it): '
           + ', '.join(f'{x:.2f}x' for x in pairs) + f'; median {statistics.median(pairs):.2f}x')
+    # Amdahl with the load-independent parts: the workers' CPU and the client's serial part
+    cpu = {w: statistics.median(r[2] for r in runs[w]) for w in runs}
+    serial = statistics.median(r[0] - r[1] for w in runs for r in runs[w])
+    print(f'workers\' CPU (median): {cpu[1]:.2f} s with 1 worker, {cpu[2]:.2f} s with 2; '
+          f'reduce and solve on the client (median) {serial:.2f} s: on 2 idle cores '
+          f'{(cpu[1] + serial) / (cpu[2] / 2 + serial):.2f}x (CPU-time model)')
+    per_group, shared = solve_times(bag, args.repeat)
+    print(f'the client\'s solves of the 3 groups (2 periods, the total), physically '
+          f'consistent: {shared:.2f} s with one solver per robot against {per_group:.2f} s '
+          f'with one per group ({per_group / shared:.2f}x; best of {args.repeat} alternating)')
     print('\nworker memory while mapping one bag:')
     print('| bag samples | worker RSS before (MiB) | peak above it (MiB) |')
     print('|---:|---:|---:|')

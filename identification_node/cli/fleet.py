@@ -39,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--sigma', type=float, default=5.0, metavar='K',
                         help='flag changes of more than K standard deviations (default 5)')
     parser.add_argument('--segment', type=float, metavar='S',
-                        help='map each S seconds of a bag as its own task (long bags)')
+                        help='map each S seconds of a bag as its own task (long bags); '
+                        'rounded to whole minutes, cut at whole minutes of the stamps')
     parser.add_argument('--timeout', type=float, default=5.0, metavar='S',
                         help='seconds to wait for --scheduler (default 5)')
     parser.add_argument('--no-physical-consistency', action='store_true',
