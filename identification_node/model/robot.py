@@ -119,7 +119,8 @@ def _is_prismatic(joint: pin.JointModel) -> bool:
 class RobotModel:
     """The identified joints of a rigid-body model and their regressor.
 
-    ``description`` is a bundled robot name, a URDF (or MJCF) file path, or URDF XML.
+    ``description`` is a bundled robot name, a URDF (or MJCF) file path, or URDF XML;
+    ``name`` is the description's own (URDF ``<robot name>``), else the file's stem.
     ``joints`` selects and orders the identified joints; other movable joints are locked at
     ``locked_positions`` (default 0, or the neutral configuration). ``extras`` adds per-joint
     columns from ``JOINT_EXTRAS``; ``coulomb_velocity`` > 0 replaces sign(qd) by
@@ -131,6 +132,7 @@ class RobotModel:
                  locked_positions: Mapping[str, float] | None = None):
         self.description, self.kind, self.name = read_description(description)
         full = _build_pin_model(self.description, self.kind, self.name)
+        self.name = full.name or self.name    # the URDF's <robot name> (MJCF: model)
         movable = [full.names[j] for j in range(1, full.njoints) if full.joints[j].nv > 0]
         if not movable:
             where = '' if str(description).lstrip().startswith('<') or self.name == str(
