@@ -30,7 +30,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'robot': ('mit_dd_arm', 'bundled robot name or URDF/MJCF file path'),
     'robot_description': ('', 'URDF XML; when set it is used instead of `robot`'),
     'joints': ([], 'identified joints in this order (empty: all movable joints)'),
-    'extras': ([], 'per-joint extra columns among fv, fc, fo, Ia'),
+    'extras': (['fv', 'fc', 'fo'], 'per-joint extra columns among fv (viscous), fc (Coulomb), '
+               'fo (offset), Ia (rotor inertia); [] for none'),
     'coulomb_velocity': (0.0, 'rad/s; > 0 smooths the Coulomb sign as tanh(qd / value)'),
     'torque_source': (['measured'], 'per joint: measured, current or three_phase'),
     'kt': ([1.0], 'per joint motor torque constant, N m/A'),
@@ -48,8 +49,9 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'restart_jump': (1.0, 's; a larger backward stamp jump is a restarted stream'),
     'update_batch': (50, 'samples gathered per RLS update (predictions use the estimate so far)'),
     'joint_noise_std': ([], 'per joint torque noise std for weighting, N m (empty: equal)'),
-    'coulomb_exclusion_speed': (0.1, 'rad/s (m/s); with fc identified, a joint equation '
-                                'is left out while |qd| < this + |qdd| * smoother half window'),
+    'coulomb_exclusion_speed': (0.1, 'rad/s (m/s); > 0 with fc identified: a joint equation '
+                                'is left out while |qd| < this + |qdd| * smoother half window '
+                                '(batch: within the filter\'s reach of |qd| < this); 0: none'),
     'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
     'max_condition': (1e8, 'largest information condition number counted as excited'),
     'min_samples': (1000, 'samples needed before convergence is declared'),

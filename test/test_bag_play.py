@@ -8,14 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from std_srvs.srv import Trigger
 
 from identification_node.estimation.consistency import ConsistentSolver, pipeline_equations
 from identification_node.offline.replay import identify_bag
 from identification_node.settings import Settings, read_parameter_file
 from ros_helpers import wait_for
-from test_bags import BAGS
+from test_bags import BAGS, true_base_parameters
 from test_node import reliable, remaps, start_node_process, stop_process
 
 pytestmark = pytest.mark.ros
@@ -72,6 +71,5 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
         *pipeline_equations(offline.pipeline))
     assert np.all(np.abs(values - consistent.theta) <= 0.2 * est.stddev), (
         (values - consistent.theta) / est.stddev).round(3)
-    truth = yaml.safe_load((REPO / 'bags' / bag / 'true_parameters.yaml').read_text())
-    true = np.array([truth['base_parameters'][n] for n in est.names])
+    true = true_base_parameters(bag, est.names)
     assert np.all(np.abs(values - true) < 4 * stddev)

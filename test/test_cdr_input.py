@@ -70,8 +70,8 @@ def test_cdr_runs_give_what_records_decoded_by_rosbags_give():
     same counted rejections (every reason the stream holds) and the same estimate."""
     robot = load_robot('mit_dd_arm', extras=('fv', 'fc'))
     messages = _cdr_stream(robot, 6000, seed=2)
-    cdr, records = (IdentificationPipeline(robot, PipelineConfig(forgetting=0.999))
-                    for _ in range(2))
+    config = PipelineConfig(forgetting=0.999, coulomb_exclusion_speed=0.1)
+    cdr, records = (IdentificationPipeline(robot, config) for _ in range(2))
     outs = [[], []]
     rng = np.random.default_rng(1)
     k = 0

@@ -24,7 +24,7 @@ from identification_node.offline.identification import (BagSamples, BatchOptions
 from identification_node.offline.replay import identify_bag
 from identification_node.pipeline.signals import central_derivatives, zero_phase_lowpass
 from identification_node.settings import Settings, read_parameter_file
-from test_bags import BAGS
+from test_bags import BAGS, true_base_parameters
 
 REPO = Path(__file__).resolve().parents[1]
 NOISE = np.array([0.8, 0.4, 0.2])      # N m, per joint of the MIT arm
@@ -45,8 +45,7 @@ def mit_settings():
 
 
 def true_base(bag, names):
-    truth = yaml.safe_load((Path(bag) / 'true_parameters.yaml').read_text())
-    return np.array([truth['base_parameters'][n] for n in names])
+    return true_base_parameters(Path(bag).name, names)
 
 
 def simulate(robot, trajectory, duration, rate=1000.0, seed=0, phi=None, noise=NOISE):
@@ -90,6 +89,9 @@ def test_batch_identification_of_the_bundled_bags_recovers_the_truth(bag):
     assert ident.history[-1].num_samples == ident.num_samples
     if 'fc' in ident.robot.extras:   # velocity reversals of the CRS arm are left out
         assert ident.details['excluded_equations'] > 0
+        assert sum(ident.details['excluded_per_joint'].values()) == \
+            ident.details['excluded_equations']
+    assert ident.warnings == []      # a right model flags no missing term
 
 
 def test_read_samples_are_the_bags_joint_states():

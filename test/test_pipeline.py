@@ -414,10 +414,10 @@ class _CheckedEstimate(OnlineEstimate):
         self.weights = super()._row_weights(t, qd, qdd)
         return self.weights
 
-    def add(self, rows, t, qd, qdd, stamps_ns=None):
+    def add(self, rows, t, qd, qdd, stamps_ns=None, q=None):
         assert len(rows) >= self.config.update_batch  # (applied at once: same batches)
         Yb, tau = rows[:, :, :-1].copy(), rows[:, :, -1].copy()
-        super().add(rows, t, qd, qdd, stamps_ns)   # (3 s: no residual grid line crossed)
+        super().add(rows, t, qd, qdd, stamps_ns, q)   # (3 s: no residual grid line crossed)
         w = self.weights
         self.ref_rls.update(Yb, tau, w)
         root = np.sqrt(np.broadcast_to(np.ones(tau.shape) if w is None else w, tau.shape))
@@ -429,7 +429,8 @@ def test_shared_information_equals_the_checked_estimator_calls(forgetting, extra
     robot = load_robot('mit_dd_arm', extras=extras)
     base = BaseParameters.from_robot(robot)
     sim = simulate(duration=3.0)
-    config = PipelineConfig(forgetting=forgetting, joint_noise_std=[0.5, 1.0, 2.0])
+    config = PipelineConfig(forgetting=forgetting, joint_noise_std=[0.5, 1.0, 2.0],
+                            coulomb_exclusion_speed=0.1)
     p = IdentificationPipeline(robot, config, base)
     p.estimator = checked = _CheckedEstimate(base.num_base, robot.dof, config, bool(extras))
     feed(p, joint_records(sim), chunk=400)

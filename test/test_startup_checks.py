@@ -167,10 +167,13 @@ def test_a_bag_at_rest_is_reported_not_excited(tmp_path):
     sim = type('Sim', (), {'t': np.arange(N) / 1e3, 'q_meas': q, 'qd_meas': 0 * q,
                            'tau_meas': tau})
     bag = write_bag(tmp_path / 'rest', sim)
-    text = run_cli('identify', str(bag), '--robot', 'mit_dd_arm')
+    # no friction: at rest it is not determined (and with Coulomb friction every equation is
+    # near a velocity reversal)
+    text = run_cli('identify', str(bag), '--robot', 'mit_dd_arm', '--extras', 'none')
     assert text.returncode == 0 and 'Traceback' not in text.stderr, text.stderr
     assert 'not excited' in text.stdout and 'link1.IzzR' in text.stdout
-    doc = json.loads(run_cli('identify', str(bag), '--robot', 'mit_dd_arm', '--json').stdout)
+    doc = json.loads(run_cli('identify', str(bag), '--robot', 'mit_dd_arm', '--extras', 'none',
+                             '--json').stdout)
     assert doc['excited'] is False and doc['converged'] is False
     assert 'link1.IzzR' in doc['unexcited_directions']
     by_name = {b['name']: b for b in doc['base_parameters']}

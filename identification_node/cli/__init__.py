@@ -39,18 +39,24 @@ def add_robot_arguments(parser: argparse.ArgumentParser, required: bool = True) 
                         '(default: all movable joints; the others are locked)')
     parser.add_argument('--extras', default='',
                         help='comma-separated per-joint columns: fv,fc,fo,Ia (friction, offset, '
-                        'rotor inertia)')
+                        'rotor inertia); none: no column (identify\'s default: fv,fc,fo)')
 
 
 def split_list(text: str | None) -> list[str]:
     return [s.strip() for s in (text or '').split(',') if s.strip()]
 
 
+def extras_list(text: str | None) -> list[str]:
+    """--extras as a list; 'none' is the empty one."""
+    given = split_list(text)
+    return [] if given == ['none'] else given
+
+
 def robot_from_args(args: argparse.Namespace):
     """The RobotModel named by add_robot_arguments' options."""
     from identification_node.model.robot import load_robot
     return load_robot(args.robot or args.urdf, split_list(args.joints) or None,
-                      extras=split_list(args.extras))
+                      extras=extras_list(args.extras))
 
 
 def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,7 +75,7 @@ def settings_from_args(args: argparse.Namespace):
     if getattr(args, 'joints', None):
         values['joints'] = split_list(args.joints)
     if getattr(args, 'extras', None):
-        values['extras'] = split_list(args.extras)
+        values['extras'] = extras_list(args.extras)
     return Settings.from_dict(values)
 
 

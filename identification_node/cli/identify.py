@@ -142,6 +142,8 @@ def result_document(result, validations=(), training=None) -> dict:
         'smoother_delay_samples': (int(ident.pipeline.delay) if ident.pipeline is not None
                                    else None),
         'rejected': ident.rejected,
+        'excluded_equations': ident.details.get('excluded_per_joint', {}),
+        'warnings': list(ident.warnings),
         'physically_consistent': not problems, 'consistency_problems': problems,
         'model_consistency_problems': consistency_problems(robot, robot.phi_model),
         'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
@@ -209,6 +211,10 @@ def format_report(doc: dict) -> str:
         if doc['model_consistency_problems']:
             lines.append('(the model\'s own parameters, which it stays closest to, are not '
                          'either: ' + '; '.join(doc['model_consistency_problems']) + ')')
+    if any(doc['excluded_equations'].values()):
+        lines.append('equations left out near velocity reversals (coulomb_exclusion_speed): '
+                     + ', '.join(f'{j} {k}' for j, k in doc['excluded_equations'].items()))
+    lines += [f'warning: {w}' for w in doc['warnings']]
     lines += ['', 'convergence (estimate change to final, in final standard deviations):']
     final = np.array([np.nan if b['estimate'] is None else b['estimate']
                       for b in doc['base_parameters']])
@@ -382,7 +388,7 @@ def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
 def run(args: argparse.Namespace) -> int:
     from identification_node.offline.identification import (make_consistent, offline_identify,
                                                             replay_identify)
-    from identification_node.offline.replay import bag_robot
+    from identification_node.offline.replay import bag_robot, locked_warning, robot_for_bag
     from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
@@ -397,6 +403,7 @@ def run(args: argparse.Namespace) -> int:
         check_predictions(args.predictions)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
+    robot, locked = robot_for_bag(robot, settings, args.bag, args.joint_states_topic)
     from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:
@@ -416,6 +423,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
+    if locked:
+        ident.warnings.insert(0, locked_warning(robot, locked, args.joint_states_topic))
     make_consistent(ident, consistency)
     training, validations = evaluate_bags(ident, args, settings, window, topics)
     doc = result_document(ident, validations, training)

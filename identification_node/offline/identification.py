@@ -42,6 +42,9 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentEstimate,
                                                         ConsistentSolver, pipeline_equations)
 from identification_node.estimation.batch import WeightedFit, weighted_solve
+from identification_node.estimation.model_terms import (ModelTermStatistics,
+                                                        missing_term_warnings)
+from identification_node.estimation.model_terms import features as model_features
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.estimation.prior import safe_prior
@@ -134,7 +137,8 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             if messages % batch == 0:
                 collect()
     collect(flush=True)
-    check_usable(sum(len(p[1]) for p in parts), counters.rejected, bag, topics, counts)
+    check_usable(sum(len(p[1]) for p in parts), counters.rejected, bag, topics, counts,
+                 counters, robot.joint_names)
     streams = []
     for sid in sorted({p[0] for p in parts}):
         stream = [p[1:] for p in parts if p[0] == sid]
@@ -151,20 +155,23 @@ class Rows:
     torque (N, n); ``scale`` (N, n): inverse noise standard deviation of each equation (None:
     the noise variances are estimated from the residuals); ``mask`` (N, n): False for the
     equations left out (a joint near a velocity reversal while Coulomb friction is identified;
-    None: all used); ``index`` (N,): how many of the bag's samples lie up to each row."""
+    None: all used); ``index`` (N,): how many of the bag's samples lie up to each row;
+    ``features`` (N, n, 4): model_terms.features of the rows' motion, processed as they are."""
     stamps_ns: np.ndarray
     regressor: np.ndarray
     tau: np.ndarray
     scale: np.ndarray | None = None
     mask: np.ndarray | None = None
     index: np.ndarray | None = None
+    features: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
 
     def slice(self, a: int, b: int) -> Rows:
         return Rows(*(None if x is None else x[a:b] for x in (
-            self.stamps_ns, self.regressor, self.tau, self.scale, self.mask, self.index)))
+            self.stamps_ns, self.regressor, self.tau, self.scale, self.mask, self.index,
+            self.features)))
 
 
 @dataclass(frozen=True)
@@ -309,11 +316,15 @@ def _segment_rows(seg: _Segment, robot: RobotModel, base: BaseParameters, cutoff
         core = seg.picks[c:c + per_chunk]
         lo, hi = max(0, int(core[0]) - overlap), min(len(t), int(core[-1]) + 1 + overlap)
         Yb = base.base_regressor(robot.regressor(q[lo:hi], qd[lo:hi], qdd[lo:hi]))
-        X = np.concatenate([Yb.reshape(hi - lo, n * b), seg.tau[lo:hi]], axis=1)
+        F = model_features(q[lo:hi], qd[lo:hi])
+        X = np.concatenate([Yb.reshape(hi - lo, n * b), seg.tau[lo:hi],
+                            F.reshape(hi - lo, -1)], axis=1)
         X = zero_phase_lowpass(X, rate, cutoff, order)[core - lo]
-        yield Rows(seg.stamps_ns[core], X[:, :n * b].reshape(-1, n, b), X[:, n * b:],
+        yield Rows(seg.stamps_ns[core], X[:, :n * b].reshape(-1, n, b),
+                   X[:, n * b:n * b + n],
                    mask=None if mask is None else mask[c:c + per_chunk],
-                   index=seg.offset + np.minimum(core, len(seg.q) - 1) + 1)
+                   index=seg.offset + np.minimum(core, len(seg.q) - 1) + 1,
+                   features=X[:, n * b + n:].reshape(-1, n, F.shape[2]))
 
 
 def fourier_fit(x: np.ndarray, period: float, max_harmonics: int, min_harmonics: int = 1,
@@ -379,7 +390,7 @@ def _periodic_rows(stream: Stream, robot: RobotModel, base: BaseParameters, peri
         avg_qd = period_average(t, stream.qd, period)
         info['velocity_fit_rms'] = np.sqrt(np.mean((avg_qd.mean - qd) ** 2, axis=0)).tolist()
     stamps = stream.stamps_ns[0] + np.round(avg_tau.t * 1e9).astype(np.int64)
-    return Rows(stamps, Yb, avg_tau.mean, scale, mask), info
+    return Rows(stamps, Yb, avg_tau.mean, scale, mask, features=model_features(q, qd)), info
 
 
 # -- series for plots ---------------------------------------------------------------------------
@@ -458,6 +469,8 @@ class Identification:
     fit_equations: NormalEquations | None = None
     fit_weights: np.ndarray | float = 1.0
     consistent: ConsistentEstimate | None = None
+    # what the user should know: a missing model term (model_terms.py), locked joints
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def estimate(self) -> np.ndarray:
@@ -514,6 +527,7 @@ class _Accumulator:
         self.fit = ResidualStatistics(b, n, RESIDUAL_BLOCK)
         self.plain = ResidualStatistics(b, n, RESIDUAL_BLOCK)
         self.counts = np.zeros(n)
+        self.terms = ModelTermStatistics(n, b + 1)   # over the fit's (scaled) equations
 
     def add(self, rows: Rows) -> None:
         m = np.ones(rows.tau.shape) if rows.mask is None else rows.mask.astype(float)
@@ -523,7 +537,14 @@ class _Accumulator:
         if rows.scale is None:
             self.fit = self.plain
         else:
-            self.fit.add(Y * rows.scale[..., None], tau * rows.scale)
+            Y, tau = Y * rows.scale[..., None], tau * rows.scale
+            self.fit.add(Y, tau)
+        if rows.features is not None:
+            f = rows.features * m[..., None]
+            f[..., 0] = m   # the equations counted, not the filtered ones feature
+            if rows.scale is not None:   # weighted sums, as the fit's: sum s^2 f r ...
+                f *= rows.scale[..., None]
+            self.terms.add(f, np.concatenate([Y, tau[..., None]], axis=2))
 
     def solve(self) -> WeightedFit:
         equations = NormalEquations(self.fit.normal_equations().augmented, self.counts)
@@ -546,7 +567,8 @@ def _condition(residuals: ResidualStatistics) -> float:
 
 
 def _reversal_speed(settings: Settings, robot: RobotModel) -> float | None:
-    return float(settings['coulomb_exclusion_speed']) if 'fc' in robot.extras else None
+    speed = float(settings['coulomb_exclusion_speed'])
+    return speed if 'fc' in robot.extras and speed > 0 else None
 
 
 def _harmonics(options: BatchOptions) -> tuple[float, int | None, int, int]:
@@ -645,6 +667,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
     fit = acc.solve()
     info['raw_samples'] = samples.num_samples
     info['excluded_equations'] = int(info['rows'] * n - acc.counts.sum())
+    info['excluded_per_joint'] = dict(zip(robot.joint_names, (
+        info['rows'] - acc.counts).astype(int).tolist()))
     info['fit_ratio'] = fit.s2
     if options.period is None and acc.fit.blocks >= 10 and fit.s2 > 0:
         # Long-run over plain residual variance: about 1 when the rows' residuals are white.
@@ -666,7 +690,11 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
                          samples.num_samples, info['rows']),
         history, TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
                               samples.first_ns), info,
-        fit_equations=acc.fit.normal_equations(), fit_weights=fit.weights)
+        fit_equations=acc.fit.normal_equations(), fit_weights=fit.weights,
+        warnings=exclusion_warnings(robot.joint_names, info['rows'] - acc.counts,
+                                    info['rows'], settings['coulomb_exclusion_speed'])
+        + missing_term_warnings(acc.terms, fit.theta, acc.fit.rss(fit.theta),
+                                robot.joint_names, robot.extras))
 
 
 def _checkpoint(history: list, acc: _Accumulator, samples: int, stamp_ns: int) -> None:
@@ -749,8 +777,24 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
         list(result.history), series,
         {'processing': 'smoothed', 'smoother_half_window': int(p.config.half_window),
          'smoother_order': int(p.config.smoother_order),
-         'forgetting_factor': float(p.config.forgetting)}, p,
-        *pipeline_equations(p))
+         'forgetting_factor': float(p.config.forgetting),
+         'excluded_equations': p.excluded_rows,
+         'excluded_per_joint': dict(zip(p.robot.joint_names,
+                                        p.excluded_equations.tolist()))}, p,
+        *pipeline_equations(p),
+        warnings=exclusion_warnings(p.robot.joint_names, p.excluded_equations, p.used,
+                                    p.config.coulomb_exclusion_speed)
+        + p.model_term_warnings())
+
+
+def exclusion_warnings(joints: list[str], excluded: np.ndarray, total: int, speed: float,
+                       most: float = 0.5) -> list[str]:
+    """Warnings for the joints of which more than ``most`` of the ``total`` equations were
+    left out near velocity reversals (``excluded`` (n,))."""
+    share = np.asarray(excluded, dtype=float) / max(int(total), 1)
+    return [f'{j}: {100 * f:.0f} % of its equations left out near velocity reversals '
+            f'(coulomb_exclusion_speed {speed:g}): a slow joint; lower coulomb_exclusion_speed '
+            'or set it to 0' for j, f in zip(joints, share) if f > most]
 
 
 def make_consistent(ident: Identification, options: ConsistencyOptions | None,

@@ -56,6 +56,39 @@ def bag_robot(bag: str | os.PathLike, settings: Settings) -> RobotModel:
                       coulomb_velocity=settings['coulomb_velocity'])
 
 
+def bag_joint_names(bag: str | os.PathLike, topic: str = JOINT_STATES) -> list[str]:
+    """The joint names of the bag's first joint state message on ``topic`` (empty: none)."""
+    with open_bag(bag) as reader:
+        if topic not in reader.topics:
+            return []
+        for _, block in iter_joint_state_blocks(reader, topic):
+            return [str(n) for n in block.names]
+    return []
+
+
+def robot_for_bag(robot: RobotModel, settings: Settings, bag: str | os.PathLike,
+                  topic: str = JOINT_STATES) -> tuple[RobotModel, list[str]]:
+    """(robot, locked): without ``joints`` in the settings, the robot's movable joints that
+    the bag's joint states carry, the others locked at their zero position (their links
+    merged into their parents), and those locked; the robot unchanged when the bag carries
+    all of them, or none (the pipeline then says which are missing)."""
+    if settings['joints']:
+        return robot, []
+    names = set(bag_joint_names(bag, topic))
+    carried = [j for j in robot.joint_names if j in names]
+    locked = [j for j in robot.joint_names if j not in names]
+    if not carried or not locked:
+        return robot, []
+    return load_robot(robot.description, carried, extras=robot.extras,
+                      coulomb_velocity=robot.coulomb_velocity), locked
+
+
+def locked_warning(robot: RobotModel, locked: list[str], topic: str = JOINT_STATES) -> str:
+    """The warning naming the joints robot_for_bag locked."""
+    return (f"joint(s) {', '.join(locked)} of {robot.name} are not in the bag's {topic}: "
+            f"locked at their zero position; identifying {', '.join(robot.joint_names)}")
+
+
 def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                  batch: int = 1000, checkpoints: int = 50,
@@ -88,21 +121,33 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     out = pipeline.process(flush=True)
     if on_output is not None:
         on_output(out)
-    check_usable(pipeline.used, pipeline.rejected, bag, topics, counts)
+    check_usable(pipeline.used, pipeline.rejected, bag, topics, counts,
+                 pipeline.samples.counters, pipeline.robot.joint_names)
     result.history.append(_checkpoint(pipeline))
     return result
 
 
 def check_usable(used: int, rejected: dict[str, int], bag, topics: list[str],
-                 counts: dict[str, int]) -> None:
+                 counts: dict[str, int], counters=None, joints: list[str] | None = None
+                 ) -> None:
     """IdentificationError saying why, when no sample of the bag could be used (``used``
-    samples, ``rejected`` messages per reason)."""
+    samples, ``rejected`` messages per reason), naming the identified ``joints`` and those
+    the messages lacked (validate.Counters ``counters``)."""
     if used == 0:
         rejected = {k: v for k, v in rejected.items() if v}
+        lacking = []
+        if counters is not None and counters.missing_joints:
+            lacking.append(f'{topics[0]} lacks joint(s) '
+                           f'{", ".join(sorted(counters.missing_joints))}')
+        if counters is not None and counters.missing_current_joints:
+            lacking.append(f'{topics[-1]} lacks the current channels of joint(s) '
+                           f'{", ".join(sorted(counters.missing_current_joints))}')
         raise IdentificationError(
             f'no usable samples in {bag} (messages on {", ".join(topics)}: '
-            f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}); check '
-            'the joint names and the torque sources (--config)')
+            f'{sum(counts.get(t, 0) for t in topics)}; rejected: {rejected or "none"}'
+            + ''.join(f'; {x}' for x in lacking) + ')'
+            + (f'; identified joints: {", ".join(joints)}' if joints else '')
+            + '; check the joint names and the torque sources (--config)')
 
 
 def feed_records(reader, pipeline, topics: list[str], batch: int,

@@ -104,6 +104,13 @@ class IdentificationPipeline:
     restarts = property(lambda self: self.samples.counters.restarts, doc='stream restarts')
     excluded_rows = property(lambda self: self.estimator.excluded_rows,
                              doc='joint equations left out near velocity reversals')
+    excluded_equations = property(lambda self: self.estimator.excluded.copy(),
+                                  doc='(n,) per joint: equations left out near reversals')
+
+    def model_term_warnings(self) -> list[str]:
+        """Joints whose residual correlates with sign(qd), qd or q (model_terms.py): the
+        likely missing term named."""
+        return self.estimator.model_term_warnings(self.robot.joint_names, self.robot.extras)
     epoch_ns = property(lambda self: self.samples.counters.epoch_ns,
                         doc='the first stamp (ns): time zero of the float stamps')
     velocity_measured = property(lambda self: self.samples.velocity_measured)
@@ -160,7 +167,7 @@ class IdentificationPipeline:
                 return PipelineOutput.empty(self.robot.dof)
         stamps_ns = self.samples.counters.stamps_ns(r.t)
         if not self.frozen:
-            est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns)
+            est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns, q=r.q)
             self.used += len(r.t)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, r.q, r.qd, r.qdd, r.tau, predicted)

@@ -23,6 +23,7 @@ import numpy as np
 
 from identification_node.errors import IdentificationError
 from identification_node.estimation.lsq import row_information
+from identification_node.estimation.model_terms import ModelTermStatistics, features
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.robust import InnovationGate
@@ -89,7 +90,9 @@ class OnlineEstimate:
         self._residuals = ResidualStatistics(self.num_base, self.dof, self._block)
         self._updates: list[tuple] = []
         self._pending_samples = 0
-        self.excluded_rows = 0
+        self.excluded = np.zeros(self.dof, dtype=np.int64)   # per joint, near reversals
+        self._excluded_restored = 0
+        self.terms = ModelTermStatistics(self.dof, self.num_base + 1)
         self.numerical_failures = 0
         self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
         self._next_arm = 0                       # samples at which arming is asked next
@@ -108,11 +111,12 @@ class OnlineEstimate:
         return not self._updates
 
     def add(self, rows: np.ndarray, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-            stamps_ns: np.ndarray | None = None) -> None:
+            stamps_ns: np.ndarray | None = None, q: np.ndarray | None = None) -> None:
         """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n):
         weighted (in place) and queued; applied once ``update_batch`` samples are gathered.
         ``stamps_ns`` (N,) int64, the samples' stamps: the residual blocks restart where they
-        cross a multiple of RESIDUAL_GRID."""
+        cross a multiple of RESIDUAL_GRID. With the smoothed q (N, n), the residual's
+        model-term sums (model_terms.py) too."""
         w = self._row_weights(t, qd, qdd)
         self._last_t = float(t[-1]) if len(t) else self._last_t
         used = None
@@ -120,6 +124,12 @@ class OnlineEstimate:
             root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
             rows *= root[:, :, None]
             used = root > 0
+        if q is not None:
+            f = features(q, qd)
+            if used is not None:
+                f *= used[:, :, None]
+            with np.errstate(over='ignore', invalid='ignore'):
+                self.terms.add(f, rows)
         cuts: list[int] = []
         if stamps_ns is not None and len(rows):
             cell = np.asarray(stamps_ns, dtype=np.int64) // RESIDUAL_GRID
@@ -209,23 +219,36 @@ class OnlineEstimate:
         """Take the estimator and residual sums of processed data (e.g. merged over many
         bags, fleet.py); nothing gathered stays pending."""
         self.reset()
-        self._rls, self._residuals, self.excluded_rows = rls, residuals, int(excluded_rows)
+        self._rls, self._residuals = rls, residuals
+        self._excluded_restored = int(excluded_rows)   # per joint not known
 
     def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
         """Per (sample, joint) weights: the joint weights, and zero for a joint's equation while
         its smoothing window may hold a velocity reversal, |qd| < v_min + |qdd| T_half, when
-        Coulomb friction is identified: there the friction torque turns faster than the
-        smoother resolves (and stiction is not modelled at all)."""
-        if not self.coulomb:
+        Coulomb friction is identified and v_min (coulomb_exclusion_speed) > 0: there a sign
+        friction torque turns faster than the smoother resolves."""
+        if not self.coulomb or self.config.coulomb_exclusion_speed <= 0:
             return self._weights
         period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         reach = (self.config.coulomb_exclusion_speed
                  + np.abs(qdd) * period * float(self.config.half_window))
         slow = np.abs(qd) < reach
-        self.excluded_rows += int(np.count_nonzero(slow))
+        self.excluded += np.count_nonzero(slow, axis=0)
         w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
         w[slow] = 0.0
         return w
+
+    @property
+    def excluded_rows(self) -> int:
+        """Joint equations left out near velocity reversals, all joints."""
+        return int(self.excluded.sum()) + self._excluded_restored
+
+    def model_term_warnings(self, joint_names: list[str], extras: tuple) -> list[str]:
+        """model_terms.missing_term_warnings of the running estimate."""
+        from identification_node.estimation.model_terms import missing_term_warnings
+        theta = self.rls.theta
+        return missing_term_warnings(self.terms, theta, self.residuals.rss(theta),
+                                     joint_names, extras)
 
     # -- results: every gathered row applied first ----------------------------------------------
     @property

@@ -40,6 +40,9 @@ class Counters:
         self.restarts = 0
         self.rejected = dict.fromkeys(REJECT_REASONS, 0)
         self.epoch_ns: int | None = None
+        # identified joints that rejected messages lacked ('missing_joints'), by topic
+        self.missing_joints: set[str] = set()
+        self.missing_current_joints: set[str] = set()
 
     def reject(self, reason: str, count: int = 1) -> None:
         self.rejected[reason] += int(count)
@@ -151,6 +154,10 @@ class JointStateValidator:
             reason = 'missing_effort'
         if reason is not None:
             self.counters.reject(reason, M)
+            if reason == 'missing_joints':
+                names = set(b.names)
+                self.counters.missing_joints.update(
+                    j for j in self.robot.joint_names if j not in names)
             return Samples.empty(n)
         nan = np.full((M, n), np.nan) if not (vel and eff) else None
         s = Samples(self.counters.seconds(b.stamp_ns),
@@ -222,6 +229,11 @@ class CurrentValidator:
                 layout = self.layout(tuple(b.names))
             if isinstance(layout, str):
                 self.counters.reject(layout, M)
+                if layout == 'missing_joints':
+                    names = set(b.names)
+                    self.counters.missing_current_joints.update(
+                        self.robot.joint_names[i] for c, (i, _) in self._channels.items()
+                        if c not in names)
                 continue
             cols, slots, angle_cols, angle_joints = layout
             values = np.asarray(b.effort, dtype=float)[:, cols]

@@ -461,6 +461,9 @@ class IdentificationNode(Node):
                       'gating' if gate.armed else 'waiting for convergence'
                       ) if gate.settings.enabled else 'off'
             shifts, cache = gate.shifts, p.layout_cache_bytes
+            excluded, terms = p.excluded_equations, p.model_term_warnings()
+            counters = p.samples.counters
+            missing = sorted(counters.missing_joints | counters.missing_current_joints)
         now = self.get_clock().now()
         dt = (now - self._last_diag_time).nanoseconds * 1e-9
         rate = (received - self._received_at_last_diag) / dt if dt > 0 else 0.0
@@ -477,6 +480,12 @@ class IdentificationNode(Node):
         if self._consistency:
             status.level = DiagnosticStatus.WARN
             status.message += '; identified parameters not physically consistent'
+        if missing:
+            status.level = DiagnosticStatus.WARN
+            status.message += f"; messages lack joint(s) {', '.join(missing)}"
+        if terms:
+            status.level = DiagnosticStatus.WARN
+            status.message += '; missing model term?'
         values = {
             'input_rate_hz': f'{rate:.1f}', 'samples_received': received,
             'samples_used': used, 'samples_rejected': sum(rejected.values()),
@@ -504,6 +513,12 @@ class IdentificationNode(Node):
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
         values.update({f'residual_rms.{j}': f'{r:.6g}'
                        for j, r in zip(self.robot.joint_names, est.residual_rms)})
+        values.update({f'excluded_equations.{j}': int(k)
+                       for j, k in zip(self.robot.joint_names, excluded)})
+        if missing:
+            values['missing_joints'] = ', '.join(missing)
+        if terms:
+            values['model_term_warnings'] = '; '.join(terms)
         if self._consistency:
             values['consistency_problems'] = '; '.join(self._consistency)
         if self.payload is not None:
