@@ -11,7 +11,8 @@ is identified from a training bag with the default extras (fv, fc, fo) by the st
 pipeline (``identify``'s default) and by ``--method batch``, once per Coulomb treatment:
 
 - ``exclusion``: sign(qd) in the regressor, a joint's equations left out while
-  |qd| < 0.1 rad/s + |qdd| T_half (the former default),
+  |qd| < 0.1 rad/s + |qdd| T_half (batch: |qd| < 0.1 rad/s within the filter's reach),
+- ``sign``: sign(qd), no equation left out (coulomb_exclusion_speed 0),
 - ``tanh V``: tanh(qd / V) in the regressor, no equation left out.
 
 Figures: the held-out stacked torque error 100 ||tau - tau_hat||_2 / ||tau||_2 over all joints

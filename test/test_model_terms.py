@@ -209,9 +209,15 @@ def partial_bag(tmp_path_factory):
                      description=full.description), arm3
 
 
-def test_the_joints_the_bag_carries_are_identified_and_the_others_locked(partial_bag, capsys):
+def test_the_joints_the_bag_carries_are_identified_and_the_others_locked(
+        partial_bag, capsys, tmp_path):
     bag, arm3 = partial_bag
-    assert main(['identify', str(bag), '--extras', 'none', '--json']) == 0
+    # per-joint lists of one value per movable joint follow the joints kept (else: 'kt has
+    # 6 values; give 1 or one per joint')
+    config = tmp_path / 'config.yaml'
+    config.write_text('kt: [1, 2, 3, 4, 5, 6]\n')
+    assert main(['identify', str(bag), '--extras', 'none', '--json', '--config',
+                 str(config)]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc['robot'] == 'crs_a465'     # the URDF's <robot name>, from /robot_description
     assert doc['joints'] == ['joint1', 'joint2', 'joint3']

@@ -403,7 +403,7 @@ def run(args: argparse.Namespace) -> int:
         check_predictions(args.predictions)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
-    robot, locked = robot_for_bag(robot, settings, args.bag, args.joint_states_topic)
+    robot, settings, locked = robot_for_bag(robot, settings, args.bag, args.joint_states_topic)
     from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:

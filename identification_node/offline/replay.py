@@ -19,7 +19,7 @@ from identification_node.errors import IdentificationError
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.offline.windows import TimeWindow, empty_window_error, in_window
 from identification_node.pipeline import IdentificationPipeline, PipelineOutput
-from identification_node.settings import Settings
+from identification_node.settings import PER_JOINT, Settings
 from identification_node.wire.records import JointStateRecord
 
 JOINT_STATES = '/joint_states'
@@ -67,20 +67,27 @@ def bag_joint_names(bag: str | os.PathLike, topic: str = JOINT_STATES) -> list[s
 
 
 def robot_for_bag(robot: RobotModel, settings: Settings, bag: str | os.PathLike,
-                  topic: str = JOINT_STATES) -> tuple[RobotModel, list[str]]:
-    """(robot, locked): without ``joints`` in the settings, the robot's movable joints that
-    the bag's joint states carry, the others locked at their zero position (their links
-    merged into their parents), and those locked; the robot unchanged when the bag carries
-    all of them, or none (the pipeline then says which are missing)."""
+                  topic: str = JOINT_STATES) -> tuple[RobotModel, Settings, list[str]]:
+    """(robot, settings, locked): without ``joints`` in the settings, the robot's movable
+    joints that the bag's joint states carry, the others locked at their zero position (their
+    links merged into their parents), the settings' per-joint lists of one value per movable
+    joint cut to them, and the joints locked; all unchanged when the bag carries every
+    movable joint, or none (the pipeline then says which are missing)."""
     if settings['joints']:
-        return robot, []
+        return robot, settings, []
     names = set(bag_joint_names(bag, topic))
     carried = [j for j in robot.joint_names if j in names]
     locked = [j for j in robot.joint_names if j not in names]
     if not carried or not locked:
-        return robot, []
-    return load_robot(robot.description, carried, extras=robot.extras,
-                      coulomb_velocity=robot.coulomb_velocity), locked
+        return robot, settings, []
+    keep = [robot.joint_names.index(j) for j in carried]
+    values = dict(settings.values)
+    for name in PER_JOINT + ('joint_noise_std', 'plausibility.current_limit'):
+        if len(values[name]) == robot.dof > 1:
+            values[name] = [values[name][i] for i in keep]
+    return (load_robot(robot.description, carried, extras=robot.extras,
+                       coulomb_velocity=robot.coulomb_velocity),
+            Settings(values, settings.given), locked)
 
 
 def locked_warning(robot: RobotModel, locked: list[str], topic: str = JOINT_STATES) -> str:
