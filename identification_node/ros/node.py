@@ -109,8 +109,8 @@ def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescrip
 def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str, Any]:
     """Declare every parameter of ``table`` (name: (default, description)) read-only, typed
     and ranged (parameter_descriptor; Settings validates the rest), and return those given;
-    lists with an empty default stay unset unless given. A value rclpy refuses (type,
-    range) raises IdentificationError naming the parameter."""
+    lists with an empty default stay unset unless given; a list given as [] is []. A value
+    rclpy refuses (type, range) raises IdentificationError naming the parameter."""
     values = {}
     for name, (default, text) in table.items():
         descriptor = parameter_descriptor(name, default, text)
@@ -122,6 +122,8 @@ def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str,
         if value is not None:
             values[name] = list(value) if isinstance(value, (list, tuple)) or hasattr(
                 value, 'typecode') else value
+        elif initial is not None and isinstance(default, list):
+            values[name] = []   # given as [] (rcl leaves an empty list's type unset)
     return values
 
 
