@@ -116,6 +116,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
 # List parameters of floats whose default is empty (their element type cannot be read off).
 FLOAT_LISTS = ('joint_noise_std', 'plausibility.current_limit', 'consistency.mass_min',
                'consistency.mass_max', 'consistency.com_box')
+# List parameters with a default for which [] is a value too (ROS types [] as bytes).
+EMPTY_LISTS = ('extras',)
 
 # Inclusive ranges of numeric parameters: the node's typed parameter descriptors carry them and
 # Settings checks them, for the node and the offline configuration alike (bounds that exclude

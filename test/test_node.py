@@ -164,7 +164,8 @@ class Stream:
             publish_electrical_angle=spec['electrical_angle'],
             true_parameters_file=str(true_file), **POSITION_NOISE,
             **{'noise.torque_std': spec['torque_std'], 'noise.current_std': spec['current_std']})
-        common = dict(FAST, robot=spec['robot'], output_directory=str(tmp / 'out'),
+        # the simulated arms have no friction; not what these tests check: no columns
+        common = dict(FAST, robot=spec['robot'], extras=[], output_directory=str(tmp / 'out'),
                       **reliable(prefix))
         self.names = (f'{prefix}_measured', f'{prefix}_currents')
         # The torque noise from the currents differs per joint (kt, gear ratio): the estimate
@@ -245,7 +246,8 @@ def mit(ros, diag, tmp_path_factory):
     stream = Stream(ros, diag, MIT, tmp, 'mit')
     # One more node, in this process, for the services and parameters.
     stream.services = start_node(ros, 'services', {
-        'robot': 'mit_dd_arm', 'process_period': 0.01, 'publish.estimate_rate': 5.0,
+        'robot': 'mit_dd_arm', 'extras': [], 'process_period': 0.01,
+        'publish.estimate_rate': 5.0,
         'publish.diagnostics_rate': 5.0, 'publish.effort_rate': 10.0,
         'output_directory': str(tmp / 'saved')}, 'mit')
     stream.start(tmp, subscriptions=4)    # joint_states: 3 nodes, motor_currents: 1
@@ -767,15 +769,15 @@ def test_parameters_are_typed_and_ranged_by_the_settings_table(ros):
     """Each parameter's descriptor has the type of its default in settings.PARAMETERS and the
     range of settings.RANGES; the values given are the node's (its settings agree)."""
     from rcl_interfaces.msg import ParameterType
-    from identification_node.settings import PARAMETERS, RANGES
+    from identification_node.settings import EMPTY_LISTS, PARAMETERS, RANGES
     node = start_node(ros, 'typed', {'robot': 'mit_dd_arm', 'forgetting_factor': 0.95,
-                                     'joints': ['joint2', 'joint1']}, 'typed')
+                                     'joints': ['joint2', 'joint1'], 'extras': []}, 'typed')
     try:
         names = list(PARAMETERS)
         for name, d in zip(names, node.describe_parameters(names)):
             default = PARAMETERS[name][0]
-            # an empty default list cannot be typed in rclpy (see parameter_descriptor)
-            assert d.read_only and d.dynamic_typing == (default == [])
+            # an empty list cannot be typed in rclpy (see parameter_descriptor)
+            assert d.read_only and d.dynamic_typing == (default == [] or name in EMPTY_LISTS)
             if isinstance(default, list):
                 continue
             assert d.type == {bool: ParameterType.PARAMETER_BOOL,
@@ -789,6 +791,7 @@ def test_parameters_are_typed_and_ranged_by_the_settings_table(ros):
         assert node.settings['forgetting_factor'] == 0.95
         assert node.settings['joints'] == ['joint2', 'joint1']
         assert node.robot.joint_names == ['joint2', 'joint1']
+        assert node.settings['extras'] == [] and node.robot.extras == ()   # given empty
     finally:
         ros.remove(node)
 

@@ -61,7 +61,8 @@ from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
 from identification_node.ros.payload_outputs import PayloadOutputs
 from identification_node.ros.spin import PeriodicThread, run_node
-from identification_node.settings import PARAMETERS, RANGES, Settings, element_type
+from identification_node.settings import (EMPTY_LISTS, PARAMETERS, RANGES, Settings,
+                                          element_type)
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -86,12 +87,13 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
     """The read-only, typed descriptor of a settings table entry, with its range from
-    settings.RANGES. Lists with an empty default stay dynamically typed (Settings checks
-    them): rclpy declares a typed parameter without a value uninitialized, which its
-    parameter services then fail to report, and types an empty list as bytes."""
+    settings.RANGES. Lists with an empty default, or which may be empty (settings.
+    EMPTY_LISTS), stay dynamically typed (Settings checks them): rclpy declares a typed
+    parameter without a value uninitialized, which its parameter services then fail to
+    report, and types an empty list as bytes."""
     d = ParameterDescriptor(description=text, read_only=True)
     if isinstance(default, list):
-        if default:
+        if default and name not in EMPTY_LISTS:
             d.type = _ARRAY_TYPES[element_type(name, default)].value
         else:
             d.dynamic_typing = True
