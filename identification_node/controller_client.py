@@ -106,6 +106,8 @@ class IdentifiedModel:
             client.close()
         if not isinstance(robot, RobotModel):
             model = {k: values[k] for k in MODEL_PARAMETERS if values[k] is not None}
+            if values['extras'] is None:   # declared with its default unless given as []
+                model['extras'] = []
             if isinstance(robot, str):
                 model.update(robot=robot, robot_description='')
             robot = Settings.from_dict(model).load_robot()
