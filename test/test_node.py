@@ -651,6 +651,9 @@ def test_bad_input_is_rejected_and_counted(ros, diag, tmp_path):
                 'repeated_stamp': 1, 'out_of_order': 1, 'no_current': 20,
                 'unmatched_current': 30, 'unknown_channels': 1, 'malformed': 1}
     assert {k: v for k, v in rejected.items() if k != 'stream_restart' and v} == expected
+    assert values['missing_joints'] == 'joint3'   # the joint the two messages lacked
+    # friction on by default: the equations left out near velocity reversals, per joint
+    assert all(int(values[f'excluded_equations.{j}']) > 0 for j in robot.joint_names)
     assert int(values['stream_restarts']) == 1
     assert int(values['samples_received']) == total
     # Still running, with a finite estimate from the good samples of both streams.
