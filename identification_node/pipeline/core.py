@@ -106,11 +106,6 @@ class IdentificationPipeline:
                              doc='joint equations left out near velocity reversals')
     excluded_equations = property(lambda self: self.estimator.excluded.copy(),
                                   doc='(n,) per joint: equations left out near reversals')
-
-    def model_term_warnings(self) -> list[str]:
-        """Joints whose residual correlates with sign(qd), qd or q (model_terms.py): the
-        likely missing term named."""
-        return self.estimator.model_term_warnings(self.robot.joint_names, self.robot.extras)
     epoch_ns = property(lambda self: self.samples.counters.epoch_ns,
                         doc='the first stamp (ns): time zero of the float stamps')
     velocity_measured = property(lambda self: self.samples.velocity_measured)
@@ -215,6 +210,11 @@ class IdentificationPipeline:
     def noise_variance(self) -> np.ndarray:
         """Per-joint long-run variance of the torque residual (N m)^2."""
         return self.estimator.noise_variance()
+
+    def model_term_warnings(self) -> list[str]:
+        """Joints whose residual correlates with sign(qd), qd or q (model_terms.py): the
+        likely missing term named."""
+        return self.estimator.model_term_warnings(self.robot.joint_names, self.robot.extras)
 
     @property
     def covariance(self) -> np.ndarray:

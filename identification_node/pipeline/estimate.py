@@ -23,7 +23,8 @@ import numpy as np
 
 from identification_node.errors import IdentificationError
 from identification_node.estimation.lsq import row_information
-from identification_node.estimation.model_terms import ModelTermStatistics, features
+from identification_node.estimation.model_terms import (ModelTermStatistics, features,
+                                                        missing_term_warnings)
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.robust import InnovationGate
@@ -124,12 +125,13 @@ class OnlineEstimate:
             root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
             rows *= root[:, :, None]
             used = root > 0
-        if q is not None:
+        if q is not None:   # rows that overflow (dropped when applied) left out here too
             f = features(q, qd)
             if used is not None:
                 f *= used[:, :, None]
             with np.errstate(over='ignore', invalid='ignore'):
-                self.terms.add(f, rows)
+                ok = np.isfinite(np.square(rows).sum(axis=(1, 2)))
+            self.terms.add(f[ok], rows[ok])
         cuts: list[int] = []
         if stamps_ns is not None and len(rows):
             cell = np.asarray(stamps_ns, dtype=np.int64) // RESIDUAL_GRID
@@ -245,7 +247,6 @@ class OnlineEstimate:
 
     def model_term_warnings(self, joint_names: list[str], extras: tuple) -> list[str]:
         """model_terms.missing_term_warnings of the running estimate."""
-        from identification_node.estimation.model_terms import missing_term_warnings
         theta = self.rls.theta
         return missing_term_warnings(self.terms, theta, self.residuals.rss(theta),
                                      joint_names, extras)
