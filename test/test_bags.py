@@ -36,11 +36,9 @@ def settings(config):
 
 
 def true_base_parameters(bag, names):
-    """The base parameters ``names`` the bundled bag was simulated with; a torque offset
-    (fo) its true_parameters.yaml does not list is 0 (the simulated arms have none)."""
+    """The base parameters ``names`` the bundled bag was simulated with."""
     truth = yaml.safe_load((REPO / 'bags' / bag / 'true_parameters.yaml').read_text())
-    table = truth['base_parameters']
-    return np.array([table[n] if n in table or not n.endswith('.fo') else 0.0 for n in names])
+    return np.array([truth['base_parameters'][n] for n in names])
 
 
 @pytest.mark.parametrize('bag', sorted(BAGS))
