@@ -41,7 +41,12 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'angle_offset': ([0.0], 'per joint electrical angle offset, rad'),
     'phase_order': (['abc'], 'per joint phase order: abc or acb'),
     'forgetting_factor': (1.0, 'RLS forgetting factor per sample in [0.9, 1]; 1 = none'),
-    'smoother.half_window': (10, 'fixed-lag smoother half window, samples (the delay)'),
+    'smoother.half_window': (0, 'fixed-lag smoother half window, samples (the delay); 0: '
+                             'from smoother.cutoff and the sampling rate; > 0 wins over it'),
+    'smoother.cutoff': (0.0, 'Hz, -3 dB cut-off of the smoother; 0: chosen from the first '
+                        'smoother.auto_seconds of motion (reported)'),
+    'smoother.auto_seconds': (5.0, 's of motion the automatic cut-off is chosen from (held '
+                              'back until then)'),
     'smoother.order': (3, 'polynomial order of the smoother'),
     'smoother.max_gap': (0.05, 's; a larger stamp gap restarts the smoother'),
     'velocity_source': ('auto', 'auto, measured or differentiate'),
@@ -126,7 +131,9 @@ EMPTY_LISTS = ('extras',)
 RANGES: dict[str, tuple[float, float]] = {
     'coulomb_velocity': (0.0, math.inf),
     'forgetting_factor': (0.9, 1.0),
-    'smoother.half_window': (1, 10_000),
+    'smoother.half_window': (0, 10_000),
+    'smoother.cutoff': (0.0, 1e6),
+    'smoother.auto_seconds': (0.1, 3600.0),
     'smoother.order': (2, 4),
     'update_batch': (1, 10**9),
     'coulomb_exclusion_speed': (0.0, math.inf),
@@ -138,6 +145,7 @@ PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 
 CONFIG_FIELD_PARAMETERS = {
     'forgetting': 'forgetting_factor', 'half_window': 'smoother.half_window',
     'smoother_order': 'smoother.order', 'max_gap': 'smoother.max_gap',
+    'cutoff': 'smoother.cutoff', 'auto_seconds': 'smoother.auto_seconds',
     'velocity': 'velocity_source'}
 
 
@@ -267,6 +275,7 @@ class Settings:
         return PipelineConfig(
             torque=self.torque_configs(joints), forgetting=v['forgetting_factor'],
             half_window=v['smoother.half_window'], smoother_order=v['smoother.order'],
+            cutoff=v['smoother.cutoff'], auto_seconds=v['smoother.auto_seconds'],
             max_gap=v['smoother.max_gap'], velocity=v['velocity_source'],
             align_tolerance=v['align_tolerance'], hold_time=v['hold_time'],
             restart_jump=v['restart_jump'], update_batch=v['update_batch'],

@@ -754,7 +754,7 @@ def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):
 # -- start-up -------------------------------------------------------------------------------------
 @pytest.mark.parametrize('params, name', [
     ({'forgetting_factor': 2.0}, 'forgetting_factor'),
-    ({'smoother.half_window': 0}, 'smoother.half_window'),
+    ({'smoother.half_window': -1}, 'smoother.half_window'),
     ({'torque_source': ['warp']}, 'torque_source'),
     ({'kt': [1.0, 2.0]}, 'kt'),
     ({'process_period': -1.0}, 'process_period'),

@@ -83,7 +83,7 @@ def test_measured_torque_converges_to_truth():
     out = feed(p, joint_records(sim))
     est = p.estimate()
     assert sum(p.rejected.values()) == 0
-    assert est.num_samples == len(sim) - 2 * p.config.half_window
+    assert est.num_samples == len(sim) - 2 * p.smoother.half_window
     assert_within_3_sigma(est)
     # Output stamps are the samples' own stamps, to the nanosecond.
     k = index_of(sim, out['stamps_ns'])
@@ -299,7 +299,7 @@ def test_stream_stops_and_restarts():
     assert sum(p.rejected.values()) == 0
     assert np.all(np.isfinite(p.estimate().values))
     # Each smoother restart loses one window: 3 segments.
-    assert p.used == len(js) - 500 - 3 * 2 * p.config.half_window
+    assert p.used == len(js) - 500 - 3 * 2 * p.smoother.half_window
 
 
 def test_freeze_and_reset():
@@ -451,7 +451,7 @@ def test_shared_information_equals_the_checked_estimator_calls(forgetting, extra
 
 
 @pytest.mark.parametrize('field, value', [
-    ('forgetting', 1.5), ('half_window', 0), ('velocity', 'guess'), ('align_tolerance', -1.0),
+    ('forgetting', 1.5), ('half_window', -1), ('velocity', 'guess'), ('align_tolerance', -1.0),
     ('joint_noise_std', [1.0]), ('max_gap', float('nan'))])
 def test_bad_configuration_names_the_parameter(field, value):
     from identification_node.errors import IdentificationError

@@ -26,6 +26,8 @@ class PipelineConfig:
     forgetting: float = _default('forgetting')
     half_window: int = _default('half_window')
     smoother_order: int = _default('smoother_order')
+    cutoff: float = _default('cutoff')            # Hz; 0: chosen from the data
+    auto_seconds: float = _default('auto_seconds')
     max_gap: float = _default('max_gap')
     velocity: str = _default('velocity')
     align_tolerance: float = _default('align_tolerance')
@@ -46,9 +48,11 @@ class PipelineConfig:
         """Raise IdentificationError naming the first bad field."""
         checks = [
             ('forgetting', 0.9 <= self.forgetting <= 1.0, 'in [0.9, 1.0]'),
-            ('half_window', int(self.half_window) >= 1, '>= 1'),
-            ('smoother_order', 2 <= int(self.smoother_order) <= min(4, 2 * self.half_window),
-             'in [2, min(4, 2 * half_window)]'),
+            ('half_window', int(self.half_window) >= 0, '>= 0 (0: from the cut-off)'),
+            ('smoother_order', 2 <= int(self.smoother_order)
+             <= min(4, 2 * self.half_window or 4), 'in [2, min(4, 2 * half_window)]'),
+            ('cutoff', self.cutoff >= 0, '>= 0 Hz (0: chosen from the data)'),
+            ('auto_seconds', self.auto_seconds > 0, '> 0 s'),
             ('max_gap', self.max_gap > 0, '> 0'),
             ('velocity', self.velocity in ('auto', 'measured', 'differentiate'),
              "'auto', 'measured' or 'differentiate'"),

@@ -55,8 +55,10 @@ class IdentificationPipeline:
         self.samples = TorqueSamples(robot, self.config)
         self.converter = self.samples.converter
         c = self.config
+        weights = (np.asarray(c.joint_noise_std, dtype=float) ** -2 if len(c.joint_noise_std)
+                   else None)
         self.row_builder = RowBuilder(robot, self.base, c.half_window, c.smoother_order,
-                                      c.max_gap)
+                                      c.max_gap, c.cutoff, c.auto_seconds, weights)
         self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
                                         'fc' in robot.extras, self.samples.counters.reject)
         self.gate = self.estimator.gate    # robust.InnovationGate: listeners, events, counts
@@ -130,24 +132,49 @@ class IdentificationPipeline:
         self._last_output_stamp = math.nan
 
     @property
+    def smoother(self):
+        """The smoother in use (rows.SmootherChoice: half window, cut-off, rate, delay, how
+        it was set); None while the first samples are held back to choose it."""
+        return self.row_builder.choice
+
+    @property
     def delay(self) -> float:
-        """Smoother delay in samples; multiply by the sample period for seconds."""
-        return float(self.config.half_window)
+        """Smoother delay in samples (NaN while it is being chosen); ``smoother.delay`` in
+        seconds."""
+        choice = self.row_builder.choice
+        return math.nan if choice is None else float(choice.half_window)
 
     # -- processing -----------------------------------------------------------------------------
     def process(self, flush: bool = False) -> PipelineOutput:
         """Work through everything queued. ``flush`` decides joint states still waiting for
         currents (end of a bag) instead of holding them for ``hold_time``."""
         s = self.samples.process(flush)
+        outputs = []
         if self.samples.counters.restarts != self._restarts_seen:
             self._restarts_seen = self.samples.counters.restarts
+            held = self.row_builder.drain(self.samples.velocity_measured)
+            if held is not None:     # the samples the smoother's choice waited for
+                outputs.append(self._use(held))
             self.row_builder.reset()
             self.estimator.end_stream()
-        if len(s) == 0:
+        if len(s) or flush:
+            est = self.estimator
+            outputs.append(self._use(self.row_builder(
+                s, self.samples.velocity_measured,
+                self.config.update_batch if est.batch_due and not outputs else None, flush)))
+        outputs = [o for o in outputs if len(o.stamps_ns)]
+        if not outputs:
             return PipelineOutput.empty(self.robot.dof)
+        if len(outputs) == 1:
+            return outputs[0]
+        return PipelineOutput(*(np.concatenate(a) for a in zip(*(
+            (o.stamps_ns, o.q, o.qd, o.qdd, o.measured, o.predicted) for o in outputs))))
+
+    def _use(self, r) -> PipelineOutput:
+        """Rows (rows.Rows) checked, predicted and given to the estimator."""
         est = self.estimator
-        r = self.row_builder(s, self.samples.velocity_measured,
-                             self.config.update_batch if est.batch_due else None)
+        if est.half_window != self.row_builder.half_window:
+            est.set_smoother(self.row_builder.half_window, self.config.smoother_order)
         if len(r.t) == 0:
             return PipelineOutput.empty(self.robot.dof)
         predicted = r.rows[:, :, :self.base.num_base] @ est.theta

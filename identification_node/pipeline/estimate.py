@@ -32,6 +32,7 @@ from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.signals import smoothing_noise_gain
 
 # What the numerical update may raise on absurd data: caught, the estimator rolled back.
+PROVISIONAL_HALF_WINDOW = 10   # samples: residual blocks before the smoother is chosen
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, IdentificationError)
 # The residual blocks restart where the stamps (ns since 1970) cross a multiple of this, 60 s:
 # which block a sample falls in then depends on its stamp and the samples since the last
@@ -78,13 +79,28 @@ class OnlineEstimate:
         self.num_base, self.dof, self.config, self.coulomb = num_base, dof, config, coulomb
         self._reject = reject    # reject(reason, count): where dropped samples are counted
         self.gate = InnovationGate(config.robust)
-        self._block = 8 * (2 * int(config.half_window) + 1)   # residual blocks: 8 windows
-        self._white_scale = 1.0 / smoothing_noise_gain(int(config.half_window),
-                                                       int(config.smoother_order))
+        self.half_window: int | None = None
+        # until the smoother is chosen (rows.RowBuilder), a stand-in for the block length
+        self._set_smoother(int(config.half_window) or PROVISIONAL_HALF_WINDOW,
+                           int(config.smoother_order))
+        self.half_window = int(config.half_window) or None
         # Inverse-variance weights per joint (RLS weights multiply squared residuals).
         self._weights = (np.asarray(config.joint_noise_std, dtype=float) ** -2
                          if len(config.joint_noise_std) else None)
         self.reset()
+
+    def _set_smoother(self, half_window: int, order: int) -> None:
+        self._block = 8 * (2 * int(half_window) + 1)   # residual blocks: 8 windows
+        self._white_scale = 1.0 / smoothing_noise_gain(int(half_window), int(order))
+        self.half_window = int(half_window)
+
+    def set_smoother(self, half_window: int, order: int) -> None:
+        """The smoother's half window (samples) and order, once chosen: residual blocks of
+        8 windows, the white-noise scale, the reach of the Coulomb exclusion. Before any row
+        (the estimator is reset: its residual sums start with the new blocks)."""
+        self._set_smoother(half_window, order)
+        if self._residuals.count == 0 and not self._updates:
+            self.reset()
 
     def reset(self) -> None:
         self._rls = RecursiveLeastSquares(self.num_base, forgetting=self.config.forgetting)
@@ -233,7 +249,7 @@ class OnlineEstimate:
             return self._weights
         period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         reach = (self.config.coulomb_exclusion_speed
-                 + np.abs(qdd) * period * float(self.config.half_window))
+                 + np.abs(qdd) * period * float(self.half_window or 0))
         slow = np.abs(qd) < reach
         self.excluded += np.count_nonzero(slow, axis=0)
         w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))

@@ -5,10 +5,21 @@ Positions (and measured velocities) and the torque go through the same smoother
 window centre, L samples behind the newest; then Y(q, qd, qdd) (RobotModel.regressor) and the
 base rows [Yb | tau] (BaseParameters' columns). Everything per batch, no loop over samples but
 pinocchio's.
+
+The half window L is given (``half_window`` > 0), or follows from a cut-off in Hz and the
+sampling rate (``cutoff`` > 0), or is chosen from the data (both 0): the samples of the first
+``auto_seconds`` of motion are held back, and :func:`choose_half_window` picks the window on
+them; then they and all later samples go through that one smoother. The choice: least squares
+of the base rows is fitted on those samples for half windows on a geometric grid, and the
+chosen window is the one where the fit's predicted torque changes least between its two
+neighbours on the grid. Too short a window leaves differentiation noise in the regressor
+(errors in variables: a bias toward smaller inertia), too long a one distorts the motion (the
+opposite bias); where neither acts the estimate stands still.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -16,7 +27,85 @@ import numpy as np
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.pipeline.samples import Samples
-from identification_node.pipeline.signals import FixedLagSmoother
+from identification_node.pipeline.signals import (MIN_HALF_WINDOW, FixedLagSmoother,
+                                                  half_window_for_cutoff, smoother_cutoff)
+
+AUTO_GRID = 2.0 ** 0.25   # ratio of neighbouring half windows tried by choose_half_window
+AUTO_ROWS = 800           # samples whose rows the choice fits (evenly spread)
+MOTION = 1e-3             # rad (m): a joint this far from its first position is moving
+AUTO_WAIT = 6.0           # times auto_seconds held at most without enough motion
+FALLBACK_CUTOFF = 5.0     # Hz: the cut-off when the data are too short to choose from
+
+
+@dataclass
+class SmootherChoice:
+    """The smoother in use: half window (samples), polynomial order, the sampling rate (Hz,
+    median of the steps it was chosen on; NaN until samples came) and how it was set:
+    'half_window' (given), 'cutoff' (given in Hz), 'automatic' (chosen from the data) or
+    'fallback' (too few samples to choose from: FALLBACK_CUTOFF)."""
+    half_window: int
+    order: int
+    rate: float = math.nan
+    source: str = 'half_window'
+    seconds: float = 0.0     # s of samples the automatic choice used
+
+    @property
+    def cutoff(self) -> float:
+        """-3 dB frequency (Hz) of the smoothed values at ``rate``."""
+        return (smoother_cutoff(self.half_window, self.order, self.rate)
+                if self.rate > 0 else math.nan)
+
+    @property
+    def delay(self) -> float:
+        """Output lag (s) behind the newest input at ``rate``: half_window / rate."""
+        return self.half_window / self.rate if self.rate > 0 else math.nan
+
+    def document(self) -> dict:
+        return {'half_window': self.half_window, 'order': self.order,
+                'cutoff_hz': self.cutoff, 'rate_hz': self.rate, 'delay_s': self.delay,
+                'window_s': (2 * self.half_window) / self.rate if self.rate > 0 else math.nan,
+                'source': self.source, 'auto_seconds_used': self.seconds}
+
+
+def _rate(stamps: np.ndarray) -> float:
+    return 1.0 / float(np.median(np.diff(stamps))) if len(stamps) > 1 else math.nan
+
+
+def choose_half_window(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
+                       qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
+                       weights: np.ndarray | None = None) -> int | None:
+    """The half window (samples) for samples t (N,) s, q, tau (N, n) and measured qd (N, n)
+    (None: differentiated) by the criterion of the module doc; None when the samples are too
+    few for three candidates. ``weights`` (n,): per-joint weights of the fit."""
+    n, N = robot.dof, len(t)
+    x = np.hstack([q, tau] if qd is None else [q, qd, tau])
+    largest = (N // 3 - 1) // 2
+    grid = sorted({int(round(MIN_HALF_WINDOW * AUTO_GRID ** k)) for k in range(200)
+                   if MIN_HALF_WINDOW * AUTO_GRID ** k <= largest})
+    grid = [L for L in grid if L >= max(MIN_HALF_WINDOW, order)]
+    if len(grid) < 3:
+        return None
+    top = grid[-1]
+    segment = np.concatenate([[0], np.cumsum(np.diff(t) > max_gap)])
+    centres = np.unique(np.linspace(top, N - 1 - top, AUTO_ROWS).round().astype(np.int64))
+    centres = centres[segment[centres - top] == segment[centres + top]]
+    if len(centres) * n < 4 * base.num_base:
+        return None
+    root = None if weights is None else np.sqrt(np.asarray(weights, dtype=float))
+    fits = []
+    for L in grid:
+        v, d, dd = FixedLagSmoother(x.shape[1], L, order).fit_at(t, x, centres)
+        qd_s, qdd_s = (d[:, :n], dd[:, :n]) if qd is None else (v[:, n:2 * n], d[:, n:2 * n])
+        Yb = base.base_regressor(robot.regressor(v[:, :n], qd_s, qdd_s))
+        y = v[:, -n:]
+        if root is not None:
+            Yb, y = Yb * root[None, :, None], y * root
+        A = Yb.reshape(-1, base.num_base)
+        theta = np.linalg.lstsq(A, y.reshape(-1), rcond=None)[0]
+        fits.append((A, theta))
+    change = [np.sqrt(np.mean((fits[i][0] @ (fits[i + 1][1] - fits[i - 1][1])) ** 2))
+              for i in range(1, len(grid) - 1)]
+    return grid[1 + int(np.argmin(change))]
 
 
 class Rows(NamedTuple):
@@ -31,26 +120,47 @@ class Rows(NamedTuple):
 
 
 class RowBuilder:
-    """Smoother, regressor and base rows of ``robot`` for validated samples with torque."""
+    """Smoother, regressor and base rows of ``robot`` for validated samples with torque.
+    ``half_window`` (samples) > 0 fixes the smoother; else ``cutoff`` (Hz) > 0 sets it at the
+    data's sampling rate; else it is chosen from the first ``auto_seconds`` of motion
+    (module doc; ``weights`` (n,): per-joint weights of that choice's fit)."""
 
     def __init__(self, robot: RobotModel, base: BaseParameters, half_window: int, order: int,
-                 max_gap: float):
+                 max_gap: float, cutoff: float = 0.0, auto_seconds: float = 5.0,
+                 weights: np.ndarray | None = None):
         self.robot, self.base = robot, base
-        self.half_window, self.order, self.max_gap = int(half_window), int(order), max_gap
+        self.order, self.max_gap = int(order), max_gap
+        self.cutoff, self.auto_seconds, self.weights = float(cutoff), float(auto_seconds), weights
+        self.choice: SmootherChoice | None = (
+            SmootherChoice(int(half_window), self.order) if half_window else None)
+        self._held: list[Samples] = []     # samples waiting for the choice
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._columns = np.append(base.base_index, robot.num_params)
         self._work: dict[str, np.ndarray] = {}
         self.reset_counts()
         self.reset()
 
+    @property
+    def half_window(self) -> int | None:
+        """The smoother's half window (samples); None while it is still to be chosen."""
+        return None if self.choice is None else self.choice.half_window
+
+    @property
+    def holding(self) -> int:
+        """Samples held back for the choice of the smoother."""
+        return sum(len(s) for s in self._held)
+
     def reset(self) -> None:
         """Forget the smoother's window (a new stream): it is made on first use, when the
         channels (with or without measured velocity) are known. What it held and never output
-        is counted in ``smoother_edge``."""
-        self._count_edges(restart=True)
+        is counted in ``smoother_edge``. Call ``drain`` first for the held samples."""
+        if self.choice is not None:
+            self._count_edges(restart=True)
         self._smoother: FixedLagSmoother | None = None
 
     def reset_counts(self) -> None:
+        """Counters to zero; samples held for the choice are dropped (a pipeline reset)."""
+        self._held = []
         self._in = self._out = 0    # samples into / out of the smoother
         # valid samples the smoother never outputs: half a window at the stream's start, at
         # either side of a stamp gap, and what a restart drops (not rejections: apart)
@@ -60,19 +170,80 @@ class RowBuilder:
         """All that went in and did not come out, but the newest half window (the delay);
         on a restart all of it."""
         waiting = self._in - self._out
-        lost = waiting if restart else max(waiting - self.half_window, 0)
+        lost = waiting if restart else max(waiting - self.choice.half_window, 0)
         self.smoother_edge += lost
         self._out += lost
 
-    def __call__(self, s: Samples, measured_velocity: bool, reuse_at: int | None = None
-                 ) -> Rows:
+    def _choose(self, flush: bool) -> bool:
+        """Decide the smoother once the held samples allow it (``flush``: with what there
+        is); whether it is decided."""
+        held = self._held[0]
+        for s in self._held[1:]:
+            held = held.concat(s)
+        self._held = [held] if len(held) else []
+        t = held.stamps
+        if self.cutoff > 0:
+            if len(t) < 16 and not flush:
+                return False
+            rate = _rate(t) if len(t) > 1 else 1.0 / max(self.max_gap, 1e-9)
+            L = half_window_for_cutoff(self.cutoff, rate, self.order)
+            self.choice = SmootherChoice(L, self.order, rate, 'cutoff')
+            return True
+        moved = np.abs(held.q - held.q[:1]).max(axis=1) > MOTION if len(t) else np.zeros(0)
+        first = int(np.argmax(moved)) if moved.any() else len(t)
+        span = (t[-1] - t[first]) if first < len(t) else 0.0
+        waited = (t[-1] - t[0]) if len(t) else 0.0
+        if not flush and span < self.auto_seconds and waited < AUTO_WAIT * self.auto_seconds:
+            return False
+        rate = _rate(t)
+        part = slice(first, first + int(np.searchsorted(t[first:], t[first] + self.auto_seconds
+                                                        + 1e-9))) if span else slice(0, len(t))
+        L = None
+        if not math.isnan(rate):
+            qd = held.qd[part] if np.isfinite(held.qd[part]).all() else None
+            L = choose_half_window(self.robot, self.base, t[part], held.q[part], qd,
+                                   held.tau[part], self.order, self.max_gap, self.weights)
+        if L is None:
+            rate = rate if rate > 0 else 1.0
+            self.choice = SmootherChoice(half_window_for_cutoff(FALLBACK_CUTOFF, rate,
+                                                                self.order),
+                                         self.order, rate, 'fallback')
+        else:
+            self.choice = SmootherChoice(L, self.order, rate, 'automatic',
+                                         float(t[part][-1] - t[part][0]))
+        return True
+
+    def drain(self, measured_velocity: bool) -> Rows | None:
+        """The rows of the samples held for the choice (deciding it with what is held), at
+        the end of their stream; None when nothing is held."""
+        if not self._held:
+            return None
+        return self(Samples.empty(self.robot.dof), measured_velocity, flush=True)
+
+    def _empty(self) -> Rows:
+        n = self.robot.dof
+        z = np.zeros((0, n))
+        return Rows(np.zeros(0), z, z, z, z, np.zeros((0, n, self.base.num_base + 1)))
+
+    def __call__(self, s: Samples, measured_velocity: bool, reuse_at: int | None = None,
+                 flush: bool = False) -> Rows:
         """The rows of the windows the samples ``s`` complete. ``reuse_at``: when at least
         this many come out, the rows live in a work array the next call reuses (the caller is
-        done with them by then)."""
+        done with them by then). ``flush``: the stream ends (a held choice is decided)."""
+        if self.choice is None:
+            if len(s):
+                self._held.append(s)
+            if not self._held or not self._choose(flush):
+                return self._empty()
+            s, self._held = self._held[0], []
+        elif math.isnan(self.choice.rate) and len(s) > 1:
+            self.choice.rate = _rate(s.stamps)
+        if len(s) == 0:
+            return self._empty()
         n = self.robot.dof
         x = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
         if self._smoother is None:
-            self._smoother = FixedLagSmoother(x.shape[1], half_window=self.half_window,
+            self._smoother = FixedLagSmoother(x.shape[1], half_window=self.choice.half_window,
                                               order=self.order, max_gap=self.max_gap)
         # stamps increasing and values finite: checked by the stages before
         t, x, xd, xdd = self._smoother.push_checked(s.stamps, x)

@@ -15,10 +15,18 @@ frequencies nearly unchanged and attenuates above roughly (order + 1) / (3.2 L -
 Nyquist frequency (Schafer 2011, good for L >~ 10); :meth:`FixedLagSmoother.frequency_response`
 gives the exact gains.
 
+Its bandwidth is specified in Hz: :func:`smoother_cutoff` is the exact -3 dB frequency of the
+value output of a window at a sampling rate, :func:`half_window_for_cutoff` the half window
+whose cut-off is nearest a given one (at least MIN_HALF_WINDOW samples, so the cubic fit stays
+well-posed at low rates). Long windows (more than _FFT_TAPS samples) of uniform stamps are
+applied by FFT convolution (the same weights, O(log K) per sample instead of O(K)).
+
 The rest are offline helpers on whole arrays with samples along axis 0.
 """
 from __future__ import annotations
 
+import functools
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -33,6 +41,9 @@ _BLOCK = 4096   # windows per batched solve: bounds memory for long offline call
 # floats (which the general fit sees as well).
 _UNIFORM_TOL = 1e-9
 _FEW = 64       # up to this many windows a batch is not split into uniform and jittered runs
+_FFT_TAPS = 129  # uniform windows longer than this are applied by FFT convolution
+_GATHER = 1 << 21   # floats gathered at most per block of jittered windows (memory bound)
+MIN_HALF_WINDOW = 4   # samples: the shortest half window a cut-off maps to (9-sample fit)
 
 
 def _as_samples(x: np.ndarray, name: str, finite: bool = True) -> np.ndarray:
@@ -68,6 +79,59 @@ def smoothing_noise_gain(half_window: int, order: int) -> float:
     u = np.arange(-half_window, half_window + 1, dtype=float)
     V = np.vander(u, order + 1, increasing=True)
     return float(np.linalg.inv(V.T @ V)[0, 0])
+
+
+@functools.lru_cache(maxsize=4096)
+def _relative_cutoff(half_window: int, order: int) -> float:
+    """-3 dB frequency of the value output of a uniform window, in cycles per sample."""
+    L = int(half_window)
+    k = np.arange(-L, L + 1) / L
+    V = np.vander(k, order + 1, increasing=True)
+    w = np.linalg.solve(V.T @ V, V.T)[0]                     # value weights (symmetric)
+    u = np.arange(0, L + 1)
+
+    def gain(f: float) -> float:
+        return float(w[L:] @ np.cos(2 * np.pi * f * u) * 2 - w[L])
+
+    target = 1 / math.sqrt(2)
+    grid = np.linspace(0, 0.5, 16 * (L + 1) + 1)[1:]
+    g = 2 * np.cos(2 * np.pi * np.outer(grid, u)) @ w[L:] - w[L]
+    below = np.flatnonzero(g < target)
+    if below.size == 0:
+        return 0.5
+    hi = float(grid[below[0]])
+    lo = float(grid[below[0] - 1]) if below[0] > 0 else 0.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if gain(mid) >= target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def smoother_cutoff(half_window: int, order: int, rate: float) -> float:
+    """The -3 dB frequency (Hz) of the smoother's value output (local polynomial fit of
+    ``order`` over 2 half_window + 1 samples) at a uniform sampling ``rate`` (Hz)."""
+    if not rate > 0:
+        raise IdentificationError(f'rate must be > 0 Hz, got {rate!r}')
+    return _relative_cutoff(int(half_window), int(order)) * float(rate)
+
+
+def half_window_for_cutoff(cutoff: float, rate: float, order: int,
+                           minimum: int = MIN_HALF_WINDOW) -> int:
+    """The half window (samples, >= ``minimum`` and >= order) whose -3 dB cut-off at
+    ``rate`` is nearest ``cutoff`` (both Hz; nearest in log frequency)."""
+    if not (math.isfinite(cutoff) and cutoff > 0 and math.isfinite(rate) and rate > 0):
+        raise IdentificationError(f'need cutoff > 0 and rate > 0 Hz, got {cutoff!r}, {rate!r}')
+    low = max(int(minimum), int(order), 1)
+    # Schafer (2011): cut-off ~ (order + 1) / (3.2 L - 4.6) times Nyquist; then, the cut-off
+    # being nearly proportional to 1 / L, a few corrections and a look at the neighbours
+    guess = ((order + 1) * rate / (2.0 * cutoff) + 4.6) / 3.2
+    if not guess < 1e6:
+        raise IdentificationError(f'cutoff {cutoff} Hz is too low for rate {rate} Hz')
+    L = max(low, int(round(guess)))
+    for _ in range(4):
+        L = max(low, int(round(L * smoother_cutoff(L, order, rate) / cutoff)))
+    return min(range(max(low, L - 2), L + 3),
+               key=lambda h: abs(math.log(smoother_cutoff(h, order, rate) / cutoff)))
 
 
 class FixedLagSmoother:
@@ -167,13 +231,39 @@ class FixedLagSmoother:
         if starts.size == 0:
             return self._empty()
         out = []
+        block = self._block
         for run, uniform in self._runs(T, d, starts):
-            for i in range(0, run.size, _BLOCK):
-                out.append(self._fit_uniform(T, X, int(run[i]), min(_BLOCK, run.size - i))
-                           if uniform else self._fit(T, X, run[i:i + _BLOCK]))
+            if uniform and 2 * self.half_window + 1 > _FFT_TAPS:
+                out.append(self._fit_fft(T, X, int(run[0]), run.size))
+                continue
+            for i in range(0, run.size, block):
+                out.append(self._fit_uniform(T, X, int(run[i]), min(block, run.size - i))
+                           if uniform else self._fit(T, X, run[i:i + block]))
         if len(out) == 1:
             return out[0]
         return tuple(np.concatenate(parts) for parts in zip(*out))
+
+    @property
+    def _block(self) -> int:
+        """Windows per batched solve: _BLOCK, fewer for long windows (memory)."""
+        return max(1, min(_BLOCK, _GATHER // ((2 * self.half_window + 1) * self.num_channels)))
+
+    def fit_at(self, t: np.ndarray, x: np.ndarray, centres: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fit (value, first and second derivative, each (M, c)) of the windows centred
+        at the sample indices ``centres`` (M,) of t (N,) s, x (N, c), whatever the stamps'
+        spacing; every centre needs half_window samples on either side. Stateless (the
+        streaming buffer is not touched): for choosing a window on recorded samples."""
+        x = _as_samples(x, 'x')
+        t = _stamps(t, x.shape[0])
+        x = x.reshape(x.shape[0], -1)
+        starts = np.asarray(centres, dtype=np.int64) - self.half_window
+        if starts.size and (starts.min() < 0 or starts.max() + 2 * self.half_window >= t.size):
+            raise IdentificationError('a window centre lies within half a window of the ends')
+        parts = [self._fit(t, x, starts[i:i + self._block])[1:]
+                 for i in range(0, starts.size, self._block)] or [
+                     (np.zeros((0, x.shape[1])),) * 3]
+        return tuple(np.concatenate(p) for p in zip(*parts))
 
     def _runs(self, T: np.ndarray, d: np.ndarray, starts: np.ndarray
               ) -> list[tuple[np.ndarray, bool]]:
@@ -214,6 +304,17 @@ class FixedLagSmoother:
         h = 0.5 * (T[first + K - 1:first + K - 1 + count] - T[first:first + count])
         return (T[first + L:first + L + count], coef[0], coef[1] / h[:, None],
                 2.0 * coef[2] / (h * h)[:, None])
+
+    def _fit_fft(self, T: np.ndarray, X: np.ndarray, first: int, count: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``_fit_uniform`` by FFT convolution (overlap-add): for long windows."""
+        L, K = self.half_window, 2 * self.half_window + 1
+        seg = X[first:first + count + K - 1]
+        # correlation with the weights = convolution with them reversed; 'valid': full windows
+        coef = [sps.oaconvolve(seg, w[::-1, None], mode='valid', axes=0)
+                for w in self._uniform_weights]
+        h = (0.5 * (T[first + K - 1:first + K - 1 + count] - T[first:first + count]))[:, None]
+        return (T[first + L:first + L + count], coef[0], coef[1] / h, 2.0 * coef[2] / (h * h))
 
     def _normal(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gram matrices (B, p, p) and Vandermonde rows (B, p, K) of the least-squares fit of
