@@ -39,7 +39,7 @@ def run_monitor(robot, changes, duration, noise=NOISE, seed=0, link=None, drop=N
     keep = np.ones(len(sim), dtype=bool) if drop is None else ~(
         (sim.t >= drop[0]) & (sim.t < drop[1]))
     ns = np.round(sim.t[keep] * 1e9).astype(np.int64)
-    pipe = IdentificationPipeline(robot, PipelineConfig())
+    pipe = IdentificationPipeline(robot, PipelineConfig(half_window=10))   # the monitor's
     mon = PayloadMonitor(robot, attachment(robot, link), phi, config)
     events = []
     names = tuple(robot.joint_names)
@@ -221,7 +221,7 @@ def test_restarted_stream_is_not_a_change():
     sim = ArmSimulator(robot, phi).run(load_trajectory('fourier', robot), 4.0, NOISE, 5,
                                        changes=changes)
     ns = np.round(sim.t * 1e9).astype(np.int64)
-    pipe = IdentificationPipeline(robot, PipelineConfig())
+    pipe = IdentificationPipeline(robot, PipelineConfig(half_window=10))   # the monitor's
     mon = PayloadMonitor(robot, attachment(robot), phi)
     events = []
     for _ in range(2):
@@ -253,7 +253,7 @@ def test_stalled_and_bursting_stream_is_not_a_change():
         m = int(stall * 1000)
         stamp[k0:k0 + m] = t[k0] + stall + np.arange(m) * 2e-5
     ns = np.round(np.maximum.accumulate(stamp + np.arange(N) * 1e-9) * 1e9).astype(np.int64)
-    pipe = IdentificationPipeline(robot, PipelineConfig())
+    pipe = IdentificationPipeline(robot, PipelineConfig(half_window=10))   # the monitor's
     mon = PayloadMonitor(robot, attachment(robot), robot.phi_model)
     events = []
     for a in range(0, N, 20):

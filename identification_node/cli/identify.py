@@ -139,8 +139,11 @@ def result_document(result, validations=(), training=None) -> dict:
         'excited': not unexcited,
         'unexcited_directions': [text for text, _ in unexcited],
         'converged': ident.converged and not unexcited,
-        'smoother_delay_samples': (int(ident.pipeline.delay) if ident.pipeline is not None
-                                   else None),
+        'smoother_delay_samples': (ident.pipeline.smoother.half_window
+                                   if ident.pipeline is not None
+                                   and ident.pipeline.smoother is not None else None),
+        'smoother': (ident.pipeline.smoother.document() if ident.pipeline is not None
+                     and ident.pipeline.smoother is not None else None),
         'rejected': ident.rejected,
         'excluded_equations': ident.details.get('excluded_per_joint', {}),
         'warnings': list(ident.warnings),
@@ -174,6 +177,14 @@ def format_report(doc: dict) -> str:
     lines = [f"{doc['robot']} from {doc['bag']}: {doc['num_samples']} samples used "
              f"({doc['messages']} messages)",
              f"method: {doc['method']} ({doc['processing'].get('processing', '')})"]
+    if doc.get('smoother'):
+        sm = doc['smoother']
+        lines.append(f"smoother: cut-off {_number(sm['cutoff_hz'])} Hz ({sm['source']}), half "
+                     f"window {sm['half_window']} samples at {_number(sm['rate_hz'])} Hz, delay "
+                     f"{_number(None if sm['delay_s'] is None else 1e3 * sm['delay_s'])} ms")
+    elif doc['processing'].get('cutoff_hz') is not None:
+        lines.append(f"filter: cut-off {_number(doc['processing']['cutoff_hz'])} Hz "
+                     f"({doc['processing'].get('cutoff_source', 'given')})")
     if doc['rejected']:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in doc['rejected'].items()))
     rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['unconstrained_estimate']:.6g}",
@@ -350,8 +361,8 @@ def batch_options(args: argparse.Namespace, robot):
     return options
 
 
-def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
-    """The PayloadMonitor of --payload (None without it)."""
+def payload_monitor(args: argparse.Namespace, settings, robot, method: str, pipeline=None):
+    """The PayloadMonitor of --payload (None without it), for ``pipeline``'s smoother."""
     from identification_node.errors import IdentificationError
     if not args.payload:
         if args.payload_link or args.arm:
@@ -364,7 +375,8 @@ def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
     values = dict(settings.values)
     values.update({'payload.link': args.payload_link or values['payload.link'],
                    'payload.arm': args.arm or values['payload.arm']})
-    return monitor_from_settings(Settings(values, settings.given), robot)
+    return monitor_from_settings(Settings(values, settings.given), robot,
+                                 lambda: pipeline.row_builder.half_window)
 
 
 def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
@@ -415,11 +427,13 @@ def run(args: argparse.Namespace) -> int:
                       'CRC, so corruption in them cannot be detected', file=sys.stderr)
     topics = (args.joint_states_topic, args.currents_topic)
     options = None
-    monitor = payload_monitor(args, settings, robot, method)
+    pipeline = settings.build(robot) if method == 'rls' else None
+    monitor = payload_monitor(args, settings, robot, method, pipeline)
     if method == 'rls':
         ident = replay_identify(args.bag, settings, robot, *topics, on_output=None if (
             monitor is None) else lambda out: monitor.add(
-                out.stamps_ns, out.q, out.qd, out.qdd, out.measured), window=window)
+                out.stamps_ns, out.q, out.qd, out.qdd, out.measured), window=window,
+            pipeline=pipeline)
     else:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)

@@ -27,6 +27,12 @@ consistent (consistency.ConsistentSolver; ``physical_consistency=False``, the CL
 so each period's document has ``estimate`` (consistent), ``unconstrained_estimate``,
 ``links`` and ``consistency_solver`` as identify's.
 
+Smoother: the statistics of a robot's bags merge exactly only when every bag went through
+the same smoother. Unless the robot's settings fix ``smoother.half_window``, it is chosen once
+per robot, as ``identify`` would on the robot's first bag in manifest order (choose_smoother),
+and given to every map task of that robot (``MapTask.smoother``); the fleet document reports
+it per robot.
+
 Flags: a base parameter that moved by more than k combined standard deviations between
 consecutive periods of a robot (drift), and robots whose estimate lies more than k robust
 deviations from the rest of the fleet with the same model (at least 3 robots).
@@ -40,7 +46,7 @@ import hashlib
 import math
 import os
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -363,6 +369,33 @@ class MapTask:
     stop_ns: int | None = None
     joint_states: str = JOINT_STATES
     motor_currents: str = MOTOR_CURRENTS
+    smoother: tuple = ()      # (parameter, value) pairs fixing the robot's smoother
+
+
+def task_settings(entry: FleetEntry, smoother: tuple = ()) -> Settings:
+    """entry_settings with the robot's smoother parameters (choose_smoother) set."""
+    settings = entry_settings(entry)
+    if not smoother:
+        return settings
+    return Settings({**settings.values, **dict(smoother)},
+                    settings.given | {k for k, _ in smoother})
+
+
+def choose_smoother(entry: FleetEntry, joint_states: str = JOINT_STATES,
+                    motor_currents: str = MOTOR_CURRENTS) -> tuple:
+    """The smoother parameters all of the entry's robot's bags are to use: () when its
+    settings fix the half window, else the half window and cut-off the pipeline chooses on
+    this bag (read until chosen). Pure, for a worker."""
+    settings = entry_settings(entry)
+    if settings['smoother.half_window']:
+        return ()
+    robot = entry_robot(entry, settings)
+    pipeline = settings.build(robot)
+    identify_bag(entry.bag, settings, robot, joint_states, motor_currents, checkpoints=1,
+                 pipeline=pipeline, until=lambda p: p.smoother is not None)
+    choice = pipeline.smoother
+    return (('smoother.half_window', int(choice.half_window)),
+            ('smoother.cutoff', float(choice.cutoff)))
 
 
 @dataclass
@@ -381,7 +414,7 @@ def run_task(task: MapTask) -> BagStatistics | MapFailure:
     """A map task on a worker: the bag's (segment's) statistics, or why it failed. Pure: the
     same task gives the same statistics, so Dask may rerun it when a worker dies."""
     try:
-        settings = entry_settings(task.entry)
+        settings = task_settings(task.entry, task.smoother)
         robot = entry_robot(task.entry, settings)
         return bag_statistics(task.entry.bag, settings, robot, task.start_ns, task.stop_ns,
                               task.joint_states, task.motor_currents)
@@ -390,18 +423,20 @@ def run_task(task: MapTask) -> BagStatistics | MapFailure:
 
 
 def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = None,
-               joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS
-               ) -> list[MapTask]:
+               joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
+               smoothers: dict[str, tuple] | None = None) -> list[MapTask]:
     """One task per bag, or per ``segment_seconds`` of its log time, rounded to a multiple of
     the residual grid (estimate.RESIDUAL_GRID, 60 s) and cut at multiples of it, where the
     residual blocks restart, so the segments' statistics merge to the whole bag's exactly
-    (the first and last segment open-ended, so every row belongs to exactly one)."""
+    (the first and last segment open-ended, so every row belongs to exactly one);
+    ``smoothers``: per robot the smoother parameters of its tasks (choose_smoother)."""
     from identification_node.bags.reader import open_bag
     from identification_node.pipeline.estimate import RESIDUAL_GRID
 
     tasks = []
     for e in entries:
-        base = MapTask(e, joint_states=joint_states, motor_currents=motor_currents)
+        base = MapTask(e, joint_states=joint_states, motor_currents=motor_currents,
+                       smoother=(smoothers or {}).get(e.robot, ()))
         if not segment_seconds:
             tasks.append(base)
             continue
@@ -474,6 +509,7 @@ class FleetResult:
     identifications: dict
     total_identifications: dict
     failed: list
+    smoothers: dict = field(default_factory=dict)   # robot -> choose_smoother's parameters
 
 
 def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | None = None,
@@ -485,7 +521,8 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
     consistent too unless ``physical_consistency`` is False)."""
     from distributed import as_completed
 
-    tasks = plan_tasks(entries, segment_seconds, joint_states, motor_currents)
+    smoothers = _smoothers(entries, client, joint_states, motor_currents, retries)
+    tasks = plan_tasks(entries, segment_seconds, joint_states, motor_currents, smoothers)
     futures = client.map(run_task, tasks, pure=True, retries=retries)
     index = {f.key: t for f, t in zip(futures, tasks)}
     done, results = 0, []
@@ -517,7 +554,7 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
         try:
             if robot not in models:
                 entry = next(e for k, e in entries_of.items() if k[0] == robot)
-                settings = entry_settings(entry)
+                settings = task_settings(entry, smoothers.get(robot, ()))
                 model = entry_robot(entry, settings)
                 models[robot] = (settings, model,
                                  consistent_solver(settings, model) if physical_consistency
@@ -532,7 +569,30 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
                 total_idents[robot] = ident
         except IdentificationError as exc:
             failures.append({'bag': ', '.join(stats.bags), 'error': str(exc)})
-    return FleetResult(groups, totals, idents, total_idents, failures)
+    return FleetResult(groups, totals, idents, total_idents, failures, smoothers)
+
+
+def _smoothers(entries: Sequence[FleetEntry], client, joint_states: str,
+               motor_currents: str, retries: int) -> dict[str, tuple]:
+    """choose_smoother per robot on the cluster: on its first bag in manifest order, or,
+    when that one cannot be read, the next."""
+    pending: dict[str, list[FleetEntry]] = {}
+    for e in entries:
+        pending.setdefault(e.robot, []).append(e)
+    out: dict[str, tuple] = {}
+    while pending:
+        firsts = {robot: es.pop(0) for robot, es in pending.items()}
+        futures = {robot: client.submit(choose_smoother, e, joint_states, motor_currents,
+                                        pure=True, retries=retries)
+                   for robot, e in firsts.items()}
+        for robot, future in futures.items():
+            try:
+                out[robot] = future.result()
+                pending.pop(robot)
+            except Exception:   # noqa: BLE001 - that bag's own task reports why
+                if not pending[robot]:
+                    pending.pop(robot)
+    return out
 
 
 def print_progress(done: int, total: int, unit: str = 'bags') -> None:
@@ -621,4 +681,4 @@ def fleet_document(result: FleetResult, k: float = DEFAULT_SIGMA) -> dict:
     flags = [f for robot, periods in robots.items() for f in drift_flags(periods, robot, k)]
     flags += outlier_flags(totals, {r: result.totals[r].model for r in totals}, k)
     return {'robots': robots, 'totals': totals, 'flags': flags, 'failed': result.failed,
-            'sigma': k}
+            'sigma': k, 'smoothers': {r: dict(v) for r, v in sorted(result.smoothers.items())}}

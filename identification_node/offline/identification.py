@@ -735,9 +735,11 @@ def replay_identify(bag: str | os.PathLike, settings: Settings, robot: RobotMode
                     joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                     series_points: int = SERIES_POINTS,
                     on_output: Callable[[PipelineOutput], None] | None = None,
-                    window: TimeWindow | None = None) -> Identification:
+                    window: TimeWindow | None = None,
+                    pipeline: IdentificationPipeline | None = None) -> Identification:
     """identify_bag (the node's pipeline, streaming; the bag's messages in ``window`` only)
-    with a bounded torque series kept; ``on_output`` sees every batch too."""
+    with a bounded torque series kept; ``on_output`` sees every batch too; ``pipeline``: the
+    one to feed (default: new)."""
     sampler = SeriesSampler(series_points)
     sample = _sampling(sampler)
 
@@ -746,7 +748,7 @@ def replay_identify(bag: str | os.PathLike, settings: Settings, robot: RobotMode
         if on_output is not None:
             on_output(out)
     result = identify_bag(bag, settings, robot, joint_states, motor_currents,
-                          on_output=outputs, window=window)
+                          on_output=outputs, window=window, pipeline=pipeline)
     return from_replay(result, _series(sampler, result.pipeline))
 
 
@@ -775,8 +777,10 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
         est.num_samples, result.messages, {k: v for k, v in p.rejected.items() if v},
         est.condition_number, p.residuals, p.noise_variance(), est.converged,
         list(result.history), series,
-        {'processing': 'smoothed', 'smoother_half_window': int(p.config.half_window),
+        {'processing': 'smoothed',
+         'smoother_half_window': None if p.smoother is None else p.smoother.half_window,
          'smoother_order': int(p.config.smoother_order),
+         'smoother': None if p.smoother is None else p.smoother.document(),
          'forgetting_factor': float(p.config.forgetting),
          'excluded_equations': p.excluded_rows,
          'excluded_per_joint': dict(zip(p.robot.joint_names,

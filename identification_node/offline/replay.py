@@ -101,11 +101,14 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  batch: int = 1000, checkpoints: int = 50,
                  on_output: Callable[[PipelineOutput], None] | None = None,
                  pipeline: IdentificationPipeline | None = None,
-                 window: TimeWindow | None = None) -> ReplayResult:
+                 window: TimeWindow | None = None,
+                 until: Callable[[IdentificationPipeline], bool] | None = None
+                 ) -> ReplayResult:
     """Identify ``robot`` from the bag's joint states (and motor currents when the settings'
     torque sources need them). ``on_output`` sees every batch the pipeline outputs;
     ``pipeline``: the one to feed (default: the settings' own, new); ``window``: only the
-    messages recorded in it (windows.py)."""
+    messages recorded in it (windows.py); ``until``: reading stops after the batch for which
+    it is true (e.g. once the smoother is chosen)."""
     pipeline = pipeline or settings.build(robot)
     topics = [joint_states]
     if pipeline.converter.needs_currents:
@@ -125,6 +128,8 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                 if pipeline.used >= next_checkpoint:
                     result.history.append(_checkpoint(pipeline))
                     next_checkpoint = pipeline.used + every
+                if until is not None and until(pipeline):
+                    break
     out = pipeline.process(flush=True)
     if on_output is not None:
         on_output(out)

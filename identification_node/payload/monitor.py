@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -91,10 +91,13 @@ class Segment:
 
 class PayloadMonitor:
     """See the module docstring. ``phi_arm``: the arm's standard parameters (payload.
-    arm_parameters); ``half_window``/``order``: the pipeline's smoother (noise scaling)."""
+    arm_parameters); ``half_window``/``order``: the pipeline's smoother (noise scaling):
+    its half window, or a callable giving it (None while the pipeline chooses it), asked when
+    the first samples come."""
 
     def __init__(self, robot: RobotModel, attach: Attachment, phi_arm: np.ndarray,
-                 config: MonitorConfig | None = None, half_window: int = 10, order: int = 3):
+                 config: MonitorConfig | None = None,
+                 half_window: int | Callable[[], int | None] = 10, order: int = 3):
         self.robot, self.attach = robot, attach
         self.phi_arm = np.asarray(phi_arm, dtype=float)
         if self.phi_arm.shape != (robot.num_params,) or not np.isfinite(self.phi_arm).all():
@@ -102,8 +105,9 @@ class PayloadMonitor:
         self.config = config or MonitorConfig()
         self.config.validate()
         c = self.config
-        self._block = 4 * (2 * int(half_window) + 1)
-        self._white_scale = 1.0 / smoothing_noise_gain(int(half_window), int(order))
+        self._order = int(order)
+        self._half_window = half_window if callable(half_window) else None
+        self._smoother(10 if callable(half_window) else int(half_window))
         self.detector = WindowedGLR(c.window, c.threshold, c.min_change, c.max_gap,
                                     min_z=c.min_z, noise_scale=self._white_scale,
                                     confirm=c.confirm)
@@ -112,6 +116,25 @@ class PayloadMonitor:
         self._last_t = -math.inf
         self.changes = 0
         self.reset()
+
+    def _smoother(self, half_window: int) -> None:
+        if int(half_window) < 1:
+            raise IdentificationError(f'the smoother half window must be >= 1, got '
+                                      f'{half_window!r}')
+        self._block = 4 * (2 * int(half_window) + 1)
+        self._white_scale = 1.0 / smoothing_noise_gain(int(half_window), self._order)
+
+    def _resolve_smoother(self) -> None:
+        """The pipeline's half window, once it is chosen (before the first samples are used:
+        the statistics started with a stand-in block length restart with the real one)."""
+        L = self._half_window()
+        if L is None:
+            return
+        self._half_window = None
+        self._smoother(L)
+        self.detector.noise_scale = self._white_scale
+        if self._stats.count == 0:
+            self._stats = ResidualStatistics(10, self.robot.dof, self._block)
 
     # -- state ------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -154,6 +177,8 @@ class PayloadMonitor:
         ``batch`` s of samples are gathered."""
         if len(stamps_ns) == 0:
             return []
+        if self._half_window is not None:
+            self._resolve_smoother()
         self._queued.append((stamps_ns, q, qd, qdd, tau))
         if (int(stamps_ns[-1]) - int(self._queued[0][0][0])) * 1e-9 < self.config.batch:
             return []
@@ -295,9 +320,11 @@ def segments_document(segments: list[Segment]) -> list[dict]:
             for s in segments]
 
 
-def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
+def monitor_from_settings(settings, robot: RobotModel, half_window=None) -> PayloadMonitor:
     """The PayloadMonitor of the ``payload.*`` parameters (settings.Settings), for the
-    pipeline's smoother; errors name the parameter."""
+    pipeline's smoother: ``half_window`` (an int, or a callable giving the pipeline's once
+    chosen, e.g. ``lambda: pipeline.row_builder.half_window``; default the settings' value,
+    which must then be set); errors name the parameter."""
     from identification_node.payload.fit import arm_parameters, attachment
     v = settings.values
     config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
@@ -311,5 +338,10 @@ def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
         phi_arm = arm_parameters(robot, '' if arm == ARM_ESTIMATE else arm)
     except IdentificationError as exc:
         raise IdentificationError(f'parameter payload.arm: {exc}') from None
-    return PayloadMonitor(robot, attach, phi_arm, config, v['smoother.half_window'],
-                          v['smoother.order'])
+    if half_window is None:
+        half_window = v['smoother.half_window']
+        if not half_window:
+            raise IdentificationError('parameter smoother.half_window: the payload monitor '
+                                      'needs the pipeline\'s smoother (0: give the pipeline\'s '
+                                      'chosen half window)')
+    return PayloadMonitor(robot, attach, phi_arm, config, half_window, v['smoother.order'])

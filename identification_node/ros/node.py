@@ -149,6 +149,25 @@ def warn_unknown_parameters(node: Node) -> list[str]:
     return unknown
 
 
+def smoother_text(choice) -> str:
+    """The smoother in use (rows.SmootherChoice) in words: cut-off, window, delay."""
+    rate = f'{choice.rate:.6g} Hz' if choice.rate > 0 else 'a rate not known yet'
+    delay = f'{1e3 * choice.delay:.1f} ms' if choice.rate > 0 else f'{choice.half_window} samples'
+    cutoff = f'cut-off {choice.cutoff:.3g} Hz' if choice.rate > 0 else 'cut-off not known yet'
+    return (f'{cutoff} ({choice.source}), half window {choice.half_window} samples at {rate}, '
+            f'delay of ~/predicted_effort {delay}')
+
+
+def smoother_values(choice, holding: int) -> dict[str, Any]:
+    """The diagnostics of the smoother (rows.SmootherChoice, None while being chosen)."""
+    if choice is None:
+        return {'smoother': f'being chosen ({holding} samples held back)',
+                'smoother_delay_samples': 'not chosen yet'}
+    return {'smoother': choice.source, 'smoother_delay_samples': choice.half_window,
+            'smoother_delay_ms': f'{1e3 * choice.delay:.3f}',
+            'smoother_cutoff_hz': f'{choice.cutoff:.6g}', 'smoother_order': choice.order}
+
+
 class IdentificationNode(Node):
     """Wires the ROS interfaces to an IdentificationPipeline; no numerics of its own."""
 
@@ -221,8 +240,11 @@ class IdentificationNode(Node):
             self.get_logger().warning(note)
         self.get_logger().info(
             f'identifying {base.num_base} base parameters of {self.robot.name} '
-            f'(joints {", ".join(self.robot.joint_names)}); smoother delay '
-            f'{self.pipeline.delay:.0f} samples')
+            f'(joints {", ".join(self.robot.joint_names)}); smoother: '
+            + (smoother_text(self.pipeline.smoother) if self.pipeline.smoother is not None
+               else 'cut-off ' + (f"{s['smoother.cutoff']:g} Hz" if s['smoother.cutoff'] > 0
+                                  else f"to be chosen from the first "
+                                  f"{s['smoother.auto_seconds']:g} s of motion")))
 
     def _subscribe(self, topic: str, handle: Callable[[list[bytes]], None]) -> PolledSubscription:
         # A copy each: the QoS override parameters are applied to the profile in place.
@@ -309,8 +331,11 @@ class IdentificationNode(Node):
                 source.poll()
             if not self.pipeline.pending:
                 return
+            chosen = self.pipeline.smoother is not None
             out = self.pipeline.process()
             events = self.payload.add(out) if self.payload is not None else ()
+        if not chosen and self.pipeline.smoother is not None:
+            self.get_logger().info(f'smoother: {smoother_text(self.pipeline.smoother)}')
         self._publish_efforts(out)
         if events:
             self.payload.publish(events)
@@ -496,7 +521,7 @@ class IdentificationNode(Node):
             'condition_number': f'{est.condition_number:.6g}',
             'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
             'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
-            'smoother_delay_samples': int(p.delay),
+            **smoother_values(p.smoother, p.row_builder.holding),
             'physically_consistent': not self._consistency,
             'robust_gate': robust, 'residual_shifts': shifts, 'numerical_failures': failures,
             'smoother_edge_samples': edges, 'layout_cache_bytes': cache,

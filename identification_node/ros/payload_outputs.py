@@ -66,7 +66,8 @@ class PayloadOutputs:
 
     def __init__(self, node: Node, settings, pipeline):
         self.node = node
-        self.monitor = monitor_from_settings(settings, pipeline.robot)
+        self.monitor = monitor_from_settings(settings, pipeline.robot,
+                                             lambda: pipeline.row_builder.half_window)
         prepare_consistency()   # cvxpy's import: seconds, not in a run
         self.pipeline = pipeline
         self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
