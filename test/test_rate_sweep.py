@@ -6,8 +6,10 @@ noise and 0.1 N m torque noise, at 100 Hz to 2 kHz. The node's pipeline with the
 settings (the smoother's cut-off chosen from the data) is compared with the same pipeline at
 cut-offs chosen by hand on a grid: the held-out torque error (a second trajectory, against the
 simulated truth: 100 ||tau - Yb(q, qd, qdd) theta|| / ||tau|| over all joints) must be within
-1.5 times the best of the grid, and the parameter errors within their reported stddev (RMS of
-the normalised errors below 2).
+1.5 times the best of the grid, and the parameter errors consistent with their reported
+stddev: the RMS of the normalised errors (estimate - truth) / stddev below 2.5 (1 for an exact
+stddev; the covariance's long-run noise variance comes from 10 to 20 residual blocks of 8
+smoother windows at the longer windows, itself uncertain by tens of percent).
 
 Run with ``-s`` to see the table (rate, chosen cut-off, errors, ratio).
 """
@@ -88,7 +90,7 @@ def test_default_smoother_is_within_1_5_of_the_best_cutoff_at_every_rate(arm):
                      ratio, z_rms))
         if not ratio <= 1.5:
             failures.append(f'{rate:g} Hz: {ratio:.3f} x the best')
-        if not z_rms < 2.0:
+        if not z_rms < 2.5:
             failures.append(f'{rate:g} Hz: normalised parameter errors RMS {z_rms:.2f}')
     print('\nrate Hz | cut-off chosen Hz (L) | default % | best hand cut-off Hz | best % | '
           'ratio | z RMS')

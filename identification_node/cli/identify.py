@@ -55,7 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help='harmonics of the Fourier fit to the averaged positions '
                        '(default: chosen from the data, up to cutoff x period)')
     batch.add_argument('--cutoff', type=float, metavar='HZ',
-                       help='zero-phase low-pass cutoff (default 20 Hz)')
+                       help='zero-phase low-pass cutoff (default: smoother.cutoff, or when '
+                       'that is 0 the smoother\'s cut-off chosen from the first '
+                       'smoother.auto_seconds of motion)')
     batch.add_argument('--decimate', type=int, metavar='K',
                        help='keep every K-th filtered sample (default: rate / (2 cutoff))')
     parser.add_argument('--validate', metavar='BAG', nargs='+',
@@ -327,7 +329,7 @@ def _method(args: argparse.Namespace) -> str:
 def batch_options(args: argparse.Namespace, robot):
     """offline.BatchOptions from --period/--trajectory/--harmonics/--cutoff/--decimate."""
     from identification_node.errors import IdentificationError
-    from identification_node.offline.identification import DEFAULT_CUTOFF, BatchOptions
+    from identification_node.offline.identification import BatchOptions
     from identification_node.excitation.trajectories import FramedTrajectory, load_trajectory
 
     period, least, window = args.period, 1, None
@@ -355,7 +357,7 @@ def batch_options(args: argparse.Namespace, robot):
         raise IdentificationError('--harmonics needs --period or a periodic --trajectory')
     options = BatchOptions(period=period, window=window, harmonics=args.harmonics,
                            min_harmonics=least,
-                           cutoff=DEFAULT_CUTOFF if args.cutoff is None else args.cutoff,
+                           cutoff=args.cutoff,
                            decimation=args.decimate)
     options.validate()
     return options

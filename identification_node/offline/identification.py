@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -59,7 +59,9 @@ from identification_node.offline.validation import BagError, evaluate
 from identification_node.offline.windows import TimeWindow
 from identification_node.pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput,
                                           TorqueSamples, converged)
-from identification_node.pipeline.signals import (central_derivatives, period_average,
+from identification_node.pipeline.rows import AUTO_WAIT, choose_smoother
+from identification_node.pipeline.signals import (central_derivatives, half_window_for_cutoff,
+                                                  period_average,
                                                   zero_phase_lowpass)
 from identification_node.settings import Settings
 
@@ -179,15 +181,18 @@ class BatchOptions:
     """How a bag is processed offline. ``period`` (s) selects periodic averaging; the Fourier
     series fitted to the averaged positions has ``harmonics`` per joint, by default chosen from
     the data (fourier_fit) between ``min_harmonics`` (e.g. a known trajectory's) and
-    cutoff * period; ``cutoff`` (Hz) of the zero-phase low-pass of the filtered path;
-    ``decimation`` there defaults to floor(rate / (2 cutoff)). ``window`` (t0, t1), s after
-    the first sample: periodic averaging uses only the samples in it (the periodic part of a
-    trajectory framed by ramps, trajectories.FramedTrajectory.periodic_window)."""
+    cutoff * period; ``cutoff`` (Hz) of the zero-phase low-pass of the filtered path (None:
+    the settings' smoother.cutoff when > 0, else the smoother's automatic cut-off chosen on
+    the bag's first smoother.auto_seconds of motion, auto_cutoff; the periodic path's band is
+    then DEFAULT_CUTOFF); ``decimation`` there defaults to floor(rate / (2 cutoff)).
+    ``window`` (t0, t1), s after the first sample: periodic averaging uses only the samples
+    in it (the periodic part of a trajectory framed by ramps,
+    trajectories.FramedTrajectory.periodic_window)."""
     period: float | None = None
     window: tuple[float, float] | None = None
     harmonics: int | None = None
     min_harmonics: int = 1
-    cutoff: float = DEFAULT_CUTOFF
+    cutoff: float | None = None
     decimation: int | None = None
     order: int = FILTER_ORDER
 
@@ -200,7 +205,7 @@ class BatchOptions:
                 raise IdentificationError(f'window must be 0 <= t0 < t1 s, got {self.window}')
             if self.period is None:
                 raise IdentificationError('a window needs a period (periodic averaging)')
-        if not (math.isfinite(self.cutoff) and self.cutoff > 0):
+        if self.cutoff is not None and not (math.isfinite(self.cutoff) and self.cutoff > 0):
             raise IdentificationError(f'cutoff must be > 0 Hz, got {self.cutoff!r}')
         for name in ('harmonics', 'decimation', 'min_harmonics'):
             v = getattr(self, name)
@@ -574,7 +579,8 @@ def _reversal_speed(settings: Settings, robot: RobotModel) -> float | None:
 def _harmonics(options: BatchOptions) -> tuple[float, int | None, int, int]:
     """period, fixed harmonics, most and fewest harmonics of the periodic path."""
     period = float(options.period)
-    top = max(1, int(math.floor(options.cutoff * period)), options.min_harmonics)
+    top = max(1, int(math.floor((options.cutoff or DEFAULT_CUTOFF) * period)),
+              options.min_harmonics)
     return period, options.harmonics, top, options.min_harmonics
 
 
@@ -610,13 +616,38 @@ def batch_rows(samples: BagSamples, settings: Settings, robot: RobotModel,
             info['window_s'] = list(options.window)
         info['rows'] = len(rows)
         return info, iter([rows])
+    source = 'given'
+    if options.cutoff is None:
+        cutoff, source = auto_cutoff(samples, settings, robot, base)
+        options = replace(options, cutoff=cutoff)
     segments, info = _plan_filtered(samples, options, settings['smoother.max_gap'])
+    info['cutoff_source'] = source
 
     def rows() -> Iterator[Rows]:
         for seg in segments:
             yield from _segment_rows(seg, robot, base, options.cutoff, options.order,
                                      samples.velocity_measured, speed)
     return info, rows()
+
+
+def auto_cutoff(samples: BagSamples, settings: Settings, robot: RobotModel,
+                base: BaseParameters) -> tuple[float, str]:
+    """The filtered path's cut-off (Hz) when none is given, and where it comes from: the
+    settings' smoother.cutoff when > 0, else the cut-off of the smoother the pipeline would
+    choose on the first stream's first smoother.auto_seconds of motion (rows.choose_smoother;
+    'automatic', or 'fallback' on too short a stream)."""
+    if settings['smoother.cutoff'] > 0:
+        return float(settings['smoother.cutoff']), 'smoother.cutoff'
+    s = samples.streams[0]
+    t = (s.stamps_ns - s.stamps_ns[0]) * 1e-9
+    keep = t <= (AUTO_WAIT + 1) * settings['smoother.auto_seconds']
+    noise = settings['joint_noise_std']
+    choice = choose_smoother(robot, base, t[keep], s.q[keep], s.qd[keep], s.tau[keep],
+                             settings['smoother.order'], settings['smoother.max_gap'], 0.0,
+                             settings['smoother.auto_seconds'],
+                             np.asarray(noise, dtype=float) ** -2 if noise else None,
+                             final=True)
+    return float(choice.cutoff), choice.source
 
 
 def offline_identify(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
@@ -843,6 +874,26 @@ def parameter_sets(ident: Identification) -> dict[str, np.ndarray]:
             'model': ident.theta_model}
 
 
+def evaluation_settings(settings: Settings, ident: Identification) -> Settings:
+    """``settings`` with the smoother ``ident`` was fitted with, for evaluating it on a bag
+    (processed as the training bag was, not with a window chosen on itself): its pipeline's
+    choice, or the half window of a batch fit's cut-off at the bag's rate; unchanged when the
+    settings fix the half window."""
+    if settings['smoother.half_window']:
+        return settings
+    choice = None if ident.pipeline is None else ident.pipeline.smoother
+    if choice is not None:
+        half = int(choice.half_window)
+    elif ident.details.get('cutoff_hz') and ident.details.get('rate_hz'):
+        half = half_window_for_cutoff(float(ident.details['cutoff_hz']),
+                                      float(ident.details['rate_hz'][0]),
+                                      settings['smoother.order'])
+    else:
+        return settings
+    return Settings({**settings.values, 'smoother.half_window': half},
+                    settings.given | {'smoother.half_window'})
+
+
 def validate(ident: Identification, bag: str | os.PathLike, settings: Settings,
              window: TimeWindow | None = None, joint_states: str = JOINT_STATES,
              motor_currents: str = MOTOR_CURRENTS, predictions=None,
@@ -856,8 +907,9 @@ def validate(ident: Identification, bag: str | os.PathLike, settings: Settings,
     if not training:
         check_same_robot(bag, ident.robot)
     try:
-        return evaluate(bag, settings, ident.robot, ident.base, parameter_sets(ident), window,
-                        joint_states, motor_currents, predictions, label, series_points)
+        return evaluate(bag, evaluation_settings(settings, ident), ident.robot, ident.base,
+                        parameter_sets(ident), window, joint_states, motor_currents,
+                        predictions, label, series_points)
     except IdentificationError as exc:
         raise IdentificationError(f'{"training" if training else "validation"} bag: {exc}'
                                   ) from None

@@ -119,6 +119,42 @@ class Rows(NamedTuple):
     rows: np.ndarray
 
 
+def choose_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
+                    qd: np.ndarray, tau: np.ndarray, order: int, max_gap: float,
+                    cutoff: float = 0.0, auto_seconds: float = 5.0,
+                    weights: np.ndarray | None = None, final: bool = False
+                    ) -> SmootherChoice | None:
+    """The smoother for a stream's first samples t (N,) s, q, qd (NaN: not measured), tau
+    (N, n): of the given ``cutoff`` (Hz) at their rate, or chosen (choose_half_window) on
+    the first ``auto_seconds`` of motion; None while more samples are needed (``final``: no
+    more come, decide with these)."""
+    if cutoff > 0:
+        if len(t) < 16 and not final:
+            return None
+        rate = _rate(t) if len(t) > 1 else 1.0 / max(max_gap, 1e-9)
+        return SmootherChoice(half_window_for_cutoff(cutoff, rate, order), order, rate,
+                              'cutoff')
+    moved = np.abs(q - q[:1]).max(axis=1) > MOTION if len(t) else np.zeros(0, dtype=bool)
+    first = int(np.argmax(moved)) if moved.any() else len(t)
+    span = (t[-1] - t[first]) if first < len(t) else 0.0
+    waited = (t[-1] - t[0]) if len(t) else 0.0
+    if not final and span < auto_seconds and waited < AUTO_WAIT * auto_seconds:
+        return None
+    rate = _rate(t)
+    part = (slice(first, first + int(np.searchsorted(t[first:], t[first] + auto_seconds
+                                                     + 1e-9))) if span else slice(0, len(t)))
+    L = None
+    if not math.isnan(rate):
+        measured = qd[part] if np.isfinite(qd[part]).all() else None
+        L = choose_half_window(robot, base, t[part], q[part], measured, tau[part], order,
+                               max_gap, weights)
+    if L is None:
+        rate = rate if rate > 0 else 1.0
+        return SmootherChoice(half_window_for_cutoff(FALLBACK_CUTOFF, rate, order), order,
+                              rate, 'fallback')
+    return SmootherChoice(L, order, rate, 'automatic', float(t[part][-1] - t[part][0]))
+
+
 class RowBuilder:
     """Smoother, regressor and base rows of ``robot`` for validated samples with torque.
     ``half_window`` (samples) > 0 fixes the smoother; else ``cutoff`` (Hz) > 0 sets it at the
@@ -181,36 +217,12 @@ class RowBuilder:
         for s in self._held[1:]:
             held = held.concat(s)
         self._held = [held] if len(held) else []
-        t = held.stamps
-        if self.cutoff > 0:
-            if len(t) < 16 and not flush:
-                return False
-            rate = _rate(t) if len(t) > 1 else 1.0 / max(self.max_gap, 1e-9)
-            L = half_window_for_cutoff(self.cutoff, rate, self.order)
-            self.choice = SmootherChoice(L, self.order, rate, 'cutoff')
-            return True
-        moved = np.abs(held.q - held.q[:1]).max(axis=1) > MOTION if len(t) else np.zeros(0)
-        first = int(np.argmax(moved)) if moved.any() else len(t)
-        span = (t[-1] - t[first]) if first < len(t) else 0.0
-        waited = (t[-1] - t[0]) if len(t) else 0.0
-        if not flush and span < self.auto_seconds and waited < AUTO_WAIT * self.auto_seconds:
+        choice = choose_smoother(self.robot, self.base, held.stamps, held.q, held.qd,
+                                 held.tau, self.order, self.max_gap, self.cutoff,
+                                 self.auto_seconds, self.weights, flush)
+        if choice is None:
             return False
-        rate = _rate(t)
-        part = slice(first, first + int(np.searchsorted(t[first:], t[first] + self.auto_seconds
-                                                        + 1e-9))) if span else slice(0, len(t))
-        L = None
-        if not math.isnan(rate):
-            qd = held.qd[part] if np.isfinite(held.qd[part]).all() else None
-            L = choose_half_window(self.robot, self.base, t[part], held.q[part], qd,
-                                   held.tau[part], self.order, self.max_gap, self.weights)
-        if L is None:
-            rate = rate if rate > 0 else 1.0
-            self.choice = SmootherChoice(half_window_for_cutoff(FALLBACK_CUTOFF, rate,
-                                                                self.order),
-                                         self.order, rate, 'fallback')
-        else:
-            self.choice = SmootherChoice(L, self.order, rate, 'automatic',
-                                         float(t[part][-1] - t[part][0]))
+        self.choice = choice
         return True
 
     def drain(self, measured_velocity: bool) -> Rows | None:
