@@ -120,7 +120,10 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
     node_proc = subprocess.Popen(
         [sys.executable, '-m', 'identification_node', 'node', '--ros-args',
          '-p', f'robot:={PANDA}', *[a for k, v in torque.items() for a in ('-p', f'{k}:={v}')],
-         '-p', 'publish.diagnostics_rate:=4.0', *NODE_ARGS],
+         '-p', 'publish.diagnostics_rate:=4.0',
+         # the window of the README's figures (the automatic one depends on the motion)
+         *([] if any(a.startswith('smoother.') for a in NODE_ARGS)
+           else ['-p', 'smoother.half_window:=10']), *NODE_ARGS],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     latencies: list[int] = []
     diag: dict[str, str] = {}
@@ -182,7 +185,7 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
         'cpu_percent': 100 * (cpu1 - cpu0) / (steady / rate) if steady else float('nan'),
         'latency_ms_median': float(np.median(lat)) if len(lat) else float('nan'),
         'latency_ms_p99': float(np.percentile(lat, 99)) if len(lat) else float('nan'),
-        'delay_ms': 1e3 * int(diag.get('smoother_delay_samples', 10)) / rate,
+        'delay_ms': float(diag.get('smoother_delay_ms', 'nan')),
     }
 
 

@@ -181,9 +181,12 @@ def format_report(doc: dict) -> str:
              f"method: {doc['method']} ({doc['processing'].get('processing', '')})"]
     if doc.get('smoother'):
         sm = doc['smoother']
-        lines.append(f"smoother: cut-off {_number(sm['cutoff_hz'])} Hz ({sm['source']}), half "
-                     f"window {sm['half_window']} samples at {_number(sm['rate_hz'])} Hz, delay "
-                     f"{_number(None if sm['delay_s'] is None else 1e3 * sm['delay_s'])} ms")
+
+        def known(v, scale=1.0):
+            return '?' if v is None else f'{scale * v:.4g}'
+        lines.append(f"smoother: cut-off {known(sm['cutoff_hz'])} Hz ({sm['source']}), half "
+                     f"window {sm['half_window']} samples at {known(sm['rate_hz'])} Hz, delay "
+                     f"{known(sm['delay_s'], 1e3)} ms")
     elif doc['processing'].get('cutoff_hz') is not None:
         lines.append(f"filter: cut-off {_number(doc['processing']['cutoff_hz'])} Hz "
                      f"({doc['processing'].get('cutoff_source', 'given')})")
