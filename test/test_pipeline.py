@@ -5,12 +5,14 @@ import pytest
 from identification_node.errors import IdentificationError
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
+from identification_node.estimation.robust import RobustSettings
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
+from identification_node.pipeline import signals
 from identification_node.pipeline.estimate import OnlineEstimate
 from identification_node.wire.records import JointStateRecord
 
@@ -468,3 +470,35 @@ def test_non_finite_or_overflowing_rows_are_dropped_and_counted(bad):
     p.estimator.apply()
     assert p.rejected['regressor_overflow'] == 1
     assert p.rls.num_samples == 59 and np.isfinite(p.rls.theta).all()
+
+
+def test_automatic_smoother_holds_the_first_seconds_of_motion_then_takes_them_all():
+    sim = simulate(duration=8.0)
+    js = joint_records(sim)
+    # the robust gate off: its outliers depend on when the estimate converged
+    off = RobustSettings(enabled=False)
+    auto = IdentificationPipeline(ROBOT, PipelineConfig(robust=off), BASE)
+    first = []
+    for start in range(0, len(js), 250):
+        for r in js[start:start + 250]:
+            auto.add_joint_state(r)
+        if len(auto.process().stamps_ns) and not first:
+            first.append(start + 250)
+    out_auto = auto.process(flush=True)
+    choice = auto.smoother
+    assert choice.source == 'automatic' and choice.rate == pytest.approx(RATE)
+    assert choice.seconds == pytest.approx(5.0, abs=2 / RATE)
+    # nothing came out before 5 s of motion were in (the arm moves from the first sample)
+    assert first[0] == int(np.ceil((5.0 * RATE + 1) / 250)) * 250
+    assert choice.cutoff == pytest.approx(
+        signals.smoother_cutoff(choice.half_window, 3, RATE)) and choice.delay == \
+        pytest.approx(choice.half_window / RATE)
+    # the same as the pipeline given that window from the start, to rounding
+    fixed = IdentificationPipeline(
+        ROBOT, PipelineConfig(half_window=choice.half_window, robust=off), BASE)
+    want = feed(fixed, js, chunk=250)
+    assert auto.used == fixed.used == len(js) - 2 * choice.half_window
+    np.testing.assert_allclose(auto.rls.theta, fixed.rls.theta, rtol=1e-9,
+                               atol=1e-9 * np.abs(TRUE).max())
+    assert len(out_auto.stamps_ns) < len(want['stamps_ns'])
+    assert_within_3_sigma(auto.estimate())

@@ -3,8 +3,10 @@ import numpy as np
 import pytest
 
 from identification_node.errors import IdentificationError
+from identification_node.pipeline import signals
 from identification_node.pipeline.signals import (FixedLagSmoother, central_derivatives, decimate,
-                                                  period_average, zero_phase_lowpass)
+                                                  half_window_for_cutoff, period_average,
+                                                  smoother_cutoff, zero_phase_lowpass)
 
 
 def _irregular_stamps(rng, n, dt=0.01, jitter=0.4, t0=3.0):
@@ -195,6 +197,44 @@ def test_uniform_stamps_take_fixed_weights_equal_to_the_general_fit(monkeypatch)
         np.testing.assert_allclose(a, r, rtol=tol, atol=tol * np.abs(r).max())
     for r in (got, want):  # (t^2)'' = 2, to the rounding of both
         np.testing.assert_allclose(r[3][:, 2], 2.0, rtol=1e-8)
+
+
+@pytest.mark.parametrize('L', [4, 10, 57, 300])
+def test_cutoff_is_the_exact_3_db_frequency_and_maps_back_to_the_window(L):
+    rate = 500.0
+    fc = smoother_cutoff(L, 3, rate)
+    sm = FixedLagSmoother(1, half_window=L, order=3)
+    gain = np.abs(sm.frequency_response(np.array([0.5 * fc, fc, 1.02 * fc]), rate)[0])
+    assert gain[1] == pytest.approx(1 / np.sqrt(2), abs=1e-9)
+    assert gain[0] > gain[1] > gain[2]
+    assert half_window_for_cutoff(fc, rate, 3) == L
+    # the same window in seconds at another rate has about the same cut-off in Hz
+    assert smoother_cutoff(4 * L, 3, 4 * rate) == pytest.approx(fc, rel=0.05 if L > 4 else 0.2)
+    # a cut-off near Nyquist stops at the shortest well-posed window
+    assert half_window_for_cutoff(0.45 * rate, rate, 3) == signals.MIN_HALF_WINDOW
+    with pytest.raises(IdentificationError):
+        half_window_for_cutoff(0.0, rate, 3)
+
+
+def test_long_windows_by_fft_and_fit_at_equal_the_general_fit(monkeypatch):
+    rng = np.random.default_rng(3)
+    n, L = 3000, 150
+    t = 2.0 + np.arange(n) * 2.0 ** -9
+    x = np.column_stack([np.sin(3 * t), 5 + np.cos(7 * t) + 0.01 * rng.standard_normal(n)])
+    fast = FixedLagSmoother(2, half_window=L, order=3)
+    got = [fast.push(t[k:k + 1000], x[k:k + 1000]) for k in range(0, n, 1000)]
+    got = [np.concatenate(p) for p in zip(*got)]
+    monkeypatch.setattr(signals, '_FFT_TAPS', 10 ** 9)   # the fixed weights by BLAS
+    want = FixedLagSmoother(2, half_window=L, order=3).push(t, x)
+    np.testing.assert_array_equal(got[0], want[0])
+    for a, b in zip(got[1:], want[1:]):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+    centres = np.searchsorted(t, want[0])[::37]
+    at = FixedLagSmoother(2, half_window=L, order=3).fit_at(t, x, centres)
+    for a, b in zip(at, want[1:]):
+        np.testing.assert_allclose(a, b[::37], rtol=1e-9, atol=1e-9 * np.abs(b).max())
+    with pytest.raises(IdentificationError, match='half a window'):
+        fast.fit_at(t, x, [L - 1])
 
 
 def test_long_uniform_push_in_blocks_equals_chunked_pushes():
