@@ -63,7 +63,8 @@ CRS = dict(robot='crs_a465', trajectory='table1', torque_std=0.2, current_std=0.
                    'pole_pairs': [4], 'angle_offset': [0.0, 0.5, 1.0, 1.5, 2.0, 2.5],
                    'phase_order': ['abc', 'acb', 'abc', 'acb', 'abc', 'acb']},
            payload=('link6', 0.5, [0.0, 0.05, 0.1]), electrical_angle=True)
-FAST = {'process_period': 0.01, 'publish.effort_rate': 200.0}
+# The smoother pinned (its automatic choice holds 5 s back; tested on its own below)
+FAST = {'process_period': 0.01, 'publish.effort_rate': 200.0, 'smoother.half_window': 10}
 
 
 def remaps(prefix):
@@ -248,6 +249,7 @@ def mit(ros, diag, tmp_path_factory):
     stream.services = start_node(ros, 'services', {
         'robot': 'mit_dd_arm', 'extras': [], 'process_period': 0.01,
         'publish.estimate_rate': 5.0,
+        'smoother.half_window': 10,
         'publish.diagnostics_rate': 5.0, 'publish.effort_rate': 10.0,
         'output_directory': str(tmp / 'saved')}, 'mit')
     stream.start(tmp, subscriptions=4)    # joint_states: 3 nodes, motor_currents: 1
@@ -355,7 +357,7 @@ def test_effort_topics_are_published_only_to_subscribers(ros):
     """Nobody listens to ~/measured_effort: it is not even serialized; ~/predicted_effort,
     subscribed, gets every sample through the smoother, stamped with the sample's stamp."""
     node = start_node(ros, 'lazy', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
-                                    'process_period': 0.01}, 'lazy')
+                                    'process_period': 0.01, 'smoother.half_window': 10}, 'lazy')
     published = {'predicted': 0, 'measured': 0}
     for key, pub in (('predicted', node._pub_predicted), ('measured', node._pub_measured)):
         def counting(raw, key=key, publish=pub.publish):
@@ -376,6 +378,52 @@ def test_effort_topics_are_published_only_to_subscribers(ros):
     assert wait_for(lambda: len(got) >= through, 10)
     assert [stamp_ns(m) for m in got.snapshot()] == list(stamps[lag:lag + through])
     assert published == {'predicted': through, 'measured': 0}
+    got.close()
+    ros.client.destroy_publisher(sender)
+    ros.remove(node)
+
+
+def test_automatic_smoother_is_chosen_after_5_s_of_motion_and_reported(ros, diag):
+    """The default: no prediction until 5 s of motion are in, then every sample but the
+    chosen window's edges, the choice in /diagnostics."""
+    node = start_node(ros, 'auto', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
+                                    'process_period': 0.01, 'publish.diagnostics_rate': 5.0},
+                      'auto')
+    got = Collector(ros, JointState, '/auto/predicted_effort')
+    sender = ros.client.create_publisher(JointState, '/auto/joint_states', RELIABLE)
+    assert wait_for(lambda: sender.get_subscription_count()
+                    and node._pub_predicted.get_subscription_count(), 10)
+    traj = FourierTrajectory.random(node.robot, harmonics=4, period=10.0, seed=2)
+    n = 7000
+    sim = simulate_kinematic(node.robot, None, traj, np.arange(n) / 1000.0,
+                             SensorNoise(torque_std=0.2), seed=2)
+    stamps = 10**9 + np.arange(n) * 10**6
+    msgs = joint_state_msgs(stamps, node.robot.joint_names, sim.q_meas, sim.qd_meas,
+                            sim.tau_meas)
+
+    def send(a, b):   # in bursts the node's input queue holds
+        for k in range(a, b, 250):
+            for msg in msgs[k:min(b, k + 250)]:
+                sender.publish(msg)
+            assert wait_for(lambda: node.pipeline.received >= min(b, k + 250), 10)
+    send(0, 4000)
+    time.sleep(0.3)
+    assert len(got) == 0 and node.pipeline.smoother is None
+    status = wait_for(lambda: (last_status(diag, 'auto') or {}).get('smoother'), 5)
+    assert status and (last_status(diag, 'auto') or {})['smoother'].startswith('being chosen')
+    send(4000, n)
+    assert wait_for(lambda: node.pipeline.smoother is not None, 10)
+    lag = node.pipeline.smoother.half_window
+    assert node.pipeline.smoother.source == 'automatic'
+    assert wait_for(lambda: len(got) >= n - 2 * lag, 10)
+    assert [stamp_ns(m) for m in got.snapshot()] == list(stamps[lag:n - lag])
+    assert wait_for(lambda: (last_status(diag, 'auto') or {}).get('smoother') == 'automatic',
+                    5)
+    values = last_status(diag, 'auto')
+    assert int(values['smoother_delay_samples']) == lag
+    assert float(values['smoother_delay_ms']) == pytest.approx(lag, rel=1e-3)   # 1 kHz
+    assert float(values['smoother_cutoff_hz']) == pytest.approx(
+        node.pipeline.smoother.cutoff, rel=1e-5)
     got.close()
     ros.client.destroy_publisher(sender)
     ros.remove(node)
