@@ -194,11 +194,17 @@ def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, rob
     settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
                                   'robust': {'enabled': False}})
     bags = [fleet_dir / f'bags/arm_b_{p}_{k}' for p in PERIODS[:2] for k in range(2)]
-    merged = sum((fleet.bag_statistics(b, settings, robot) for b in bags[1:]),
-                 fleet.bag_statistics(bags[0], settings, robot))
+    # one smoother for all, chosen on the first bag, as identify on the concatenation does
+    one = fleet.pinned(settings, fleet.bag_smoother(bags[0], settings, robot))
+    merged = sum((fleet.bag_statistics(b, one, robot) for b in bags[1:]),
+                 fleet.bag_statistics(bags[0], one, robot))
     doc = result_document(fleet.identification(merged, settings, robot,
                                                physical_consistency=False))
     ref = replay_identify(concatenated(bags, tmp_path / 'cat', robot), settings, robot)
+    assert ref.pipeline.smoother.half_window == one['smoother.half_window']
+    with pytest.raises(IdentificationError, match='different smoothers'):
+        merged + fleet.bag_statistics(bags[0], fleet.pinned(settings, (
+            ('smoother.half_window', one['smoother.half_window'] + 1),)), robot)
     assert ref.pipeline.restarts == 3
     assert_same_identification(doc, result_document(ref))
 
@@ -210,8 +216,9 @@ def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, t
     settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
                                   'robust': {'enabled': False}})
     bags = [fleet_dir / f'bags/arm_b_{PERIODS[0]}_{k}' for k in range(2)]
-    merged = fleet.bag_statistics(bags[0], settings, robot) + fleet.bag_statistics(
-        bags[1], settings, robot)
+    one = fleet.pinned(settings, fleet.bag_smoother(bags[0], settings, robot))
+    merged = fleet.bag_statistics(bags[0], one, robot) + fleet.bag_statistics(
+        bags[1], one, robot)
     ident = fleet.identification(merged, settings, robot)
     doc = result_document(ident)
     assert doc['consistency_solver']['status'] == 'optimal' and doc['links']
@@ -480,10 +487,19 @@ def check_fleet_document(doc, root, robot, settings, tmp_path):
     for name, periods in doc['robots'].items():
         assert list(periods) == list(PERIODS)
     groups = manifest_groups(root)
+    # one smoother per robot: the one identify chooses on its first bag in manifest order
+    firsts = {}
+    for e in fleet.read_manifest(root / 'manifest.csv'):
+        firsts.setdefault(e.robot, e.bag)
+    assert set(doc['smoothers']) == set(firsts)
+    for name, bag in firsts.items():
+        assert doc['smoothers'][name] == dict(fleet.bag_smoother(bag, settings, robot))
     # per robot and period: identify of the same data (the two bags one after the other)
+    # through the robot's smoother
     for (name, period), bags in groups.items():
         ref = replay_identify(concatenated(bags, tmp_path / f'{name}_{period}', robot),
-                              settings, robot)
+                              fleet.pinned(settings, tuple(doc['smoothers'][name].items())),
+                              robot)
         make_consistent(ref, settings.consistency_options())
         assert_same_as_identify(doc['robots'][name][period], result_document(ref))
     # the drifting robot, and only it, is flagged, on the drifting parameter

@@ -65,6 +65,7 @@ from identification_node.settings import Settings
 
 DEFAULT_SIGMA = 5.0          # k: flag changes larger than k standard deviations
 MANIFEST_COLUMNS = ('bag', 'robot', 'period')
+SMOOTHER = ('smoother.half_window', 'smoother.cutoff')   # BagStatistics.smoother
 OPTIONAL_COLUMNS = ('urdf', 'config')
 
 
@@ -187,12 +188,18 @@ class BagStatistics:
     restarts: int
     first_ns: int | None
     last_ns: int | None
+    smoother: tuple = ()     # (parameter, value) pairs of the smoother the rows went through
 
     def __add__(self, other: BagStatistics) -> BagStatistics:
         if self.model != other.model:
             raise IdentificationError(
                 f'bags {self.bags[0]} and {other.bags[0]} are of different robot models '
                 '(description, joints or extras): their statistics do not merge')
+        if self.smoother != other.smoother:
+            raise IdentificationError(
+                f'bags {self.bags[0]} and {other.bags[0]} went through different smoothers '
+                f'({dict(self.smoother)}, {dict(other.smoother)}): their statistics do not '
+                'merge exactly')
         stamps = [s for s in (self.first_ns, other.first_ns) if s is not None]
         lasts = [s for s in (self.last_ns, other.last_ns) if s is not None]
         return BagStatistics(
@@ -203,7 +210,7 @@ class BagStatistics:
             {k: self.rejected.get(k, 0) + other.rejected.get(k, 0)
              for k in {**self.rejected, **other.rejected}},
             self.excluded_rows + other.excluded_rows, self.restarts + other.restarts,
-            min(stamps) if stamps else None, max(lasts) if lasts else None)
+            min(stamps) if stamps else None, max(lasts) if lasts else None, self.smoother)
 
 
 class _SegmentPipeline(IdentificationPipeline):
@@ -271,17 +278,45 @@ def segment_margin_ns(settings: Settings) -> int:
                           + v['align_tolerance']) * 1e9)) + 1
 
 
+def pinned(settings: Settings, smoother: tuple) -> Settings:
+    """``settings`` with smoother parameters ((name, value) pairs, bag_smoother) set."""
+    if not smoother:
+        return settings
+    return Settings({**settings.values, **dict(smoother)},
+                    settings.given | {k for k, _ in smoother})
+
+
+def bag_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                 joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS
+                 ) -> tuple:
+    """The smoother parameters the pipeline of ``settings`` uses on ``bag`` (as identify):
+    () when they fix the half window, else the half window and cut-off it chooses (the bag
+    read until chosen)."""
+    if settings['smoother.half_window']:
+        return ()
+    pipeline = settings.build(robot)
+    identify_bag(bag, settings, robot, joint_states, motor_currents, checkpoints=1,
+                 pipeline=pipeline, until=lambda p: p.smoother is not None)
+    choice = pipeline.smoother
+    return (('smoother.half_window', int(choice.half_window)),
+            ('smoother.cutoff', float(choice.cutoff)))
+
+
 def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                    start_ns: int | None = None, stop_ns: int | None = None,
                    joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS
                    ) -> BagStatistics:
     """The sufficient statistics of a bag's rows through the node's pipeline, or of the rows
     with header stamps in [start_ns, stop_ns) (a segment; None: open). Needs forgetting 1
-    (forgotten statistics do not merge)."""
+    (forgotten statistics do not merge). Settings that leave the smoother to be chosen get
+    the one the whole bag chooses (bag_smoother); statistics of bags merge only with one
+    smoother: pin theirs (``pinned``) to the first bag's, as run_fleet does."""
     if settings['forgetting_factor'] != 1.0:
         raise IdentificationError(
             f"fleet identification needs forgetting_factor 1 (got "
             f"{settings['forgetting_factor']}): forgotten statistics do not add up")
+    smoother = bag_smoother(bag, settings, robot, joint_states, motor_currents)
+    settings = pinned(settings, smoother)
     pipeline = settings.build(robot)
     segment = start_ns is not None or stop_ns is not None
     if segment:
@@ -311,7 +346,8 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
         (str(bag),), model_key(robot), equations, pipeline.residuals,
         int(rls.num_samples), int(pipeline.used), int(messages), int(pipeline.received),
         {k: v for k, v in pipeline.rejected.items() if v}, int(pipeline.excluded_rows),
-        int(pipeline.restarts), *(span or (None, None)))
+        int(pipeline.restarts), *(span or (None, None)),
+        smoother=smoother or tuple((k, settings[k]) for k in SMOOTHER))
 
 
 # -- solve ----------------------------------------------------------------------------------------
@@ -338,6 +374,7 @@ def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
 
     if stats.model != model_key(robot):
         raise IdentificationError(f'statistics of {stats.bags[0]} are not of {robot.name}')
+    settings = pinned(settings, stats.smoother)
     pipeline = settings.build(robot)
     ne = stats.normal_equations
     rls = RecursiveLeastSquares.from_normal_equations(ne, stats.num_samples, theta=solve(ne))
@@ -374,28 +411,15 @@ class MapTask:
 
 def task_settings(entry: FleetEntry, smoother: tuple = ()) -> Settings:
     """entry_settings with the robot's smoother parameters (choose_smoother) set."""
-    settings = entry_settings(entry)
-    if not smoother:
-        return settings
-    return Settings({**settings.values, **dict(smoother)},
-                    settings.given | {k for k, _ in smoother})
+    return pinned(entry_settings(entry), smoother)
 
 
 def choose_smoother(entry: FleetEntry, joint_states: str = JOINT_STATES,
                     motor_currents: str = MOTOR_CURRENTS) -> tuple:
-    """The smoother parameters all of the entry's robot's bags are to use: () when its
-    settings fix the half window, else the half window and cut-off the pipeline chooses on
-    this bag (read until chosen). Pure, for a worker."""
+    """bag_smoother of an entry: what all bags of its robot are to use. Pure, for a worker."""
     settings = entry_settings(entry)
-    if settings['smoother.half_window']:
-        return ()
-    robot = entry_robot(entry, settings)
-    pipeline = settings.build(robot)
-    identify_bag(entry.bag, settings, robot, joint_states, motor_currents, checkpoints=1,
-                 pipeline=pipeline, until=lambda p: p.smoother is not None)
-    choice = pipeline.smoother
-    return (('smoother.half_window', int(choice.half_window)),
-            ('smoother.cutoff', float(choice.cutoff)))
+    return bag_smoother(entry.bag, settings, entry_robot(entry, settings), joint_states,
+                        motor_currents)
 
 
 @dataclass
