@@ -206,7 +206,9 @@ def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, rob
         merged + fleet.bag_statistics(bags[0], fleet.pinned(settings, (
             ('smoother.half_window', one['smoother.half_window'] + 1),)), robot)
     assert ref.pipeline.restarts == 3
-    assert_same_identification(doc, result_document(ref))
+    # (identify holds the first bag back for the smoother's choice, so its rows enter the
+    # sums in other batches: rounding, 1e-9 of the relative errors' small residuals)
+    assert_same_identification(doc, result_document(ref), rtol=1e-8)
 
 
 def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, tmp_path):

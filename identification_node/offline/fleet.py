@@ -254,11 +254,20 @@ class _WindowRows:
     def __init__(self, rows, counters, lo: int, hi: int):
         self._rows, self._counters, self._window = rows, counters, (lo, hi)
 
+    def __getattr__(self, name: str):   # the smoother's choice, counters: the RowBuilder's
+        return getattr(self._rows, name)
+
     def reset(self) -> None:
         self._rows.reset()
 
+    def drain(self, measured_velocity: bool):
+        r = self._rows.drain(measured_velocity)
+        return None if r is None else self._inside(r)
+
     def __call__(self, *args, **kwargs):
-        r = self._rows(*args, **kwargs)
+        return self._inside(self._rows(*args, **kwargs))
+
+    def _inside(self, r):
         if len(r.t):
             keep = _inside(self._counters.stamps_ns(r.t), *self._window)
             if not keep.all():
