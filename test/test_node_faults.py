@@ -32,7 +32,9 @@ def ros():
 
 
 def node_process(ros, tmp_path, name, **params):
-    params = {'robot': 'mit_dd_arm', 'torque_source': ['measured'], **params}
+    # the smoother pinned: these test the input path (bursts, signals), not its choice
+    params = {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
+              'smoother.half_window': 10, **params}
     proc = ros.start('node', params, tmp_path, name, extra=('-r', f'__node:={name}',
                                                             '-r', f'joint_states:=/{name}/js'))
     client = ros.client.create_client(Trigger, f'/{name}/get_estimate')

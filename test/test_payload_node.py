@@ -33,8 +33,10 @@ def reliable(prefix):
 
 
 def node_params(**extra):
+    # the smoother pinned: the timing of the detections assumes its 10 ms delay
     return dict({'robot': URDF, 'torque_source': ['measured'], 'payload.enabled': True,
-                 'publish.diagnostics_rate': 5.0, **reliable('pl')}, **extra)
+                 'publish.diagnostics_rate': 5.0, 'smoother.half_window': 10,
+                 **reliable('pl')}, **extra)
 
 
 def test_pick_up_payload_while_the_node_runs(ros, tmp_path):

@@ -31,7 +31,8 @@ from identification_node.pipeline.signals import (MIN_HALF_WINDOW, FixedLagSmoot
                                                   half_window_for_cutoff, smoother_cutoff)
 
 AUTO_GRID = 2.0 ** 0.25   # ratio of neighbouring half windows tried by choose_half_window
-AUTO_ROWS = 800           # samples whose rows the choice fits (evenly spread)
+AUTO_ROWS = 500           # samples whose rows the choice fits (evenly spread)
+AUTO_TAPS = 2001          # longer candidate windows are fitted on every s-th sample (cost)
 MOTION = 1e-3             # rad (m): a joint this far from its first position is moving
 AUTO_WAIT = 6.0           # times auto_seconds held at most without enough motion
 FALLBACK_CUTOFF = 5.0     # Hz: the cut-off when the data are too short to choose from
@@ -86,22 +87,27 @@ def choose_half_window(robot: RobotModel, base: BaseParameters, t: np.ndarray, q
     if len(grid) < 3:
         return None
     top = grid[-1]
+    stride = {L: max(1, math.ceil((2 * L + 1) / AUTO_TAPS)) for L in grid}
+    s_top = stride[top]
     segment = np.concatenate([[0], np.cumsum(np.diff(t) > max_gap)])
     centres = np.unique(np.linspace(top, N - 1 - top, AUTO_ROWS).round().astype(np.int64))
+    centres = np.unique(np.clip(centres // s_top * s_top, top, N - 1 - top))
     centres = centres[segment[centres - top] == segment[centres + top]]
     if len(centres) * n < 4 * base.num_base:
         return None
     root = None if weights is None else np.sqrt(np.asarray(weights, dtype=float))
     fits = []
     for L in grid:
-        v, d, dd = FixedLagSmoother(x.shape[1], L, order).fit_at(t, x, centres)
+        k = stride[L]    # a long window fitted on every k-th of its samples (centres too)
+        v, d, dd = FixedLagSmoother(x.shape[1], L // k, order).fit_at(
+            t[::k], x[::k], centres // k)
         qd_s, qdd_s = (d[:, :n], dd[:, :n]) if qd is None else (v[:, n:2 * n], d[:, n:2 * n])
         Yb = base.base_regressor(robot.regressor(v[:, :n], qd_s, qdd_s))
         y = v[:, -n:]
         if root is not None:
             Yb, y = Yb * root[None, :, None], y * root
         A = Yb.reshape(-1, base.num_base)
-        theta = np.linalg.lstsq(A, y.reshape(-1), rcond=None)[0]
+        theta = np.linalg.lstsq(A.T @ A, A.T @ y.reshape(-1), rcond=1e-12)[0]
         fits.append((A, theta))
     change = [np.sqrt(np.mean((fits[i][0] @ (fits[i + 1][1] - fits[i - 1][1])) ** 2))
               for i in range(1, len(grid) - 1)]

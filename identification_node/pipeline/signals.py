@@ -260,10 +260,22 @@ class FixedLagSmoother:
         starts = np.asarray(centres, dtype=np.int64) - self.half_window
         if starts.size and (starts.min() < 0 or starts.max() + 2 * self.half_window >= t.size):
             raise IdentificationError('a window centre lies within half a window of the ends')
-        parts = [self._fit(t, x, starts[i:i + self._block])[1:]
+        d = np.diff(t)
+        rounding = 8 * np.finfo(float).eps * max(abs(t[0]), abs(t[-1]))
+        uniform = d.size > 0 and d.max() - d.min() <= _UNIFORM_TOL * d.min() + rounding
+        parts = [self._fit_at_uniform(t, x, starts[i:i + self._block]) if uniform
+                 else self._fit(t, x, starts[i:i + self._block])[1:]
                  for i in range(0, starts.size, self._block)] or [
                      (np.zeros((0, x.shape[1])),) * 3]
         return tuple(np.concatenate(p) for p in zip(*parts))
+
+    def _fit_at_uniform(self, t: np.ndarray, x: np.ndarray, starts: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """fit_at's windows starting at ``starts`` of uniform stamps: the fixed weights."""
+        idx = starts[:, None] + self._offsets
+        coef = np.tensordot(self._uniform_weights, x[idx], axes=([1], [1]))   # (3, B, c)
+        h = (0.5 * (t[idx[:, -1]] - t[idx[:, 0]]))[:, None]
+        return coef[0], coef[1] / h, 2.0 * coef[2] / (h * h)
 
     def _runs(self, T: np.ndarray, d: np.ndarray, starts: np.ndarray
               ) -> list[tuple[np.ndarray, bool]]:
