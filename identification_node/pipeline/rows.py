@@ -8,10 +8,11 @@ pinocchio's.
 
 The half window L is given (``half_window`` > 0), or follows from a cut-off in Hz and the
 sampling rate (``cutoff`` > 0), or is chosen from the data (both 0): the samples of the first
-``auto_seconds`` of motion are held back, and :func:`choose_half_window` picks the window on
-them; then they and all later samples go through that one smoother. The choice: least squares
-of the base rows is fitted on those samples for half windows on a geometric grid, and the
-chosen window is the one where the fit's predicted torque changes least between its two
+``auto_seconds`` of motion are held back, and :class:`WindowSearch` picks the window on them,
+one candidate per call (so the node's processing runs stay short; samples keep being held
+meanwhile); then they and all later samples go through that one smoother. The choice: least
+squares of the base rows is fitted on those samples for half windows on a geometric grid, and
+the chosen window is the one where the fit's predicted torque changes least between its two
 neighbours on the grid. Too short a window leaves differentiation noise in the regressor
 (errors in variables: a bias toward smaller inertia), too long a one distorts the motion (the
 opposite bias); where neither acts the estimate stands still.
@@ -72,46 +73,74 @@ def _rate(stamps: np.ndarray) -> float:
     return 1.0 / float(np.median(np.diff(stamps))) if len(stamps) > 1 else math.nan
 
 
+class WindowSearch:
+    """The choice of the half window (samples) for samples t (N,) s, q, tau (N, n) and
+    measured qd (N, n) (None: differentiated) by the criterion of the module doc, one
+    candidate window per ``step`` (the node's processing stays responsive); ``result``:
+    the half window once ``done``, None when the samples are too few for three candidates.
+    ``weights`` (n,): per-joint weights of the fit."""
+
+    def __init__(self, robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
+                 qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
+                 weights: np.ndarray | None = None):
+        self.robot, self.base, self.order, self.t = robot, base, int(order), t
+        self.measured = qd is not None
+        self.x = np.hstack([q, tau] if qd is None else [q, qd, tau])
+        N, n = len(t), robot.dof
+        largest = (N // 3 - 1) // 2
+        grid = sorted({int(round(MIN_HALF_WINDOW * AUTO_GRID ** k)) for k in range(200)
+                       if MIN_HALF_WINDOW * AUTO_GRID ** k <= largest})
+        self.grid = [L for L in grid if L >= max(MIN_HALF_WINDOW, order)]
+        self.root = None if weights is None else np.sqrt(np.asarray(weights, dtype=float))
+        self.fits: list[tuple[np.ndarray, np.ndarray]] = []
+        self.result: int | None = None
+        self.done = len(self.grid) < 3
+        if self.done:
+            return
+        top = self.grid[-1]
+        self.stride = {L: max(1, math.ceil((2 * L + 1) / AUTO_TAPS)) for L in self.grid}
+        s_top = self.stride[top]
+        segment = np.concatenate([[0], np.cumsum(np.diff(t) > max_gap)])
+        centres = np.unique(np.linspace(top, N - 1 - top, AUTO_ROWS).round().astype(np.int64))
+        centres = np.unique(np.clip(centres // s_top * s_top, top, N - 1 - top))
+        self.centres = centres[segment[centres - top] == segment[centres + top]]
+        self.done = len(self.centres) * n < 4 * base.num_base
+
+    def step(self) -> None:
+        """Fit the next candidate window; decide after the last."""
+        if self.done:
+            return
+        n, b = self.robot.dof, self.base.num_base
+        L = self.grid[len(self.fits)]
+        k = self.stride[L]    # a long window fitted on every k-th of its samples (centres too)
+        v, d, dd = FixedLagSmoother(self.x.shape[1], L // k, self.order).fit_at(
+            self.t[::k], self.x[::k], self.centres // k)
+        qd, qdd = (v[:, n:2 * n], d[:, n:2 * n]) if self.measured else (d[:, :n], dd[:, :n])
+        Yb = self.base.base_regressor(self.robot.regressor(v[:, :n], qd, qdd))
+        y = v[:, -n:]
+        if self.root is not None:
+            Yb, y = Yb * self.root[None, :, None], y * self.root
+        A = Yb.reshape(-1, b)
+        theta = np.linalg.lstsq(A.T @ A, A.T @ y.reshape(-1), rcond=1e-12)[0]
+        self.fits.append((A, theta))
+        if len(self.fits) == len(self.grid):
+            f = self.fits
+            change = [np.sqrt(np.mean((f[i][0] @ (f[i + 1][1] - f[i - 1][1])) ** 2))
+                      for i in range(1, len(f) - 1)]
+            self.result = self.grid[1 + int(np.argmin(change))]
+            self.done, self.fits = True, []
+
+    def run(self) -> int | None:
+        while not self.done:
+            self.step()
+        return self.result
+
+
 def choose_half_window(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                        qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
                        weights: np.ndarray | None = None) -> int | None:
-    """The half window (samples) for samples t (N,) s, q, tau (N, n) and measured qd (N, n)
-    (None: differentiated) by the criterion of the module doc; None when the samples are too
-    few for three candidates. ``weights`` (n,): per-joint weights of the fit."""
-    n, N = robot.dof, len(t)
-    x = np.hstack([q, tau] if qd is None else [q, qd, tau])
-    largest = (N // 3 - 1) // 2
-    grid = sorted({int(round(MIN_HALF_WINDOW * AUTO_GRID ** k)) for k in range(200)
-                   if MIN_HALF_WINDOW * AUTO_GRID ** k <= largest})
-    grid = [L for L in grid if L >= max(MIN_HALF_WINDOW, order)]
-    if len(grid) < 3:
-        return None
-    top = grid[-1]
-    stride = {L: max(1, math.ceil((2 * L + 1) / AUTO_TAPS)) for L in grid}
-    s_top = stride[top]
-    segment = np.concatenate([[0], np.cumsum(np.diff(t) > max_gap)])
-    centres = np.unique(np.linspace(top, N - 1 - top, AUTO_ROWS).round().astype(np.int64))
-    centres = np.unique(np.clip(centres // s_top * s_top, top, N - 1 - top))
-    centres = centres[segment[centres - top] == segment[centres + top]]
-    if len(centres) * n < 4 * base.num_base:
-        return None
-    root = None if weights is None else np.sqrt(np.asarray(weights, dtype=float))
-    fits = []
-    for L in grid:
-        k = stride[L]    # a long window fitted on every k-th of its samples (centres too)
-        v, d, dd = FixedLagSmoother(x.shape[1], L // k, order).fit_at(
-            t[::k], x[::k], centres // k)
-        qd_s, qdd_s = (d[:, :n], dd[:, :n]) if qd is None else (v[:, n:2 * n], d[:, n:2 * n])
-        Yb = base.base_regressor(robot.regressor(v[:, :n], qd_s, qdd_s))
-        y = v[:, -n:]
-        if root is not None:
-            Yb, y = Yb * root[None, :, None], y * root
-        A = Yb.reshape(-1, base.num_base)
-        theta = np.linalg.lstsq(A.T @ A, A.T @ y.reshape(-1), rcond=1e-12)[0]
-        fits.append((A, theta))
-    change = [np.sqrt(np.mean((fits[i][0] @ (fits[i + 1][1] - fits[i - 1][1])) ** 2))
-              for i in range(1, len(grid) - 1)]
-    return grid[1 + int(np.argmin(change))]
+    """WindowSearch's result, at once."""
+    return WindowSearch(robot, base, t, q, qd, tau, order, max_gap, weights).run()
 
 
 class Rows(NamedTuple):
@@ -131,9 +160,34 @@ def choose_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: n
                     weights: np.ndarray | None = None, final: bool = False
                     ) -> SmootherChoice | None:
     """The smoother for a stream's first samples t (N,) s, q, qd (NaN: not measured), tau
-    (N, n): of the given ``cutoff`` (Hz) at their rate, or chosen (choose_half_window) on
-    the first ``auto_seconds`` of motion; None while more samples are needed (``final``: no
-    more come, decide with these)."""
+    (N, n): of the given ``cutoff`` (Hz) at their rate, or chosen (WindowSearch) on the first
+    ``auto_seconds`` of motion; None while more samples are needed (``final``: no more come,
+    decide with these)."""
+    plan = plan_smoother(robot, base, t, q, qd, tau, order, max_gap, cutoff, auto_seconds,
+                         weights, final)
+    return plan if plan is None or isinstance(plan, SmootherChoice) else plan.finish()
+
+
+class _Search:
+    """A WindowSearch under way, with what the SmootherChoice it ends in needs."""
+
+    def __init__(self, search: WindowSearch, order: int, rate: float, seconds: float):
+        self.search, self.order, self.rate, self.seconds = search, order, rate, seconds
+
+    def finish(self) -> SmootherChoice:
+        L = self.search.run()
+        if L is None:
+            return SmootherChoice(half_window_for_cutoff(FALLBACK_CUTOFF, self.rate, self.order),
+                                  self.order, self.rate, 'fallback')
+        return SmootherChoice(L, self.order, self.rate, 'automatic', self.seconds)
+
+
+def plan_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
+                  qd: np.ndarray, tau: np.ndarray, order: int, max_gap: float,
+                  cutoff: float = 0.0, auto_seconds: float = 5.0,
+                  weights: np.ndarray | None = None, final: bool = False
+                  ) -> SmootherChoice | _Search | None:
+    """choose_smoother's decision, or the search to run to it (step by step)."""
     if cutoff > 0:
         if len(t) < 16 and not final:
             return None
@@ -147,18 +201,15 @@ def choose_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: n
     if not final and span < auto_seconds and waited < AUTO_WAIT * auto_seconds:
         return None
     rate = _rate(t)
+    if math.isnan(rate):
+        return SmootherChoice(half_window_for_cutoff(FALLBACK_CUTOFF, 1.0, order), order, 1.0,
+                              'fallback')
     part = (slice(first, first + int(np.searchsorted(t[first:], t[first] + auto_seconds
                                                      + 1e-9))) if span else slice(0, len(t)))
-    L = None
-    if not math.isnan(rate):
-        measured = qd[part] if np.isfinite(qd[part]).all() else None
-        L = choose_half_window(robot, base, t[part], q[part], measured, tau[part], order,
-                               max_gap, weights)
-    if L is None:
-        rate = rate if rate > 0 else 1.0
-        return SmootherChoice(half_window_for_cutoff(FALLBACK_CUTOFF, rate, order), order,
-                              rate, 'fallback')
-    return SmootherChoice(L, order, rate, 'automatic', float(t[part][-1] - t[part][0]))
+    measured = qd[part] if np.isfinite(qd[part]).all() else None
+    search = WindowSearch(robot, base, t[part], q[part], measured, tau[part], order, max_gap,
+                          weights)
+    return _Search(search, order, rate, float(t[part][-1] - t[part][0]))
 
 
 class RowBuilder:
@@ -176,6 +227,7 @@ class RowBuilder:
         self.choice: SmootherChoice | None = (
             SmootherChoice(int(half_window), self.order) if half_window else None)
         self._held: list[Samples] = []     # samples waiting for the choice
+        self._search: _Search | None = None   # the choice under way
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._columns = np.append(base.base_index, robot.num_params)
         self._work: dict[str, np.ndarray] = {}
@@ -202,7 +254,7 @@ class RowBuilder:
 
     def reset_counts(self) -> None:
         """Counters to zero; samples held for the choice are dropped (a pipeline reset)."""
-        self._held = []
+        self._held, self._search = [], None
         self._in = self._out = 0    # samples into / out of the smoother
         # valid samples the smoother never outputs: half a window at the stream's start, at
         # either side of a stamp gap, and what a restart drops (not rejections: apart)
@@ -219,16 +271,33 @@ class RowBuilder:
     def _choose(self, flush: bool) -> bool:
         """Decide the smoother once the held samples allow it (``flush``: with what there
         is); whether it is decided."""
+        if self._search is None:
+            held = self._held[0]
+            for s in self._held[1:]:
+                held = held.concat(s)
+            self._held = [held] if len(held) else []
+            plan = plan_smoother(self.robot, self.base, held.stamps, held.q, held.qd,
+                                 held.tau, self.order, self.max_gap, self.cutoff,
+                                 self.auto_seconds, self.weights, flush)
+            if plan is None:
+                return False
+            if isinstance(plan, SmootherChoice):
+                self.choice = plan
+                return True
+            self._search = plan
+        if flush:
+            self.choice = self._search.finish()
+        else:     # one candidate per call: the choice spreads over processing runs
+            self._search.search.step()
+            if self._search.search.done:
+                self.choice = self._search.finish()
+        if self.choice is None:
+            return False
+        self._search = None
         held = self._held[0]
         for s in self._held[1:]:
             held = held.concat(s)
-        self._held = [held] if len(held) else []
-        choice = choose_smoother(self.robot, self.base, held.stamps, held.q, held.qd,
-                                 held.tau, self.order, self.max_gap, self.cutoff,
-                                 self.auto_seconds, self.weights, flush)
-        if choice is None:
-            return False
-        self.choice = choice
+        self._held = [held]
         return True
 
     def drain(self, measured_velocity: bool) -> Rows | None:
