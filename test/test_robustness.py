@@ -41,7 +41,9 @@ def stamps(sim):
 def run(sim, config=None, position=None, velocity=None, effort=None, cdr=False, chunk=50):
     """The pipeline fed the simulated stream (optionally with some arrays replaced), in
     chunks as the node does; as CDR messages (the node's path) or as records."""
-    p = IdentificationPipeline(ROBOT, config or PipelineConfig(), BASE)
+    # the smoother pinned: the gate acts once converged, and the automatic choice would
+    # hold the first 5 s back and give them to the estimator at once, ungated
+    p = IdentificationPipeline(ROBOT, config or PipelineConfig(half_window=10), BASE)
     q = sim.q_meas if position is None else position
     qd = sim.qd_meas if velocity is None else velocity
     tau = sim.tau_meas if effort is None else effort
@@ -188,7 +190,8 @@ def test_one_percent_outliers_move_a_converged_estimate_less_than_one_stddev(cle
     sim, ref = clean
     tau = poisoned(sim, 0.01, contiguous=contiguous)
     est = run(sim, effort=tau).estimate()
-    ungated = run(sim, PipelineConfig(robust=RobustSettings(enabled=False)), effort=tau)
+    ungated = run(sim, PipelineConfig(half_window=10, robust=RobustSettings(enabled=False)),
+                  effort=tau)
     assert moved(est, ref) < 1.0
     assert moved(ungated.estimate(), ref) > 1.0     # what the gate prevents
 
@@ -206,7 +209,8 @@ def test_twenty_percent_outliers_no_worse_than_without_gating(clean):
     sim, _ = clean
     tau = poisoned(sim, 0.2, start=0)
     gated = run(sim, effort=tau).estimate()
-    ungated = run(sim, PipelineConfig(robust=RobustSettings(enabled=False)), effort=tau)
+    ungated = run(sim, PipelineConfig(half_window=10, robust=RobustSettings(enabled=False)),
+                  effort=tau)
     err = np.linalg.norm((gated.values - TRUE) / gated.stddev)
     err_ungated = np.linalg.norm((ungated.estimate().values - TRUE) / gated.stddev)
     assert err <= err_ungated * 1.01
@@ -224,7 +228,7 @@ def test_a_sustained_shift_is_reported_and_not_hidden():
                                            getattr(after, name)[12000:]]))
     sim.t = np.arange(24000) / RATE
     events = []
-    config = PipelineConfig(robust=RobustSettings(window=500))
+    config = PipelineConfig(half_window=10, robust=RobustSettings(window=500))
     p = IdentificationPipeline(ROBOT, config, BASE)
     p.gate.listeners.append(events.append)
     st = stamps(sim)
@@ -235,7 +239,7 @@ def test_a_sustained_shift_is_reported_and_not_hidden():
                                             sim.tau_meas[b]))
         p.process()
     p.process(flush=True)
-    ungated = run(sim, PipelineConfig(robust=RobustSettings(enabled=False)))
+    ungated = run(sim, PipelineConfig(half_window=10, robust=RobustSettings(enabled=False)))
     assert p.gate.shifts >= 1 and events and events[0].stamp > 12.0
     assert events[0].fraction >= 0.5
     # nothing held back for good: outliers only before the shift was seen, fewer than a window

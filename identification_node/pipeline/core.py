@@ -138,6 +138,12 @@ class IdentificationPipeline:
         return self.row_builder.choice
 
     @property
+    def choosing(self) -> bool:
+        """Whether the smoother's choice is under way: ``process`` advances it even without
+        new samples."""
+        return self.row_builder.searching
+
+    @property
     def delay(self) -> float:
         """Smoother delay in samples (NaN while it is being chosen); ``smoother.delay`` in
         seconds."""
@@ -157,7 +163,7 @@ class IdentificationPipeline:
                 outputs.append(self._use(held))
             self.row_builder.reset()
             self.estimator.end_stream()
-        if len(s) or flush:
+        if len(s) or flush or self.row_builder.searching:
             est = self.estimator
             outputs.append(self._use(self.row_builder(
                 s, self.samples.velocity_measured,

@@ -9,13 +9,13 @@ pinocchio's.
 The half window L is given (``half_window`` > 0), or follows from a cut-off in Hz and the
 sampling rate (``cutoff`` > 0), or is chosen from the data (both 0): the samples of the first
 ``auto_seconds`` of motion are held back, and :class:`WindowSearch` picks the window on them,
-one candidate per call (so the node's processing runs stay short; samples keep being held
-meanwhile); then they and all later samples go through that one smoother. The choice: least
-squares of the base rows is fitted on those samples for half windows on a geometric grid, and
-the chosen window is the one where the fit's predicted torque changes least between its two
-neighbours on the grid. Too short a window leaves differentiation noise in the regressor
-(errors in variables: a bias toward smaller inertia), too long a one distorts the motion (the
-opposite bias); where neither acts the estimate stands still.
+one candidate per AUTO_STEP s of new samples and call (so the node's processing runs stay
+short; samples keep being held meanwhile); then they and all later samples go through that one
+smoother. The choice: least squares of the base rows is fitted on those samples for half
+windows on a geometric grid, and the chosen window is the one where the fit's predicted torque
+changes least between its two neighbours on the grid. Too short a window leaves differentiation
+noise in the regressor (errors in variables: a bias toward smaller inertia), too long a one
+distorts the motion (the opposite bias); where neither acts the estimate stands still.
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ from identification_node.pipeline.signals import (MIN_HALF_WINDOW, FixedLagSmoot
 
 AUTO_GRID = 2.0 ** 0.25   # ratio of neighbouring half windows tried by choose_half_window
 AUTO_ROWS = 500           # samples whose rows the choice fits (evenly spread)
+AUTO_STEP = 0.05          # s of new samples per candidate window the search tries per call
 AUTO_TAPS = 2001          # longer candidate windows are fitted on every s-th sample (cost)
 MOTION = 1e-3             # rad (m): a joint this far from its first position is moving
 AUTO_WAIT = 6.0           # times auto_seconds held at most without enough motion
@@ -240,6 +241,11 @@ class RowBuilder:
         return None if self.choice is None else self.choice.half_window
 
     @property
+    def searching(self) -> bool:
+        """Whether the choice of the window is under way (calls without samples advance it)."""
+        return self._search is not None
+
+    @property
     def holding(self) -> int:
         """Samples held back for the choice of the smoother."""
         return sum(len(s) for s in self._held)
@@ -268,9 +274,9 @@ class RowBuilder:
         self.smoother_edge += lost
         self._out += lost
 
-    def _choose(self, flush: bool) -> bool:
+    def _choose(self, flush: bool, new: int = 0) -> bool:
         """Decide the smoother once the held samples allow it (``flush``: with what there
-        is); whether it is decided."""
+        is; ``new``: samples that came with this call); whether it is decided."""
         if self._search is None:
             held = self._held[0]
             for s in self._held[1:]:
@@ -287,8 +293,11 @@ class RowBuilder:
             self._search = plan
         if flush:
             self.choice = self._search.finish()
-        else:     # one candidate per call: the choice spreads over processing runs
-            self._search.search.step()
+        else:     # a candidate per AUTO_STEP s of new samples, at least one per call: the
+            # choice spreads over the node's processing runs, in step with the input
+            per = max(1, int(AUTO_STEP * self._search.rate))
+            for _ in range(max(1, new // per)):
+                self._search.search.step()
             if self._search.search.done:
                 self.choice = self._search.finish()
         if self.choice is None:
@@ -320,7 +329,7 @@ class RowBuilder:
         if self.choice is None:
             if len(s):
                 self._held.append(s)
-            if not self._held or not self._choose(flush):
+            if not self._held or not self._choose(flush, len(s)):
                 return self._empty()
             s, self._held = self._held[0], []
         elif math.isnan(self.choice.rate) and len(s) > 1:

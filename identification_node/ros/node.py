@@ -329,7 +329,7 @@ class IdentificationNode(Node):
         with self._lock:
             for source in self._inputs:
                 source.poll()
-            if not self.pipeline.pending:
+            if not self.pipeline.pending and not self.pipeline.choosing:
                 return
             chosen = self.pipeline.smoother is not None
             out = self.pipeline.process()
