@@ -18,6 +18,7 @@ from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.offline import identification as offline
+from identification_node.pipeline.signals import half_window_for_cutoff
 from identification_node.offline.identification import (BagSamples, BatchOptions, Stream,
                                                         fourier_fit, identify_samples,
                                                         offline_identify, read_samples, validate)
@@ -335,7 +336,9 @@ def test_validate_cli_reports_the_held_out_error(validation_bags, mit, mit_setti
                  '--validate', test, '--json']) == 0
     doc = json.loads(capsys.readouterr().out)
     (v,) = doc['validation']
-    half = mit_settings.build(mit).row_builder.half_window       # the smoother's edges
+    # the smoother's edges: the smoother of the fit's cut-off (evaluation_settings)
+    half = half_window_for_cutoff(doc['processing']['cutoff_hz'],
+                                  doc['processing']['rate_hz'][0], 3)
     assert v['bag'] == test and v['num_samples'] == 4000 - 2 * half
     assert set(v['estimate']['per_joint']) == {'joint1', 'joint2', 'joint3'}
     assert all(0 < e < 10 for e in v['estimate']['per_joint'].values())

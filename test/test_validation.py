@@ -27,8 +27,9 @@ DURATION = 3.0
 NOISE = np.array([0.8, 0.4, 0.2])          # N m per joint
 EXTRAS = ['fv', 'fc', 'fo']
 FRICTION = {'fv': [0.8, 0.5, 0.2], 'fc': [1.5, 0.8, 0.3], 'fo': [0.2, -0.1, 0.05]}
+# the smoother pinned: the numpy references leave out its half window at each end
 SETTINGS = {'robot': 'mit_dd_arm', 'extras': EXTRAS, 'coulomb_velocity': 0.05,
-            'coulomb_exclusion_speed': 0.2}
+            'coulomb_exclusion_speed': 0.2, 'smoother.half_window': 10}
 
 
 @pytest.fixture(scope='module')

@@ -124,7 +124,6 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     counters, n, b = stages.counters, robot.dof, base.num_base
     raw, smooth = ErrorSums(n, len(names)), ErrorSums(n, len(names))
     sampler = SeriesSampler(series_points or SERIES_POINTS)
-    keep = 2 * rows.half_window + 1       # the smoother's centres are among these samples
     tail = [np.zeros(0), np.zeros((0, n))]
     restarts = [0]
 
@@ -134,11 +133,13 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             restarts[0] = counters.restarts
             rows.reset()
             tail[:] = [np.zeros(0), np.zeros((0, n))]
-        if len(s) == 0:
+        if len(s) == 0 and not rows.searching and not (flush and rows.holding):
             return
-        r = rows(s, stages.velocity_measured)
+        r = rows(s, stages.velocity_measured, flush=flush)
         T, X = np.concatenate([tail[0], s.stamps]), np.concatenate([tail[1], s.tau])
-        tail[:] = [T[-keep:], X[-keep:]]
+        # the smoother's centres are among the last 2L + 1 samples (all, while it is chosen)
+        keep = None if rows.half_window is None else 2 * rows.half_window + 1
+        tail[:] = [T, X] if keep is None else [T[-keep:], X[-keep:]]
         if len(r.t) == 0:
             return
         idx = np.searchsorted(T, r.t)
