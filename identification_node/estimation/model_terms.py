@@ -83,7 +83,7 @@ class ModelTermStatistics:
         C = S / N[:, None, None] - mean[:, :, None] * mean[:, None, :]
         d = np.diagonal(C, axis1=1, axis2=2)
         flat = d <= 1e-12 * np.maximum(np.diagonal(S, axis1=1, axis2=2) / N[:, None], 1e-300)
-        with np.errstate(invalid='ignore', divide='ignore'):
+        with np.errstate(invalid='ignore', divide='ignore', over='ignore'):   # joints masked
             R = C / np.sqrt(d[:, :, None] * d[:, None, :])
             R = np.where(flat[:, :, None] | flat[:, None, :], 0.0, R)
             R[:, np.arange(k), np.arange(k)] = 1.0
