@@ -106,11 +106,13 @@ def values(doc):
             np.array([p['stddev'] for p in doc['base_parameters']]))
 
 
-def assert_same_identification(doc, ref, rtol=1e-9):
-    """Estimates and stddevs to rtol of the parameter vector's scale; the sums' figures."""
+def assert_same_identification(doc, ref, rtol=1e-9, figures_rtol=None):
+    """Estimates and stddevs to rtol of the parameter vector's scale; the sums' figures to
+    ``figures_rtol`` (default rtol)."""
     (e, s), (re, rs) = values(doc), values(ref)
     np.testing.assert_allclose(e, re, rtol=rtol, atol=rtol * np.abs(re).max())
     np.testing.assert_allclose(s, rs, rtol=rtol, atol=rtol * np.abs(rs).max())
+    rtol = rtol if figures_rtol is None else figures_rtol
     assert doc['num_samples'] == ref['num_samples']
     assert doc['converged'] == ref['converged']
     assert doc['rejected'] == ref['rejected']
@@ -207,8 +209,8 @@ def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, rob
             ('smoother.half_window', one['smoother.half_window'] + 1),)), robot)
     assert ref.pipeline.restarts == 3
     # (identify holds the first bag back for the smoother's choice, so its rows enter the
-    # sums in other batches: rounding, 1e-9 of the relative errors' small residuals)
-    assert_same_identification(doc, result_document(ref), rtol=1e-8)
+    # sums in other batches: the relative errors' small residuals differ by rounding, 1e-8)
+    assert_same_identification(doc, result_document(ref), rtol=1e-9, figures_rtol=1e-8)
 
 
 def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, tmp_path):
