@@ -258,3 +258,33 @@ def test_a_bag_without_chunk_crcs_is_read_with_a_warning(good_bag, tmp_path):
     assert out.returncode == 0, out.stderr
     assert re.search(rf'warning: bag .*no_crc: {len(chunks)} mcap chunk\(s\) carry no CRC',
                      out.stderr)
+
+
+class _Named:
+    """The two name accessors of an rclpy node that given_parameter_names reads."""
+
+    def __init__(self, name, namespace='/'):
+        self.name, self.fqn = name, namespace.rstrip('/') + '/' + name
+
+    def get_name(self):
+        return self.name
+
+    def get_fully_qualified_name(self):
+        return self.fqn
+
+
+def test_given_parameter_names_read_the_ros_arguments_as_rcl_does(tmp_path):
+    """The node's sections of each --params-file (its name, its fully qualified name, /**) and
+    the -p overrides after --ros-args; another node's section and program arguments are not
+    the node's (a name left out could only hide a warning, never raise a false one)."""
+    from identification_node.ros.spin import given_parameter_names
+    f = tmp_path / 'params.yaml'
+    f.write_text('/**:\n  ros__parameters: {use_sim_time: false}\n'
+                 'arm/typo:\n  ros__parameters: {smoother: {cutof: 2.0}, robot: x}\n'
+                 'other:\n  ros__parameters: {not_ours: 1}\n')
+    args = ['prog', '-p', 'program_flag:=1', '--ros-args', '--params-file', str(f),
+            '-p', 'forgeting_factor:=0.9', '--param', 'typo:kt:=[1.0]', '-r', '__node:=typo',
+            '--', '-p', 'after:=1']
+    names = given_parameter_names(args, _Named('typo', '/arm'))
+    assert names == {'use_sim_time', 'smoother.cutof', 'robot', 'forgeting_factor', 'kt'}
+    assert given_parameter_names(['prog'], _Named('typo')) == set()

@@ -129,26 +129,6 @@ def declare_settings(node: Node, table: dict[str, tuple[Any, str]]) -> dict[str,
     return values
 
 
-def warn_unknown_parameters(node: Node) -> list[str]:
-    """Log a warning naming the parameters given to ``node`` (command line, parameter files)
-    that it never declared, typically misspelt ones, which rclpy otherwise drops silently;
-    returns their names. Call once every parameter is declared."""
-    # Trade-off: rclpy (Jazzy) has no public accessor for the overrides a node was given.
-    # The public alternative, automatically_declare_parameters_from_overrides, declares every
-    # override before the node's own typed declarations (each would have to be undeclared and
-    # declared again) and declares the QoS override parameters writable instead of read-only;
-    # a misspelt one (qos_overrides./typo...) is then declared like the used ones, so it cannot
-    # be named, and rclpy's own parameters (use_sim_time, start_type_description_service) would
-    # need a hard-coded list. So the attribute is read, never written; without it (another
-    # rclpy) there is no warning, nothing else.
-    given = getattr(node, '_parameter_overrides', {})
-    unknown = sorted(name for name in given if not node.has_parameter(name))
-    if unknown:
-        node.get_logger().warning('ignoring parameters this node does not have: '
-                                  + ', '.join(unknown))
-    return unknown
-
-
 def smoother_text(choice) -> str:
     """The smoother in use (rows.SmootherChoice) in words: cut-off, window, delay."""
     rate = f'{choice.rate:.6g} Hz' if choice.rate > 0 else 'a rate not known yet'
@@ -235,7 +215,6 @@ class IdentificationNode(Node):
         self._ros_now = (-1, 0)     # (last ROS time seen, checks it stood still)
         self._clock_check = PeriodicThread(1.0, self._check_clock, 'identification_clock',
                                            self._on_processing_error, alive=self.context.ok)
-        warn_unknown_parameters(self)
         for note in self.pipeline.prior_notes:
             self.get_logger().warning(note)
         self.get_logger().info(

@@ -53,7 +53,7 @@ from identification_node.model.torque import TorqueConverter
 from identification_node.model.urdf_export import consistency_problems
 from identification_node.payload.fit import read_payload_changes, true_parameter_changes
 from identification_node.ros.conversions import publish_joint_states, time_msg, wait_for_all_acked
-from identification_node.ros.node import declare_settings, warn_unknown_parameters
+from identification_node.ros.node import declare_settings
 from identification_node.ros.spin import run_node
 from identification_node.settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
 
@@ -266,7 +266,6 @@ class SimulatedArmNode(Node):
         self._stop = threading.Event()
         robot = self.setup.robot
         total = self.setup.num_samples
-        warn_unknown_parameters(self)
         self.get_logger().info(
             f'simulating {robot.name} (joints {", ".join(robot.joint_names)}) on trajectory '
             f'{v["trajectory"]} at {v["rate"]:g} Hz, publishing every '

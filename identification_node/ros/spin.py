@@ -24,7 +24,7 @@ import socket
 import sys
 import threading
 import time
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 from identification_node.errors import IdentificationError
 
@@ -150,6 +150,42 @@ def check_parameter_files(args: list[str] | None) -> None:
                                       'node names to ros__parameters')
 
 
+def given_parameter_names(args: list[str] | None, node: Any) -> set[str]:
+    """Names of the parameters the ROS arguments (``sys.argv`` when None) give ``node``:
+    ``-p``/``--param NAME:=VALUE`` and, of each ``--params-file``, the sections for ``/**``,
+    the node's name or its fully qualified name (other wildcard patterns are not read)."""
+    from rclpy.parameter import parameter_dict_from_yaml_file
+    import yaml
+    args = list(sys.argv if args is None else args)
+    keys = {'/**', node.get_name(), node.get_fully_qualified_name(),
+            node.get_fully_qualified_name().lstrip('/')}
+    names: set[str] = set()
+    ros = False
+    for flag, value in zip(args, args[1:] + ['']):
+        ros = (flag == '--ros-args') or (ros and flag != '--')
+        if not ros:
+            continue
+        if flag in ('-p', '--param') and ':=' in value:
+            names.add(value.split(':=', 1)[0].rpartition(':')[2])
+        elif flag == '--params-file':
+            with open(value, encoding='utf-8') as f:
+                sections = [k for k in yaml.safe_load(f) if k in keys]
+            for key in sections:
+                names |= set(parameter_dict_from_yaml_file(value, target_nodes=[key]))
+    return names
+
+
+def warn_unknown_parameters(node: Any, given: Iterable[str]) -> list[str]:
+    """Log a warning naming the parameters ``given`` to ``node`` (spin.given_parameter_names)
+    that it never declared, typically misspelt ones, which rclpy otherwise drops silently;
+    returns their names. Call once every parameter is declared."""
+    unknown = sorted(name for name in set(given) if not node.has_parameter(name))
+    if unknown:
+        node.get_logger().warning('ignoring parameters this node does not have: '
+                                  + ', '.join(unknown))
+    return unknown
+
+
 def _one_line(exc: BaseException) -> str:
     """An rcl error as one line (without its C source locations)."""
     text = ' '.join(str(exc).split())
@@ -236,6 +272,7 @@ def run_node(factory: Callable[[], Any], name: str, args: list[str] | None = Non
             print(f'{name}: error: {_one_line(exc)}', file=sys.stderr)
             rclpy.try_shutdown()
             return 2
+        warn_unknown_parameters(node, given_parameter_names(args, node))
         executor = make_executor(polled)
         executor.add_node(node)
         never = Future()
