@@ -519,7 +519,7 @@ class IdentificationNode(Node):
         values.update({f'lost_messages.{s.topic}': 'not known with this middleware'
                        if s.lost is None else s.lost for s in self._inputs})
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
-        values.update({f'residual_rms.{j}': f'{r:.6g}'
+        values.update({f'residual_rms.{j}': f'{r:.6g}' if np.isfinite(r) else 'no samples yet'
                        for j, r in zip(self.robot.joint_names, est.residual_rms)})
         values.update({f'excluded_equations.{j}': int(k)
                        for j, k in zip(self.robot.joint_names, excluded)})
