@@ -51,9 +51,10 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
         assert play.returncode == 0, play.stderr
         assert 'did not acknowledge' not in play.stderr, play.stderr
         # At the end of a live stream the node still holds the samples its smoother and the
-        # current alignment wait for; offline replay flushes them.
+        # current alignment wait for; offline replay flushes them. A node slowed by a loaded
+        # machine is still taking its queue: wait for it.
         live = wait_for(lambda: (e := live_estimate())['num_samples'] >= est.num_samples - 5
-                        and e, 20) or live_estimate()
+                        and e, 90) or live_estimate()
     finally:
         stop_process(node)
     assert live['names'] == est.names
