@@ -53,8 +53,8 @@ from identification_node.model.identifiability import (BaseParameters, sample_mo
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.model.urdf_export import consistency_problems
 from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION,
-                                                Checkpoint, ReplayResult, check_usable,
-                                                feed_records, identify_bag)
+                                                Checkpoint, ReplayResult, check_usable, feed_bag,
+                                                identify_bag, input_topics)
 from identification_node.offline.validation import BagError, evaluate
 from identification_node.offline.windows import TimeWindow
 from identification_node.pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput,
@@ -120,25 +120,17 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         settings.pipeline_config(robot.joint_names)
     stages = TorqueSamples(robot, config)
     counters = stages.counters
-    topics = [joint_states]
-    if stages.converter.needs_currents:
-        topics.append(motor_currents)
+    topics = input_topics(stages, joint_states, motor_currents)
     parts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
 
-    def collect(flush: bool = False) -> None:
+    def collect(flush: bool) -> None:
         s = stages.process(flush)
         if len(s):   # all of the newest stream
             parts.append((counters.restarts, counters.stamps_ns(s.stamps), s.q, s.qd, s.tau))
 
-    messages = 0
     with open_bag(bag) as reader:
         counts = reader.topic_counts
-        for add, count in feed_records(reader, stages, topics, batch, window):
-            add()
-            messages += count
-            if messages % batch == 0:
-                collect()
-    collect(flush=True)
+        messages = feed_bag(reader, stages, topics, batch, collect, window)
     check_usable(sum(len(p[1]) for p in parts), counters.rejected, bag, topics, counts,
                  counters, robot.joint_names)
     streams = []

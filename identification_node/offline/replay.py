@@ -110,29 +110,22 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     messages recorded in it (windows.py); ``until``: reading stops after the batch for which
     it is true (e.g. once the smoother is chosen)."""
     pipeline = pipeline or settings.build(robot)
-    topics = [joint_states]
-    if pipeline.converter.needs_currents:
-        topics.append(motor_currents)
+    topics = input_topics(pipeline, joint_states, motor_currents)
+    result = ReplayResult(str(bag), pipeline, 0)
     with open_bag(bag) as reader:
         counts = reader.topic_counts
         every = max(batch, counts.get(joint_states, 0) // max(checkpoints, 1))
-        result = ReplayResult(str(bag), pipeline, 0)
-        next_checkpoint = every
-        for add, count in feed_records(reader, pipeline, topics, batch, window):
-            add()
-            result.messages += count
-            if result.messages % batch == 0:
-                out = pipeline.process()
-                if on_output is not None:
-                    on_output(out)
-                if pipeline.used >= next_checkpoint:
-                    result.history.append(_checkpoint(pipeline))
-                    next_checkpoint = pipeline.used + every
-                if until is not None and until(pipeline):
-                    break
-    out = pipeline.process(flush=True)
-    if on_output is not None:
-        on_output(out)
+        next_checkpoint = [every]
+
+        def step(flush: bool) -> bool:
+            out = pipeline.process(flush=flush)
+            if on_output is not None:
+                on_output(out)
+            if not flush and pipeline.used >= next_checkpoint[0]:
+                result.history.append(_checkpoint(pipeline))
+                next_checkpoint[0] = pipeline.used + every
+            return until is not None and until(pipeline)
+        result.messages = feed_bag(reader, pipeline, topics, batch, step, window)
     check_usable(pipeline.used, pipeline.rejected, bag, topics, counts,
                  pipeline.samples.counters, pipeline.robot.joint_names)
     result.history.append(_checkpoint(pipeline))
@@ -160,6 +153,28 @@ def check_usable(used: int, rejected: dict[str, int], bag, topics: list[str],
             + ''.join(f'; {x}' for x in lacking) + ')'
             + (f'; identified joints: {", ".join(joints)}' if joints else '')
             + '; check the joint names and the torque sources (--config)')
+
+
+def input_topics(pipeline, joint_states: str = JOINT_STATES,
+                 motor_currents: str = MOTOR_CURRENTS) -> list[str]:
+    """The topics ``pipeline`` (an IdentificationPipeline or TorqueSamples) reads: the joint
+    states, and the motor currents when its torque sources need them."""
+    return [joint_states] + ([motor_currents] if pipeline.converter.needs_currents else [])
+
+
+def feed_bag(reader, pipeline, topics: list[str], batch: int,
+             step: Callable[[bool], bool | None], window: TimeWindow | None = None) -> int:
+    """Feed ``pipeline`` the bag's messages (feed_records), calling ``step(False)`` after every
+    ``batch`` of them (reading stops when it returns true) and ``step(True)`` (flush) after
+    the last; returns the number of messages fed."""
+    messages = 0
+    for add, count in feed_records(reader, pipeline, topics, batch, window):
+        add()
+        messages += count
+        if messages % batch == 0 and step(False):
+            break
+    step(True)
+    return messages
 
 
 def feed_records(reader, pipeline, topics: list[str], batch: int,

@@ -24,7 +24,7 @@ from identification_node.errors import IdentificationError
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, check_usable,
-                                                feed_records)
+                                                feed_bag, input_topics)
 from identification_node.offline.windows import TimeWindow
 from identification_node.pipeline import IdentificationPipeline
 from identification_node.settings import Settings
@@ -127,7 +127,7 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     tail = [np.zeros(0), np.zeros((0, n))]
     restarts = [0]
 
-    def step(flush: bool = False) -> None:
+    def step(flush: bool) -> None:
         s = stages.process(flush)
         if counters.restarts != restarts[0]:
             restarts[0] = counters.restarts
@@ -161,18 +161,12 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         if predictions is not None:
             predictions.add(label, stamps_ns, tau, pred[names.index(predict)])
 
-    topics = [joint_states] + ([motor_currents] if stages.converter.needs_currents else [])
-    messages = 0
+    topics = input_topics(stages, joint_states, motor_currents)
     with open_bag(bag) as reader:
         counts, origin = reader.topic_counts, reader.start_ns
         if predictions is not None:
             predictions.begin(label, origin)
-        for add, count in feed_records(reader, stages, topics, BATCH, window):
-            add()
-            messages += count
-            if messages % BATCH == 0:
-                step()
-    step(flush=True)
+        feed_bag(reader, stages, topics, BATCH, step, window)
     check_usable(raw.count, counters.rejected, bag, topics, counts)
     kept = sampler.arrays()
     return BagError(str(bag), list(robot.joint_names), raw.count,
