@@ -494,7 +494,7 @@ def test_errors_for_bad_input(mit):
 
 
 def test_residual_statistics_for_any_theta_and_long_run_variance():
-    from identification_node.estimation.residuals import ResidualStatistics
+    from identification_node.estimation.residuals import MIN_BLOCKS, ResidualStatistics
     rng = np.random.default_rng(11)
     N, n, p, m = 60000, 2, 3, 9
     Y = rng.standard_normal((N, n, p))
@@ -516,6 +516,18 @@ def test_residual_statistics_for_any_theta_and_long_run_variance():
     np.testing.assert_allclose(stats.long_run_variance(theta), 1.0, rtol=0.2)
     direct = 100 * np.linalg.norm(e, axis=0) / np.linalg.norm(tau, axis=0)
     np.testing.assert_allclose(stats.relative_error(theta), direct, rtol=1e-6)
+    # The noise level: the larger of the white raw noise (variance times the smoother's
+    # 1 / gain, here m) and the long-run variance; white alone before MIN_BLOCKS blocks.
+    long_run, var = stats.long_run_variance(theta), stats.variance(theta)
+    for white_scale in (m / 4, m, 4 * m):
+        np.testing.assert_allclose(stats.noise_variance(theta, white_scale),
+                                   np.fmax(var * white_scale, long_run), rtol=1e-12)
+    np.testing.assert_allclose(stats.noise_variance(theta, 4 * m), 4.0, rtol=0.05)
+    np.testing.assert_allclose(stats.noise_variance(theta, m / 4), 1.0, rtol=0.2)
+    few = ResidualStatistics(p, n, block=8 * m)
+    few.add(Y[:8 * m * (MIN_BLOCKS - 1)], tau[:8 * m * (MIN_BLOCKS - 1)])
+    np.testing.assert_allclose(few.noise_variance(theta, m / 4),
+                               few.variance(theta) * m / 4, rtol=1e-12)
 
 
 # -- RLS update paths: information form (Cholesky) and QR --------------------------------------

@@ -267,6 +267,19 @@ def test_gate_unit_behaviour():
     assert not keep[3]
 
 
+def test_gate_arms_only_on_a_batch_the_estimate_predicts():
+    gate = InnovationGate(RobustSettings(k=3.0))
+    rng = np.random.default_rng(2)
+    r = rng.standard_normal((200, 2)) * 0.5
+    r[:20, 0] = 10.0                                # 10 % of the batch beyond 3 sigma
+    assert not gate.arm(r, np.ones(2)) and not gate.armed
+    keep, _ = gate.screen(r, np.ones(2))
+    assert keep.all()                               # not armed: nothing held back
+    r[4:20, 0] = 0.0                                # 2 %: a few spikes
+    assert gate.arm(r, np.ones(2)) and gate.armed
+    assert gate.arm(np.zeros((0, 2)), np.ones(2))   # an empty batch leaves it armed
+
+
 # -- numerical failure ---------------------------------------------------------------------------
 def test_a_failing_update_rolls_back_to_the_last_finite_state(clean, monkeypatch):
     sim, _ = clean

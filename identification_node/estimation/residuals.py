@@ -13,6 +13,8 @@ from identification_node.estimation.lsq import (_CHUNK, _check_count, _check_dat
                                                 row_information)
 from identification_node.estimation.normal_equations import NormalEquations
 
+MIN_BLOCKS = 10   # complete blocks before their long-run variance is trusted
+
 
 class ResidualStatistics:
     """Per-joint sums giving, for ANY parameter vector theta, the residuals tau - Y theta's sum
@@ -109,6 +111,19 @@ class ResidualStatistics:
         ss = self._ss(self._binfo[:, :p, :p], self._binfo[:, :p, p], self._binfo[:, p, p],
                       np.asarray(theta, dtype=float))
         return ss / (self.blocks * self.block)
+
+    def noise_variance(self, theta: np.ndarray, white_scale: float) -> np.ndarray:
+        """Per-joint variance of the residual noise an estimate averages (N m)^2, for residuals
+        of data smoothed with white-noise gain 1 / ``white_scale``
+        (signals.smoothing_noise_gain): the larger of the white raw noise that explains their
+        variance and, once MIN_BLOCKS blocks are in, their long-run variance. The long-run
+        variance is right for noise, but blind to what a fit leaves at the motion's
+        frequencies: the smoother's bias on the signals and the derivatives' noise in the
+        regressor. The white model counts those, conservatively."""
+        white = self.variance(theta) * white_scale
+        if self.blocks < MIN_BLOCKS:
+            return white
+        return np.fmax(white, self.long_run_variance(theta))
 
     def relative_error(self, theta: np.ndarray) -> np.ndarray:
         """Per-joint 100 ||tau - Y theta|| / ||tau|| (percent)."""

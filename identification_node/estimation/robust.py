@@ -11,6 +11,10 @@ held-back samples of the window to the estimator after all and stops gating, so 
 follows the new data instead of rejecting it forever. Gating resumes once the gated fraction
 falls below half of ``shift_fraction``.
 
+The gate arms once the estimate has converged and predicts the batch at hand: at most
+``ARM_FRACTION`` of its samples beyond k sigma. A converged fit of the motion so far can still
+miss motion it has not seen; gating then would hold good samples back.
+
 Plain arrays in SI units (residuals in N m or N, per sample and joint); no ROS.
 """
 from __future__ import annotations
@@ -23,6 +27,8 @@ from typing import Any, Callable
 import numpy as np
 
 from identification_node.errors import IdentificationError
+
+ARM_FRACTION = 0.05   # of a batch's samples beyond k sigma, at most, for the gate to arm
 
 
 @dataclass
@@ -78,6 +84,20 @@ class InnovationGate:
         """Fraction of the last ``window`` samples beyond k sigma (0 while disarmed)."""
         return self._gated / max(self._samples, int(self.settings.window))
 
+    def beyond(self, residuals: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """Mask (N,) of the samples whose residual (N, n) exceeds k sigma (n,) on any joint
+        (NaN residuals included)."""
+        scale = np.where(np.isfinite(sigma) & (sigma > 0), sigma, np.inf)
+        with np.errstate(invalid='ignore'):
+            return (~(np.abs(residuals) <= self.settings.k * scale)).any(axis=1)
+
+    def arm(self, residuals: np.ndarray, sigma: np.ndarray) -> bool:
+        """Arm when at most ARM_FRACTION of the batch's residuals (N, n) of the converged
+        estimate are beyond k sigma (n,): it predicts motion it has not been fitted to."""
+        if len(residuals):
+            self.armed = bool(np.mean(self.beyond(residuals, sigma)) <= ARM_FRACTION)
+        return self.armed
+
     def screen(self, residuals: np.ndarray, sigma: np.ndarray, held: Any = None,
                stamp: float = math.nan) -> tuple[np.ndarray, list]:
         """Decide a batch: residuals (N, n) of the current estimate, sigma (n,) their standard
@@ -89,10 +109,7 @@ class InnovationGate:
         s = self.settings
         if not (s.enabled and self.armed) or N == 0:
             return keep, []
-        scale = np.where(np.isfinite(sigma) & (sigma > 0), sigma, np.inf)
-        with np.errstate(invalid='ignore'):
-            beyond = ~(np.abs(residuals) <= s.k * scale)   # NaN residuals are beyond too
-        gated = beyond.any(axis=1)
+        gated = self.beyond(residuals, sigma)
         count = int(np.count_nonzero(gated))
         self._recent.append([N, count, None])
         self._samples += N

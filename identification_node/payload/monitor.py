@@ -276,9 +276,7 @@ class PayloadMonitor:
         self._pending = keep
 
     def _noise_variance(self, phi: np.ndarray) -> np.ndarray:
-        s = self._stats
-        var = (s.long_run_variance(phi) if s.blocks >= 10
-               else s.variance(phi) * self._white_scale)
+        var = self._stats.noise_variance(phi, self._white_scale)
         return np.maximum(np.nan_to_num(var, nan=NOISE_FLOOR ** 2), NOISE_FLOOR ** 2)
 
     def _fit(self) -> PayloadEstimate:

@@ -3,15 +3,17 @@
 Rows are weighted (joint noise weights; a joint's equation left out near a velocity reversal
 when Coulomb friction is identified), gathered, and fed to the RLS and the residual statistics
 every ``update_batch`` samples in one batch (what sample-by-sample updates give). The torque is
-smoothed, so residuals are correlated over the window: the covariance uses their long-run
-variance (ResidualStatistics' block sums); until there are enough blocks, white raw noise is
-assumed (signals.smoothing_noise_gain). The blocks restart at every RESIDUAL_GRID of the
-stamps, so a bag cut there into segments has its blocks (offline/fleet.py).
+smoothed, so residuals are correlated over the window: the covariance's noise level is the
+larger of the white raw noise that explains the smoothed residual
+(signals.smoothing_noise_gain) and, once there are enough blocks, the residual's long-run
+variance (ResidualStatistics' block sums); see ``noise_variance``. The blocks restart at every
+RESIDUAL_GRID of the stamps, so a bag cut there into segments has its blocks
+(offline/fleet.py).
 
 Before an update, samples whose rows would overflow are dropped ('regressor_overflow') and,
-once the estimate has converged, the robust gate (robust.py) holds outliers back
-('outlier'); an update that fails or turns non-finite is rolled back to the last finite
-state ('numerical_failure', ``numerical_failures``).
+once the estimate has converged and predicts new samples, the robust gate (robust.py) holds
+outliers back ('outlier'); an update that fails or turns non-finite is rolled back to the last
+finite state ('numerical_failure', ``numerical_failures``).
 """
 from __future__ import annotations
 
@@ -202,19 +204,24 @@ class OnlineEstimate:
             self._reject('regressor_overflow', np.count_nonzero(~finite))
             rows, used = rows[finite], None if used is None else used[finite]
         gate, b = self.gate, self.num_base
-        # armed once converged: asked every gate window of samples (the test is not cheap)
-        if (gate.settings.enabled and not gate.armed
-                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm)):
-            self._next_arm = self._rls.num_samples + int(gate.settings.window)
-            gate.armed = self.converged(self.excitation()[0], self.covariance)
-        if not gate.armed or len(rows) == 0:
+        # armed once converged and predicting this batch: asked every gate window of samples
+        # (the convergence test is not cheap)
+        due = (gate.settings.enabled and not gate.armed and len(rows)
+               and self._rls.num_samples >= max(self.config.min_samples, self._next_arm))
+        if not (gate.armed or due) or len(rows) == 0:
             return rows, used
         theta = self._rls.theta
-        before = gate.outliers
+        residuals = rows[:, :, b] - rows[:, :, :b] @ theta
         # the residual variance per used row (rows left out, weight 0, hold no residual)
         sigma = np.sqrt(self._residuals.rss(theta) / np.maximum(self._rows_used, 1))
+        if due:
+            self._next_arm = self._rls.num_samples + int(gate.settings.window)
+            if not (self.converged(self.excitation()[0], self.covariance)
+                    and gate.arm(residuals, sigma)):
+                return rows, used
+        before = gate.outliers
         keep, back = gate.screen(
-            rows[:, :, b] - rows[:, :, :b] @ theta, sigma,
+            residuals, sigma,
             lambda gated: (rows[gated], None if used is None else used[gated]), self._last_t)
         self._reject('outlier', gate.outliers - before)   # negative: given back on a shift
         if keep.all() and not back:
@@ -283,12 +290,9 @@ class OnlineEstimate:
         return np.sqrt(self.residuals.variance(self.rls.theta))
 
     def noise_variance(self) -> np.ndarray:
-        """Per-joint long-run variance of the torque residual (N m)^2: the noise the estimate
-        averages. White raw noise is assumed until 10 blocks of samples are in."""
-        theta = self.rls.theta
-        if self.residuals.blocks >= 10:
-            return self.residuals.long_run_variance(theta)
-        return self.residuals.variance(theta) * self._white_scale
+        """Per-joint variance of the torque residual the estimate averages (N m)^2
+        (ResidualStatistics.noise_variance)."""
+        return self.residuals.noise_variance(self.rls.theta, self._white_scale)
 
     @property
     def covariance(self) -> np.ndarray:
