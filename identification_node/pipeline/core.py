@@ -241,7 +241,8 @@ class IdentificationPipeline:
         return self.residuals.relative_error(self.rls.theta if theta is None else theta)
 
     def noise_variance(self) -> np.ndarray:
-        """Per-joint long-run variance of the torque residual (N m)^2."""
+        """Per-joint noise level of the torque residual (N m)^2, of the weighted rows with
+        ``joint_noise_std`` (OnlineEstimate.noise_variance)."""
         return self.estimator.noise_variance()
 
     def model_term_warnings(self) -> list[str]:

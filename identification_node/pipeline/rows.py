@@ -12,10 +12,14 @@ sampling rate (``cutoff`` > 0), or is chosen from the data (both 0): the samples
 one candidate per AUTO_STEP s of new samples and call (so the node's processing runs stay
 short; samples keep being held meanwhile); then they and all later samples go through that one
 smoother. The choice: least squares of the base rows is fitted on those samples for half
-windows on a geometric grid, and the chosen window is the one where the fit's predicted torque
-changes least between its two neighbours on the grid. Too short a window leaves differentiation
-noise in the regressor (errors in variables: a bias toward smaller inertia), too long a one
-distorts the motion (the opposite bias); where neither acts the estimate stands still.
+windows on a geometric grid, and the chosen window is where the fit's predicted torque changes
+least between its two neighbours on the grid, or the shortest window next to it whose change is
+within AUTO_TOLERANCE of that least. Too short a window leaves differentiation noise in the
+regressor (errors in variables: a bias toward smaller inertia), too long a one distorts the
+motion (the opposite bias); where neither acts the estimate stands still. The change is
+measured on a few seconds of noisy samples, where the noise favours longer windows; the
+distortion does not average out over a longer recording, so of the windows that are as good
+here, the shortest is taken (also the shortest delay).
 """
 from __future__ import annotations
 
@@ -34,6 +38,7 @@ from identification_node.pipeline.signals import (MIN_HALF_WINDOW, FixedLagSmoot
 AUTO_GRID = 2.0 ** 0.25   # ratio of neighbouring half windows tried by choose_half_window
 AUTO_ROWS = 500           # samples whose rows the choice fits (evenly spread)
 AUTO_STEP = 0.05          # s of new samples per candidate window the search tries per call
+AUTO_TOLERANCE = 1.5      # times the least change: the shortest window as good (module doc)
 AUTO_TAPS = 2001          # longer candidate windows are fitted on every s-th sample (cost)
 MOTION = 1e-3             # rad (m): a joint this far from its first position is moving
 AUTO_WAIT = 6.0           # times auto_seconds held at most without enough motion
@@ -128,7 +133,10 @@ class WindowSearch:
             f = self.fits
             change = [np.sqrt(np.mean((f[i][0] @ (f[i + 1][1] - f[i - 1][1])) ** 2))
                       for i in range(1, len(f) - 1)]
-            self.result = self.grid[1 + int(np.argmin(change))]
+            i = int(np.argmin(change))
+            while i > 0 and change[i - 1] <= AUTO_TOLERANCE * min(change):
+                i -= 1
+            self.result = self.grid[1 + i]
             self.done, self.fits = True, []
 
     def run(self) -> int | None:
