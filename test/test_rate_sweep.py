@@ -2,14 +2,17 @@
 
 A simulated 7-joint arm (test/fixtures/panda_like.urdf, true parameters 20 % off its URDF's)
 follows a random Fourier excitation, measured with a 18-bit encoder, 0.01 rad/s velocity
-noise and 0.1 N m torque noise, at 100 Hz to 2 kHz. The node's pipeline with the default
-settings (the smoother's cut-off chosen from the data) is compared with the same pipeline at
-cut-offs chosen by hand on a grid: the held-out torque error (a second trajectory, against the
-simulated truth: 100 ||tau - Yb(q, qd, qdd) theta|| / ||tau|| over all joints) must be within
-1.5 times the best of the grid, and the parameter errors consistent with their reported
-stddev: the RMS of the normalised errors (estimate - truth) / stddev below 1.5 (1 for an exact
-stddev) at every rate. Without the white-noise floor of the noise level (the residual blocks'
-long-run variance alone) it is 1.7 to 2.4.
+noise and 0.1 N m torque noise, at 100 Hz to 2 kHz: its rigid bodies alone, and with joint
+friction and the default friction columns identified (Coulomb equations near reversals left
+out). The node's pipeline with the default settings (the smoother's cut-off chosen from the
+data) is compared with the same pipeline at cut-offs chosen by hand on a grid: the held-out
+torque error (a second trajectory, against the simulated truth: 100 ||tau - Yb(q, qd, qdd)
+theta|| / ||tau|| over all joints) must be within 1.5 times the best of the grid, and the
+parameter errors consistent with their reported stddev: the RMS of the normalised errors
+(estimate - truth) / stddev below 1.5 (1 for an exact stddev) at every rate. Without the
+white-noise floor of the noise level (the residual blocks' long-run variance alone) it is 1.7
+to 2.4 on the rigid arm; with friction, a choice that kept the equations near reversals was
+3.7 times the best at 100 Hz.
 
 Run with ``-s`` to see the table (rate, chosen cut-off, errors, ratio).
 """
@@ -34,11 +37,22 @@ T0_NS = 1_700_000_000_000_000_000
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope='module')
-def arm():
-    robot = load_robot(URDF)
+# joint friction of the 'friction' arm: viscous (N m s/rad), Coulomb (N m, sign) and offset (N m)
+FRICTION = {'fv': [0.5, 0.6, 0.4, 0.3, 0.1, 0.1, 0.05],
+            'fc': [0.6, 0.8, 0.5, 0.4, 0.2, 0.15, 0.1],
+            'fo': [0.1, -0.2, 0.05, 0.1, -0.05, 0.02, 0.0]}
+
+
+@pytest.fixture(scope='module', params=['rigid', 'friction'])
+def arm(request):
+    """The rigid bodies alone (no friction columns), or joint friction in the torque and the
+    default friction columns identified."""
+    robot = load_robot(URDF, extras=list(FRICTION) if request.param == 'friction' else [])
     rng = np.random.default_rng(5)
     phi = robot.phi_model * (1 + 0.2 * rng.standard_normal(robot.num_params))
+    for kind, values in FRICTION.items() if robot.extras else ():
+        for joint, value in zip(robot.joint_names, values):
+            phi[robot.param_index(f'{joint}.{kind}')] = value
     return robot, BaseParameters.from_robot(robot), phi
 
 
@@ -98,13 +112,3 @@ def test_default_smoother_is_within_1_5_of_the_best_cutoff_at_every_rate(arm):
         print(f'{r[0]:7.0f} | {r[1]:6.3f} ({r[2]:4d}) | {r[3]:.4f} | {r[4]:4.1f} | {r[5]:.4f} | '
               f'{r[6]:.3f} | {r[7]:.2f}')
     assert not failures, failures
-
-
-def test_stddev_stays_honest_on_a_long_recording(arm):
-    """The smoother's distortion of the motion is a bias: it does not average out over a long
-    recording while the noise does. On 120 s at 1 kHz the default still reports a stddev the
-    errors are consistent with (RMS 2.0 with the window of least change alone)."""
-    robot, base, phi = arm
-    p = identify(robot, simulate(robot, phi, 1000.0, 120.0, 1))
-    z = (p.rls.theta - base.to_base(phi)) / p.stddev
-    assert np.sqrt(np.mean(z ** 2)) < 1.5, p.smoother

@@ -31,6 +31,7 @@ from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.robust import InnovationGate
 from identification_node.pipeline.config import PipelineConfig
+from identification_node.pipeline.rows import near_reversal
 from identification_node.pipeline.signals import smoothing_noise_gain
 
 # What the numerical update may raise on absurd data: caught, the estimator rolled back.
@@ -248,16 +249,14 @@ class OnlineEstimate:
         self._excluded_restored = int(excluded_rows)   # per joint not known
 
     def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
-        """Per (sample, joint) weights: the joint weights, and zero for a joint's equation while
-        its smoothing window may hold a velocity reversal, |qd| < v_min + |qdd| T_half, when
-        Coulomb friction is identified and v_min (coulomb_exclusion_speed) > 0: there a sign
-        friction torque turns faster than the smoother resolves."""
+        """Per (sample, joint) weights: the joint weights, and zero for a joint's equation
+        near_reversal (rows.py) when Coulomb friction is identified and
+        coulomb_exclusion_speed > 0."""
         if not self.coulomb or self.config.coulomb_exclusion_speed <= 0:
             return self._weights
         period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
-        reach = (self.config.coulomb_exclusion_speed
-                 + np.abs(qdd) * period * float(self.half_window or 0))
-        slow = np.abs(qd) < reach
+        slow = near_reversal(qd, qdd, self.config.coulomb_exclusion_speed,
+                             period * float(self.half_window or 0))
         self.excluded += np.count_nonzero(slow, axis=0)
         w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
         w[slow] = 0.0

@@ -12,14 +12,12 @@ sampling rate (``cutoff`` > 0), or is chosen from the data (both 0): the samples
 one candidate per AUTO_STEP s of new samples and call (so the node's processing runs stay
 short; samples keep being held meanwhile); then they and all later samples go through that one
 smoother. The choice: least squares of the base rows is fitted on those samples for half
-windows on a geometric grid, and the chosen window is where the fit's predicted torque changes
-least between its two neighbours on the grid, or the shortest window next to it whose change is
-within AUTO_TOLERANCE of that least. Too short a window leaves differentiation noise in the
-regressor (errors in variables: a bias toward smaller inertia), too long a one distorts the
-motion (the opposite bias); where neither acts the estimate stands still. The change is
-measured on a few seconds of noisy samples, where the noise favours longer windows; the
-distortion does not average out over a longer recording, so of the windows that are as good
-here, the shortest is taken (also the shortest delay).
+windows on a geometric grid, and the chosen window is the one where the fit's predicted torque
+changes least between its two neighbours on the grid. Too short a window leaves differentiation
+noise in the regressor (errors in variables: a bias toward smaller inertia), too long a one
+distorts the motion (the opposite bias); where neither acts the estimate stands still. The fits
+leave out the equations the estimator leaves out (near_reversal, with Coulomb friction): a
+window's smear of the friction's jump at a reversal would otherwise decide the choice.
 """
 from __future__ import annotations
 
@@ -38,7 +36,6 @@ from identification_node.pipeline.signals import (MIN_HALF_WINDOW, FixedLagSmoot
 AUTO_GRID = 2.0 ** 0.25   # ratio of neighbouring half windows tried by choose_half_window
 AUTO_ROWS = 500           # samples whose rows the choice fits (evenly spread)
 AUTO_STEP = 0.05          # s of new samples per candidate window the search tries per call
-AUTO_TOLERANCE = 1.5      # times the least change: the shortest window as good (module doc)
 AUTO_TAPS = 2001          # longer candidate windows are fitted on every s-th sample (cost)
 MOTION = 1e-3             # rad (m): a joint this far from its first position is moving
 AUTO_WAIT = 6.0           # times auto_seconds held at most without enough motion
@@ -75,6 +72,14 @@ class SmootherChoice:
                 'source': self.source, 'auto_seconds_used': self.seconds}
 
 
+def near_reversal(qd: np.ndarray, qdd: np.ndarray, speed: float, reach: float) -> np.ndarray:
+    """Mask (N, n) of the joint equations whose smoothing window may hold a velocity
+    reversal: |qd| < speed + |qdd| reach, for smoothed qd (rad/s), qdd (rad/s^2) and the half
+    window ``reach`` (s). There a sign friction torque turns faster than the smoother
+    resolves, so those equations are left out when Coulomb friction is identified."""
+    return np.abs(qd) < speed + np.abs(qdd) * reach
+
+
 def _rate(stamps: np.ndarray) -> float:
     return 1.0 / float(np.median(np.diff(stamps))) if len(stamps) > 1 else math.nan
 
@@ -84,12 +89,14 @@ class WindowSearch:
     measured qd (N, n) (None: differentiated) by the criterion of the module doc, one
     candidate window per ``step`` (the node's processing stays responsive); ``result``:
     the half window once ``done``, None when the samples are too few for three candidates.
-    ``weights`` (n,): per-joint weights of the fit."""
+    ``weights`` (n,): per-joint weights of the fit; ``exclusion_speed`` > 0 (rad/s): the
+    equations near_reversal left out, as the estimator leaves them out."""
 
     def __init__(self, robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                  qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
-                 weights: np.ndarray | None = None):
+                 weights: np.ndarray | None = None, exclusion_speed: float = 0.0):
         self.robot, self.base, self.order, self.t = robot, base, int(order), t
+        self.exclusion_speed = float(exclusion_speed)
         self.measured = qd is not None
         self.x = np.hstack([q, tau] if qd is None else [q, qd, tau])
         N, n = len(t), robot.dof
@@ -126,6 +133,9 @@ class WindowSearch:
         y = v[:, -n:]
         if self.root is not None:
             Yb, y = Yb * self.root[None, :, None], y * self.root
+        if self.exclusion_speed > 0:
+            used = ~near_reversal(qd, qdd, self.exclusion_speed, L * np.median(np.diff(self.t)))
+            Yb, y = Yb * used[:, :, None], y * used
         A = Yb.reshape(-1, b)
         theta = np.linalg.lstsq(A.T @ A, A.T @ y.reshape(-1), rcond=1e-12)[0]
         self.fits.append((A, theta))
@@ -133,10 +143,7 @@ class WindowSearch:
             f = self.fits
             change = [np.sqrt(np.mean((f[i][0] @ (f[i + 1][1] - f[i - 1][1])) ** 2))
                       for i in range(1, len(f) - 1)]
-            i = int(np.argmin(change))
-            while i > 0 and change[i - 1] <= AUTO_TOLERANCE * min(change):
-                i -= 1
-            self.result = self.grid[1 + i]
+            self.result = self.grid[1 + int(np.argmin(change))]
             self.done, self.fits = True, []
 
     def run(self) -> int | None:
@@ -147,9 +154,11 @@ class WindowSearch:
 
 def choose_half_window(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                        qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
-                       weights: np.ndarray | None = None) -> int | None:
+                       weights: np.ndarray | None = None, exclusion_speed: float = 0.0
+                       ) -> int | None:
     """WindowSearch's result, at once."""
-    return WindowSearch(robot, base, t, q, qd, tau, order, max_gap, weights).run()
+    return WindowSearch(robot, base, t, q, qd, tau, order, max_gap, weights,
+                        exclusion_speed).run()
 
 
 class Rows(NamedTuple):
@@ -166,14 +175,14 @@ class Rows(NamedTuple):
 def choose_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                     qd: np.ndarray, tau: np.ndarray, order: int, max_gap: float,
                     cutoff: float = 0.0, auto_seconds: float = 5.0,
-                    weights: np.ndarray | None = None, final: bool = False
-                    ) -> SmootherChoice | None:
+                    weights: np.ndarray | None = None, final: bool = False,
+                    exclusion_speed: float = 0.0) -> SmootherChoice | None:
     """The smoother for a stream's first samples t (N,) s, q, qd (NaN: not measured), tau
     (N, n): of the given ``cutoff`` (Hz) at their rate, or chosen (WindowSearch) on the first
     ``auto_seconds`` of motion; None while more samples are needed (``final``: no more come,
     decide with these)."""
     plan = plan_smoother(robot, base, t, q, qd, tau, order, max_gap, cutoff, auto_seconds,
-                         weights, final)
+                         weights, final, exclusion_speed)
     return plan if plan is None or isinstance(plan, SmootherChoice) else plan.finish()
 
 
@@ -194,8 +203,8 @@ class _Search:
 def plan_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                   qd: np.ndarray, tau: np.ndarray, order: int, max_gap: float,
                   cutoff: float = 0.0, auto_seconds: float = 5.0,
-                  weights: np.ndarray | None = None, final: bool = False
-                  ) -> SmootherChoice | _Search | None:
+                  weights: np.ndarray | None = None, final: bool = False,
+                  exclusion_speed: float = 0.0) -> SmootherChoice | _Search | None:
     """choose_smoother's decision, or the search to run to it (step by step)."""
     if cutoff > 0:
         if len(t) < 16 and not final:
@@ -217,7 +226,7 @@ def plan_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.
                                                      + 1e-9))) if span else slice(0, len(t)))
     measured = qd[part] if np.isfinite(qd[part]).all() else None
     search = WindowSearch(robot, base, t[part], q[part], measured, tau[part], order, max_gap,
-                          weights)
+                          weights, exclusion_speed)
     return _Search(search, order, rate, float(t[part][-1] - t[part][0]))
 
 
@@ -225,14 +234,16 @@ class RowBuilder:
     """Smoother, regressor and base rows of ``robot`` for validated samples with torque.
     ``half_window`` (samples) > 0 fixes the smoother; else ``cutoff`` (Hz) > 0 sets it at the
     data's sampling rate; else it is chosen from the first ``auto_seconds`` of motion
-    (module doc; ``weights`` (n,): per-joint weights of that choice's fit)."""
+    (module doc; ``weights`` (n,): per-joint weights of that choice's fit,
+    ``exclusion_speed``: its equations left out near_reversal)."""
 
     def __init__(self, robot: RobotModel, base: BaseParameters, half_window: int, order: int,
                  max_gap: float, cutoff: float = 0.0, auto_seconds: float = 5.0,
-                 weights: np.ndarray | None = None):
+                 weights: np.ndarray | None = None, exclusion_speed: float = 0.0):
         self.robot, self.base = robot, base
         self.order, self.max_gap = int(order), max_gap
         self.cutoff, self.auto_seconds, self.weights = float(cutoff), float(auto_seconds), weights
+        self.exclusion_speed = float(exclusion_speed)
         self.choice: SmootherChoice | None = (
             SmootherChoice(int(half_window), self.order) if half_window else None)
         self._held: list[Samples] = []     # samples waiting for the choice
@@ -292,7 +303,8 @@ class RowBuilder:
             self._held = [held] if len(held) else []
             plan = plan_smoother(self.robot, self.base, held.stamps, held.q, held.qd,
                                  held.tau, self.order, self.max_gap, self.cutoff,
-                                 self.auto_seconds, self.weights, flush)
+                                 self.auto_seconds, self.weights, flush,
+                                 self.exclusion_speed)
             if plan is None:
                 return False
             if isinstance(plan, SmootherChoice):
