@@ -452,6 +452,23 @@ def test_shared_information_equals_the_checked_estimator_calls(forgetting, extra
     assert p.residuals.blocks == p.ref_res.blocks
 
 
+def test_joint_weights_leave_the_reported_torque_figures_in_newton_metres():
+    """joint_noise_std weights the rows; the residual RMS and the noise level are reported in
+    N m all the same: as without weights, and the noise near the simulated 0.5 N m."""
+    sim = simulate(duration=10.0)
+    runs = []
+    for std in ([], [0.5, 1.0, 2.0]):
+        p = IdentificationPipeline(ROBOT, PipelineConfig(half_window=10, joint_noise_std=std),
+                                   BASE)
+        feed(p, joint_records(sim), chunk=500)
+        runs.append((p.residual_rms(), p.noise_std(), p.estimate().residual_rms))
+    (rms, noise, reported), (w_rms, w_noise, w_reported) = runs
+    np.testing.assert_allclose(w_rms, rms, rtol=0.02)
+    np.testing.assert_allclose(w_reported, w_rms)
+    np.testing.assert_allclose(w_noise, noise, rtol=0.15)
+    np.testing.assert_allclose(w_noise, 0.5, rtol=0.3)
+
+
 @pytest.mark.parametrize('field, value', [
     ('forgetting', 1.5), ('half_window', -1), ('velocity', 'guess'), ('align_tolerance', -1.0),
     ('joint_noise_std', [1.0]), ('max_gap', float('nan'))])

@@ -455,7 +455,7 @@ class Identification:
     rejected: dict
     condition_number: float
     residuals: ResidualStatistics
-    noise_variance: np.ndarray
+    noise_variance: np.ndarray       # per joint, of the torque noise the fit averages (N m)^2
     converged: bool
     history: list[Checkpoint] = field(default_factory=list)
     series: TorqueSeries | None = None
@@ -468,6 +468,9 @@ class Identification:
     consistent: ConsistentEstimate | None = None
     # what the user should know: a missing model term (model_terms.py), locked joints
     warnings: list[str] = field(default_factory=list)
+    # per joint, the N m of a unit residual of ``residuals``' rows (weighted rows: their
+    # joint_noise_std)
+    residual_scale: np.ndarray | float = 1.0
 
     @property
     def estimate(self) -> np.ndarray:
@@ -503,7 +506,8 @@ class Identification:
 
     @property
     def residual_rms(self) -> np.ndarray:
-        return np.sqrt(self.residuals.variance(self.theta))
+        """Per-joint RMS of the fitted rows' torque residual (N m)."""
+        return np.sqrt(self.residuals.variance(self.theta)) * self.residual_scale
 
     def standard_parameters(self) -> np.ndarray:
         """The consistent full parameter vector when solved, else the one closest to the
@@ -799,7 +803,7 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
     return Identification(
         result.bag, 'rls', 'smoothed', p.robot, p.base, est.values, p.covariance,
         est.num_samples, result.messages, {k: v for k, v in p.rejected.items() if v},
-        est.condition_number, p.residuals, p.noise_variance(), est.converged,
+        est.condition_number, p.residuals, p.noise_std() ** 2, est.converged,
         list(result.history), series,
         {'processing': 'smoothed',
          'smoother_half_window': None if p.smoother is None else p.smoother.half_window,
@@ -812,7 +816,7 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
         *pipeline_equations(p),
         warnings=exclusion_warnings(p.robot.joint_names, p.excluded_equations, p.used,
                                     p.config.coulomb_exclusion_speed)
-        + p.model_term_warnings())
+        + p.model_term_warnings(), residual_scale=p.estimator.joint_scale)
 
 
 def exclusion_warnings(joints: list[str], excluded: np.ndarray, total: int, speed: float,

@@ -233,8 +233,8 @@ class IdentificationPipeline:
         return self.estimator.residuals
 
     def residual_rms(self) -> np.ndarray:
-        """Per-joint RMS of the (smoothed, weighted) measured minus predicted torque over the
-        samples used, for the current estimate (N m)."""
+        """Per-joint RMS of the smoothed measured minus predicted torque over the samples
+        used, for the current estimate (N m)."""
         return self.estimator.residual_rms()
 
     def relative_error(self, theta: np.ndarray | None = None) -> np.ndarray:
@@ -243,9 +243,13 @@ class IdentificationPipeline:
         return self.residuals.relative_error(self.rls.theta if theta is None else theta)
 
     def noise_variance(self) -> np.ndarray:
-        """Per-joint noise level of the torque residual (N m)^2, of the weighted rows with
-        ``joint_noise_std`` (OnlineEstimate.noise_variance)."""
+        """Per-joint noise level of the weighted rows' residual (OnlineEstimate.noise_variance):
+        what the covariance is scaled by."""
         return self.estimator.noise_variance()
+
+    def noise_std(self) -> np.ndarray:
+        """Per-joint torque noise level the estimate averages (N m)."""
+        return self.estimator.noise_std()
 
     def model_term_warnings(self) -> list[str]:
         """Joints whose residual correlates with sign(qd), qd or q (model_terms.py): the

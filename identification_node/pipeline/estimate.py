@@ -284,14 +284,25 @@ class OnlineEstimate:
         self.apply()
         return self._residuals
 
+    @property
+    def joint_scale(self) -> np.ndarray:
+        """Per joint, the N m of a unit residual of the weighted rows: joint_noise_std when
+        given, else 1 (n,)."""
+        return np.ones(self.dof) if self._weights is None else self._weights ** -0.5
+
     def residual_rms(self) -> np.ndarray:
-        """Per-joint RMS of the (smoothed, weighted) measured minus predicted torque (N m)."""
-        return np.sqrt(self.residuals.variance(self.rls.theta))
+        """Per-joint RMS of the smoothed measured minus predicted torque (N m)."""
+        return np.sqrt(self.residuals.variance(self.rls.theta)) * self.joint_scale
 
     def noise_variance(self) -> np.ndarray:
-        """Per-joint variance of the torque residual the estimate averages (N m)^2
-        (ResidualStatistics.noise_variance)."""
+        """Per-joint variance of the weighted rows' residual the estimate averages
+        (ResidualStatistics.noise_variance; (N m)^2 / joint_noise_std^2 when that is given):
+        the covariance's and the convergence test's noise level."""
         return self.residuals.noise_variance(self.rls.theta, self._white_scale)
+
+    def noise_std(self) -> np.ndarray:
+        """Per-joint torque noise level the estimate averages (N m)."""
+        return np.sqrt(self.noise_variance()) * self.joint_scale
 
     @property
     def covariance(self) -> np.ndarray:
