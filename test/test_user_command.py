@@ -16,12 +16,9 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from identification_node.cli import main
+from test_rate_sweep import FRICTION, URDF
 
-URDF = str(Path(__file__).parent / 'fixtures' / 'panda_like.urdf')
 TORQUE_STD = 0.1   # N m
-FRICTION = {'fv': [0.5, 0.6, 0.4, 0.3, 0.1, 0.1, 0.05],
-            'fc': [0.6, 0.8, 0.5, 0.4, 0.2, 0.15, 0.1],
-            'fo': [0.1, -0.2, 0.05, 0.1, -0.05, 0.02, 0.0]}
 
 pytestmark = pytest.mark.slow
 
