@@ -642,8 +642,8 @@ def auto_cutoff(samples: BagSamples, settings: Settings, robot: RobotModel,
                              settings['smoother.order'], settings['smoother.max_gap'], 0.0,
                              settings['smoother.auto_seconds'],
                              np.asarray(noise, dtype=float) ** -2 if noise else None,
-                             final=True, exclusion_speed=(settings['coulomb_exclusion_speed']
-                                                          if 'fc' in robot.extras else 0.0))
+                             final=True,
+                             exclusion_speed=settings['coulomb_exclusion_speed'])
     return float(choice.cutoff), choice.source
 
 

@@ -57,12 +57,11 @@ class IdentificationPipeline:
         c = self.config
         weights = (np.asarray(c.joint_noise_std, dtype=float) ** -2 if len(c.joint_noise_std)
                    else None)
-        coulomb = 'fc' in robot.extras
         self.row_builder = RowBuilder(robot, self.base, c.half_window, c.smoother_order,
                                       c.max_gap, c.cutoff, c.auto_seconds, weights,
-                                      c.coulomb_exclusion_speed if coulomb else 0.0)
-        self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c, coulomb,
-                                        self.samples.counters.reject)
+                                      c.coulomb_exclusion_speed)
+        self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
+                                        'fc' in robot.extras, self.samples.counters.reject)
         self.gate = self.estimator.gate    # robust.InnovationGate: listeners, events, counts
         self.bounds = self.samples.bounds  # plausibility.PlausibilityBounds
         # the model's parameters, degenerate inertials replaced (prior.py); notes say which

@@ -207,7 +207,7 @@ class OnlineEstimate:
         gate, b = self.gate, self.num_base
         # armed once converged and predicting this batch: asked every gate window of samples
         # (the convergence test is not cheap)
-        due = (gate.settings.enabled and not gate.armed and len(rows)
+        due = (gate.settings.enabled and not gate.armed
                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm))
         if not (gate.armed or due) or len(rows) == 0:
             return rows, used

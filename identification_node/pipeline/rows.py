@@ -89,14 +89,16 @@ class WindowSearch:
     measured qd (N, n) (None: differentiated) by the criterion of the module doc, one
     candidate window per ``step`` (the node's processing stays responsive); ``result``:
     the half window once ``done``, None when the samples are too few for three candidates.
-    ``weights`` (n,): per-joint weights of the fit; ``exclusion_speed`` > 0 (rad/s): the
-    equations near_reversal left out, as the estimator leaves them out."""
+    ``weights`` (n,): per-joint weights of the fit; ``exclusion_speed`` > 0 (rad/s) with
+    Coulomb friction identified: the equations near_reversal left out, as the estimator
+    leaves them out."""
 
     def __init__(self, robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                  qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
                  weights: np.ndarray | None = None, exclusion_speed: float = 0.0):
         self.robot, self.base, self.order, self.t = robot, base, int(order), t
-        self.exclusion_speed = float(exclusion_speed)
+        self.exclusion_speed = float(exclusion_speed) if 'fc' in robot.extras else 0.0
+        self.period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         self.measured = qd is not None
         self.x = np.hstack([q, tau] if qd is None else [q, qd, tau])
         N, n = len(t), robot.dof
@@ -134,7 +136,7 @@ class WindowSearch:
         if self.root is not None:
             Yb, y = Yb * self.root[None, :, None], y * self.root
         if self.exclusion_speed > 0:
-            used = ~near_reversal(qd, qdd, self.exclusion_speed, L * np.median(np.diff(self.t)))
+            used = ~near_reversal(qd, qdd, self.exclusion_speed, L * self.period)
             Yb, y = Yb * used[:, :, None], y * used
         A = Yb.reshape(-1, b)
         theta = np.linalg.lstsq(A.T @ A, A.T @ y.reshape(-1), rcond=1e-12)[0]
