@@ -58,7 +58,8 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
     finally:
         stop_process(node)
     assert live['names'] == est.names
-    assert 0 <= est.num_samples - live['num_samples'] <= 5
+    # the node's log names what it rejected or lost, should the counts differ
+    assert 0 <= est.num_samples - live['num_samples'] <= 5, node.stderr.read()[-4000:]
     values, stddev = np.array(live['values']), np.array(live['stddev'])
     unconstrained = np.array(live['unconstrained_values'])
     # Those few samples aside, both saw the same data through the same pipeline ...
