@@ -206,8 +206,10 @@ class OnlineEstimate:
             rows, used = rows[finite], None if used is None else used[finite]
         gate, b = self.gate, self.num_base
         # armed once converged and predicting this batch: asked every gate window of samples
-        # (the convergence test is not cheap)
+        # (the convergence test is not cheap), on a whole update batch (a read of the estimate
+        # applies a few rows, too few to tell whether it predicts)
         due = (gate.settings.enabled and not gate.armed
+               and len(rows) >= self.config.update_batch
                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm))
         if not (gate.armed or due) or len(rows) == 0:
             return rows, used
