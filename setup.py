@@ -41,6 +41,7 @@ setup(
             'pytest>=7,<10',
             'flake8>=6,<8',
             'colcon-common-extensions>=0.3,<0.4',
+            'example-robot-data>=6,<7',   # URDFs of real arms (test/arms.py)
         ],
     },
     zip_safe=False,

@@ -1,0 +1,36 @@
+"""Third-party arm descriptions for tests: example-robot-data's URDFs (PyPI, a test dependency).
+
+``arm_urdf('ur5')`` is the path of that arm's URDF in the installed wheel; ``ARMS`` names the
+arms the suite uses. The wheel has no Python module: its files are found through the
+distribution's own file list (importlib.metadata, a public API).
+"""
+from __future__ import annotations
+
+from importlib import metadata
+from pathlib import Path
+
+__all__ = ['ARMS', 'arm_urdf', 'robots_dir']
+
+# name: (path below the wheel's robots/ folder, identified joints; None: every movable joint)
+ARMS: dict[str, tuple[str, list[str] | None]] = {
+    'ur5': ('ur_description/urdf/ur5_robot.urdf', None),
+    'ur10': ('ur_description/urdf/ur10_robot.urdf', None),
+    'panda': ('panda_description/urdf/panda.urdf', [f'panda_joint{i}' for i in range(1, 8)]),
+    'kinova': ('kinova_description/robots/kinova.urdf', None),
+    'xarm7': ('xarm_description/urdf/xarm7.urdf', None),
+    'z1': ('z1_description/urdf/z1.urdf', None),
+}
+
+
+def robots_dir() -> Path:
+    """The robots/ folder of the installed example-robot-data wheel."""
+    dist = metadata.distribution('example-robot-data')
+    return Path(dist.locate_file('cmeel.prefix/share/example-robot-data/robots'))
+
+
+def arm_urdf(name: str) -> Path:
+    """The URDF of arm ``name`` (a key of ARMS)."""
+    path = robots_dir() / ARMS[name][0]
+    if not path.is_file():
+        raise FileNotFoundError(f'example-robot-data has no {path}')
+    return path
