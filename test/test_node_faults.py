@@ -103,15 +103,20 @@ def test_sim_time_without_clock_is_warned(ros, tmp_path):
 def test_failing_callbacks_are_counted_and_services_answer(ros):
     node = ros.add(IdentificationNode('failing', context=ros.context, parameter_overrides=[
         Parameter('robot', value='mit_dd_arm'), Parameter('torque_source', value=['measured'])]))
+    assert ros.call(Trigger, '/failing/get_estimate', Trigger.Request()).success
 
     def broken():
         raise np.linalg.LinAlgError('Eigenvalues did not converge')
     node.pipeline.estimate = broken
-    assert node._guarded(node.refresh_estimate)() is None
-    assert node.callback_errors['refresh_estimate'] == 1
+    # the reset is applied, the estimate after it fails: both answer with the reason
+    res = ros.call(Trigger, '/failing/reset', Trigger.Request())
+    assert not res.success and 'LinAlgError: Eigenvalues did not converge' in res.message
     res = ros.call(Trigger, '/failing/get_estimate', Trigger.Request())
     assert not res.success and 'LinAlgError: Eigenvalues did not converge' in res.message
-    assert node.callback_errors['srv_get_estimate'] == 1
+    assert node.callback_errors['estimate'] >= 1
+    # a failing timer callback is counted too
+    assert node._guarded(node._publish_diagnostics)() is None
+    assert node.callback_errors['publish_diagnostics'] == 1
     ros.remove(node)
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
@@ -12,7 +13,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.model.urdf_export import (consistency_problems, identified_urdf,
                                                    link_inertia)
-from identification_node.pipeline import IdentificationPipeline
+from identification_node.pipeline import EstimateReport, IdentificationPipeline
 
 ESTIMATE_FILE = 'estimate.yaml'
 URDF_FILE = 'identified.urdf'
@@ -23,18 +24,24 @@ def estimate_document(pipeline: IdentificationPipeline,
     """Plain-data summary of the running estimate (names, values, stddev, covariance, health,
     the full parameter set and its links); ``consistent``: the constrained solve's outcome on
     the pipeline's current information (None: physical consistency off)."""
-    est = pipeline.estimate()
-    doc = parameters_document(pipeline.robot, pipeline.base, est.values, est.stddev,
-                              consistent, pipeline.covariance)
+    return snapshot_document(pipeline.robot, pipeline.base, pipeline.estimate(),
+                             pipeline.covariance, pipeline.rejected, consistent)
+
+
+def snapshot_document(robot: RobotModel, base: BaseParameters, est: EstimateReport,
+                      covariance: np.ndarray, rejected: Mapping[str, int],
+                      consistent: ConsistentEstimate | None = None) -> dict:
+    """estimate_document of a snapshot taken earlier (the estimate, its covariance and the
+    rejection counts of a pipeline at one time)."""
+    doc = parameters_document(robot, base, est.values, est.stddev, consistent, covariance)
     doc.update({
         'num_samples': est.num_samples,
         'time': None if np.isnan(est.stamp) else est.stamp,
         'condition_number': float(est.condition_number),
-        'residual_rms': {j: float(r) for j, r in zip(pipeline.robot.joint_names,
-                                                     est.residual_rms)},
+        'residual_rms': {j: float(r) for j, r in zip(robot.joint_names, est.residual_rms)},
         'converged': est.converged,
         'frozen': est.frozen,
-        'rejected': {k: v for k, v in pipeline.rejected.items() if v},
+        'rejected': {k: v for k, v in rejected.items() if v},
     })
     return plain(doc)
 

@@ -55,11 +55,13 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistentEstimate, SolverProcess,
                                                         pipeline_equations)
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
-from identification_node.offline.results import plain, save_results
+from identification_node.offline.results import plain, snapshot_document, write_results
 from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
 from identification_node.ros.payload_outputs import PayloadOutputs
+from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
+                                                      ServiceThread, Snapshot, failed)
 from identification_node.ros.spin import PeriodicThread, run_node
 from identification_node.settings import (EMPTY_LISTS, PARAMETERS, RANGES, Settings,
                                           element_type)
@@ -160,11 +162,15 @@ class IdentificationNode(Node):
         self._internal_update = False
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
+        self.callback_errors: collections.Counter = collections.Counter()
+        # Services on a thread of their own, answered from snapshots (service_requests.py).
+        self._requests = RequestQueue()
+        self._service_thread = ServiceThread(self, self._on_service_error)
         # before the inputs: its start-up (cvxpy) takes seconds
-        self.payload = (PayloadOutputs(self, self.settings, self.pipeline)
+        self.payload = (PayloadOutputs(self, self.settings, self.pipeline, self._service_thread,
+                                       self._requests)
                         if self.settings['payload.enabled'] else None)
 
-        self.callback_errors: collections.Counter = collections.Counter()
         self.watchdog_timeout = self.settings['watchdog_timeout']
         self.pipeline.gate.listeners.append(self._on_residual_shift)
         self._inputs = [self._subscribe('joint_states', self.pipeline.add_joint_state_cdr)]
@@ -175,10 +181,10 @@ class IdentificationNode(Node):
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
         self._pub_urdf = self.create_publisher(String, '~/robot_description', LATCHED_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_service(Trigger, '~/reset', self._guarded(self._srv_reset))
-        self.create_service(SetBool, '~/freeze', self._guarded(self._srv_freeze))
-        self.create_service(Trigger, '~/save', self._guarded(self._srv_save))
-        self.create_service(Trigger, '~/get_estimate', self._guarded(self._srv_get_estimate))
+        self._service_thread.add(Trigger, '~/reset', self._srv_reset)
+        self._service_thread.add(SetBool, '~/freeze', self._srv_freeze)
+        self._service_thread.add(Trigger, '~/save', self._srv_save)
+        self._service_thread.add(Trigger, '~/get_estimate', self._srv_get_estimate)
 
         s = self.settings
         self._effort_rate = s['publish.effort_rate']
@@ -195,7 +201,7 @@ class IdentificationNode(Node):
         self._publish_lock = threading.Lock()
         self._consistent: ConsistentEstimate | None = None
         self._solver_failure: str = ''
-        self._job: tuple | None = None
+        self._jobs: list[Snapshot] = []     # taken by the worker in order
         self._job_ready = threading.Condition()
         self._worker_running = True
         self._worker = threading.Thread(target=self._consistency_worker,
@@ -215,6 +221,7 @@ class IdentificationNode(Node):
         self._ros_now = (-1, 0)     # (last ROS time seen, checks it stood still)
         self._clock_check = PeriodicThread(1.0, self._check_clock, 'identification_clock',
                                            self._on_processing_error, alive=self.context.ok)
+        self._service_thread.start()
         for note in self.pipeline.prior_notes:
             self.get_logger().warning(note)
         self.get_logger().info(
@@ -253,6 +260,12 @@ class IdentificationNode(Node):
                     return args[1]
                 return None
         return guarded
+
+    def _on_service_error(self, name: str, exc: BaseException) -> None:
+        key = 'srv_' + name.lstrip('~/').replace('/', '_')
+        self.callback_errors[key] += 1
+        self.get_logger().error(f'{key} failed: {type(exc).__name__}: {exc}',
+                                throttle_duration_sec=5.0)
 
     def heartbeats(self) -> dict[str, Callable[[], float]]:
         """What the watchdog watches besides the executor (spin.Watchdog)."""
@@ -305,19 +318,73 @@ class IdentificationNode(Node):
     # and hands them to the pipeline as they are (it decodes them in blocks):
     # rclpy never turns them into Python message objects.
     def _process(self) -> None:
+        commands = self._requests.take()
         with self._lock:
+            jobs = self._apply(commands) if commands is not None else []
             for source in self._inputs:
                 source.poll()
-            if not self.pipeline.pending and not self.pipeline.choosing:
-                return
-            chosen = self.pipeline.smoother is not None
-            out = self.pipeline.process()
-            events = self.payload.add(out) if self.payload is not None else ()
+            idle = not self.pipeline.pending and not self.pipeline.choosing
+            if not idle:
+                chosen = self.pipeline.smoother is not None
+                out = self.pipeline.process()
+                events = self.payload.add(out) if self.payload is not None else ()
+        self._submit(jobs)
+        if idle:
+            return
         if not chosen and self.pipeline.smoother is not None:
             self.get_logger().info(f'smoother: {smoother_text(self.pipeline.smoother)}')
         self._publish_efforts(out)
         if events:
             self.payload.publish(events)
+
+    # -- commands and snapshots (service_requests.py) ------------------------------------------
+    def _apply(self, commands: Commands) -> list[Snapshot]:
+        """Apply the services' commands in order, with a snapshot wherever one is due (under
+        the processing lock, on the processing thread)."""
+        jobs = []
+        for items, seq, save in commands.snapshots():
+            try:
+                for kind, argument in items:
+                    self._apply_command(kind, argument)
+                jobs.append(self._take_snapshot(seq, save))
+            except Exception as exc:   # noqa: BLE001 - answered with the reason, counted
+                self.callback_errors['estimate'] += 1
+                text = f'estimate failed: {type(exc).__name__}: {exc}'
+                self.get_logger().error(text, throttle_duration_sec=5.0)
+                jobs.append(Snapshot(seq, save, error=text))
+        return jobs
+
+    def _apply_command(self, kind: str, argument: Any) -> None:
+        if kind == 'reset':
+            self.pipeline.reset()
+            for source in self._inputs:
+                source.reset_lost()
+        elif kind == 'freeze':
+            self.pipeline.frozen = bool(argument)
+        elif self.payload is not None:
+            self.payload.apply(kind, argument)
+
+    def _take_snapshot(self, seq: int, save: bool) -> Snapshot:
+        p = self.pipeline
+        snap = Snapshot(seq, save, p.estimate(),
+                        pipeline_equations(p) if self._consistency_options else None)
+        if save:
+            snap.covariance, snap.rejected = p.covariance, dict(p.rejected)
+            snap.payload = self.payload.current if self.payload else None
+        return snap
+
+    def _submit(self, jobs: list[Snapshot]) -> None:
+        """Hand snapshots to the worker, in order; a newer one replaces one not yet taken
+        unless that one is to be saved."""
+        if not jobs:
+            return
+        with self._job_ready:
+            for job in jobs:
+                if self._jobs and not self._jobs[-1].save:
+                    self._jobs[-1] = job
+                else:
+                    self._jobs.append(job)
+            self._job_ready.notify()
 
     def _on_processing_error(self, exc: BaseException) -> None:
         self.callback_errors['processing'] += 1
@@ -355,28 +422,11 @@ class IdentificationNode(Node):
         with self._lock:
             return self.pipeline.estimate()
 
-    def _snapshot(self) -> tuple:
-        """(estimate, normal equations, weights) of the pipeline now, under the lock."""
-        with self._lock:
-            est = self.pipeline.estimate()
-            equations = (pipeline_equations(self.pipeline) if self._consistency_options
-                         else None)
-        return est, equations
-
-    def refresh_estimate(self, wait: bool = False) -> ConsistentEstimate | None:
-        """Publish base_parameters and the identified URDF; refresh the estimate parameters.
-        The constrained solve runs on the worker thread (``wait``: on this one, returning its
-        outcome)."""
-        est, equations = self._snapshot()
-        if equations is None:
-            self._publish_estimate(est, None)
-            return None
-        if wait:
-            return self._solve_and_publish(est, equations)
-        with self._job_ready:
-            self._job = (est, equations)   # the newest snapshot replaces one not yet taken
-            self._job_ready.notify()
-        return None
+    def refresh_estimate(self) -> None:
+        """Ask for base_parameters, the estimate parameters and the identified URDF to be
+        published: the processing thread takes the snapshot at its next run, the worker
+        solves and publishes it."""
+        self._requests.want_snapshot()
 
     def _consistency_worker(self) -> None:
         if self._consistency_options is not None:
@@ -386,16 +436,47 @@ class IdentificationNode(Node):
                 self.get_logger().error(f'physical consistency solver: {exc}')
         while True:
             with self._job_ready:
-                while self._job is None and self._worker_running:
+                while not self._jobs and self._worker_running:
                     self._job_ready.wait()
                 if not self._worker_running:
                     return
-                job, self._job = self._job, None
+                job = self._jobs.pop(0)
             try:
-                self._solve_and_publish(*job)
+                outcome = self._publish_snapshot(job)
             except Exception as exc:  # noqa: BLE001 - the worker must survive and report
-                self.get_logger().error('physical consistency solve failed: ' + ''.join(
+                self.callback_errors['estimate'] += 1
+                self.get_logger().error('publishing the estimate failed: ' + ''.join(
                     traceback.format_exception(exc)), throttle_duration_sec=5.0)
+                outcome = Outcome(error=f'estimate failed: {type(exc).__name__}: {exc}')
+            self._requests.answer(job.seq, outcome)
+
+    def _publish_snapshot(self, job: Snapshot) -> Outcome:
+        """Solve (physical consistency), publish and, if asked, save ``job``: the answer to
+        the requests it covers."""
+        if job.error:
+            return Outcome(error=job.error)
+        est = job.estimate
+        consistent = None if job.equations is None else self._solve(job.equations)
+        self._publish_estimate(est, consistent)
+        ok = consistent is not None and consistent.ok
+        outcome = Outcome(estimate=json.dumps(plain({
+            'names': est.names, 'values': (consistent.theta if ok else est.values).tolist(),
+            'stddev': est.stddev.tolist(), 'unconstrained_values': est.values.tolist(),
+            'consistency_status': 'disabled' if consistent is None else consistent.status,
+            'num_samples': est.num_samples, 'time': est.stamp, 'converged': est.converged,
+            'condition_number': est.condition_number})))
+        if job.save:
+            doc = snapshot_document(self.robot, self.pipeline.base, est, job.covariance,
+                                    job.rejected, consistent)
+            if job.payload is not None:
+                doc['payload'] = plain(job.payload.document())
+            try:
+                paths = write_results(self.settings.output_directory, doc, self.robot,
+                                      job.payload)
+                outcome.saved = [str(p) for p in paths]
+            except OSError as exc:
+                outcome.save_error = f'cannot save: {exc}'
+        return outcome
 
     def _solver_instance(self) -> SolverProcess:
         with self._solver_lock:
@@ -415,11 +496,6 @@ class IdentificationNode(Node):
                 f'physically consistent solve: {result.status}; publishing the '
                 'unconstrained estimate')
         self._solver_failure = '' if result.ok else result.status
-        return result
-
-    def _solve_and_publish(self, est: EstimateReport, equations: tuple) -> ConsistentEstimate:
-        result = self._solve(equations)
-        self._publish_estimate(est, result)
         return result
 
     def _publish_estimate(self, est: EstimateReport, consistent: ConsistentEstimate | None
@@ -537,54 +613,43 @@ class IdentificationNode(Node):
         msg.header.stamp = now.to_msg()
         self._pub_diag.publish(msg)
 
-    # -- services -----------------------------------------------------------------------------
-    def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        with self._lock:
-            self.pipeline.reset()
-            for source in self._inputs:
-                source.reset_lost()
-        self.refresh_estimate()
-        res.success, res.message = True, 'estimate reset'
-        return res
+    # -- services (answered on their own thread, service_requests.py) ------------------------
+    @staticmethod
+    def _answer(reply: Callable, response: Any, text: str) -> Callable[[Outcome], None]:
+        def answer(outcome: Outcome) -> None:
+            if outcome.error:
+                reply(failed(response, outcome.error))
+            else:
+                response.success, response.message = True, text
+                reply(response)
+        return answer
 
-    def _srv_freeze(self, req: SetBool.Request, res: SetBool.Response) -> SetBool.Response:
-        with self._lock:
-            self.pipeline.frozen = bool(req.data)
-        res.success = True
-        res.message = 'updates frozen' if req.data else 'updates resumed'
-        return res
+    def _srv_reset(self, _req: Trigger.Request, reply: Callable) -> None:
+        self._requests.command('reset', None, self._answer(reply, Trigger.Response(),
+                                                           'estimate reset'))
 
-    def _srv_save(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        est, equations = self._snapshot()
-        consistent = None if equations is None else self._solve(equations)
-        try:
-            with self._lock:
-                paths = save_results(self.pipeline, self.settings.output_directory,
-                                     self.payload.current if self.payload else None,
-                                     consistent)
-        except OSError as exc:
-            res.success, res.message = False, f'cannot save: {exc}'
-            return res
-        res.success, res.message = True, ' '.join(str(p) for p in paths)
-        return res
+    def _srv_freeze(self, req: SetBool.Request, reply: Callable) -> None:
+        text = 'updates frozen' if req.data else 'updates resumed'
+        self._requests.command('freeze', bool(req.data),
+                               self._answer(reply, SetBool.Response(), text))
 
-    def _srv_get_estimate(self, _req: Trigger.Request,
-                          res: Trigger.Response) -> Trigger.Response:
-        est, equations = self._snapshot()
-        consistent = None if equations is None else self._solve_and_publish(est, equations)
-        if equations is None:
-            self._publish_estimate(est, None)
-        ok = consistent is not None and consistent.ok
-        res.success = True
-        res.message = json.dumps(plain({
-            'names': est.names, 'values': (consistent.theta if ok else est.values).tolist(),
-            'stddev': est.stddev.tolist(), 'unconstrained_values': est.values.tolist(),
-            'consistency_status': 'disabled' if consistent is None else consistent.status,
-            'num_samples': est.num_samples, 'time': est.stamp, 'converged': est.converged,
-            'condition_number': est.condition_number}))
-        return res
+    def _srv_save(self, _req: Trigger.Request, reply: Callable) -> None:
+        def answer(outcome: Outcome) -> None:
+            res = Trigger.Response()
+            if outcome.error or outcome.saved is None:
+                reply(failed(res, outcome.error or outcome.save_error))
+            else:
+                res.success, res.message = True, ' '.join(outcome.saved)
+                reply(res)
+        self._requests.command('save', None, answer)
+
+    def _srv_get_estimate(self, _req: Trigger.Request, reply: Callable) -> None:
+        def answer(outcome: Outcome) -> None:
+            self._answer(reply, Trigger.Response(), outcome.estimate)(outcome)
+        self._requests.read(answer)
 
     def destroy_node(self) -> None:
+        self._service_thread.stop()
         self._clock_check.stop()
         self._processing.stop()
         with self._job_ready:

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 from geometry_msgs.msg import InertiaStamped
@@ -32,6 +33,8 @@ from identification_node.errors import IdentificationError
 from identification_node.payload.fit import (PayloadEstimate, payload_parameters,
                                              prepare_consistency)
 from identification_node.payload.monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
+from identification_node.ros.service_requests import (Outcome, RequestQueue, ServiceThread,
+                                                      failed)
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
@@ -64,8 +67,9 @@ class PayloadOutputs:
     """Publishers, services and diagnostics of the payload monitor; ``add`` runs on the
     node's processing thread (under the node's lock), ``publish`` after it."""
 
-    def __init__(self, node: Node, settings, pipeline):
-        self.node = node
+    def __init__(self, node: Node, settings, pipeline, services: ServiceThread,
+                 requests: RequestQueue):
+        self.node, self.requests = node, requests
         self.monitor = monitor_from_settings(settings, pipeline.robot,
                                              lambda: pipeline.row_builder.half_window)
         prepare_consistency()   # cvxpy's import: seconds, not in a run
@@ -76,8 +80,8 @@ class PayloadOutputs:
         self.last_change: PayloadEvent | None = None
         self._pub = node.create_publisher(InertiaStamped, '~/payload', LATCHED)
         self._pub_changed = node.create_publisher(Header, '~/payload_changed', EVENTS)
-        node.create_service(Trigger, '~/payload/reset', self._srv_reset)
-        node.create_service(SetParameters, '~/payload/set', self._srv_set)
+        services.add(Trigger, '~/payload/reset', self._srv_reset)
+        services.add(SetParameters, '~/payload/set', self._srv_set)
         node.get_logger().info(f'payload identification on {self.link}; changes of more '
                                f'than {self.monitor.config.min_change:g} kg are detected')
 
@@ -124,18 +128,22 @@ class PayloadOutputs:
             values['payload.not_excited'] = ' '.join(doc['not_excited'])
         return values
 
-    def _srv_reset(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
-        with self.node._lock:
-            if self._arm_from_estimate:
-                self.monitor.phi_arm = self.pipeline.standard_parameters()
-            self.monitor.reset()
-            self.version += 1
-        res.success, res.message = True, 'payload forgotten; identified afresh from now' + (
+    # services: validated here, applied by the node's processing thread in order
+    def _srv_reset(self, _req: Trigger.Request, reply: Callable) -> None:
+        text = 'payload forgotten; identified afresh from now' + (
             ' against the running estimate of the arm' if self._arm_from_estimate else '')
-        return res
 
-    def _srv_set(self, req: SetParameters.Request,
-                 res: SetParameters.Response) -> SetParameters.Response:
+        def answer(outcome: Outcome) -> None:
+            res = Trigger.Response()
+            if outcome.error:
+                reply(failed(res, outcome.error))
+            else:
+                res.success, res.message = True, text
+                reply(res)
+        self.requests.command('payload_reset', None, answer)
+
+    def _srv_set(self, req: SetParameters.Request, reply: Callable) -> None:
+        res = SetParameters.Response()
         given = {p.name: Parameter.from_parameter_msg(p).value for p in req.parameters}
         try:
             unknown = set(given) - {'mass', 'com', 'inertia'}
@@ -146,11 +154,27 @@ class PayloadOutputs:
                                      np.asarray(given.get('com', [0.0] * 3), dtype=float),
                                      np.asarray(given.get('inertia', [0.0] * 6), dtype=float))
         except (IdentificationError, TypeError, ValueError) as exc:
-            res.results = [SetParametersResult(successful=False, reason=str(exc))]
-            return res
-        with self.node._lock:
-            est = self.monitor.set_payload(phi)
+            reply(failed(res, str(exc)))
+            return
+
+        def answer(outcome: Outcome) -> None:
+            if outcome.error:
+                reply(failed(res, outcome.error))
+            else:
+                res.results = [SetParametersResult(successful=True, reason='payload set')]
+                reply(res)
+        self.requests.command('payload_set', phi, answer)
+
+    def apply(self, kind: str, argument) -> None:
+        """Command ``payload_reset`` or ``payload_set`` (10 parameters), under the node's
+        processing lock."""
+        if kind == 'payload_reset':
+            if self._arm_from_estimate:
+                self.monitor.phi_arm = self.pipeline.standard_parameters()
+            self.monitor.reset()
             self.version += 1
-        self._pub.publish(inertia_message(est, self.node.get_clock().now().nanoseconds * 1e-9))
-        res.results = [SetParametersResult(successful=True, reason='payload set')]
-        return res
+        elif kind == 'payload_set':
+            est = self.monitor.set_payload(argument)
+            self.version += 1
+            self._pub.publish(inertia_message(
+                est, self.node.get_clock().now().nanoseconds * 1e-9))
