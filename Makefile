@@ -36,12 +36,12 @@ bags: $(STAMP)
 	$(SIM) --config config/identification.yaml --trajectory paper_moves $(MIT_NOISE) \
 		--seed 1 --out bags/mit_paper_moves
 	$(SIM) --config config/identification.yaml --trajectory fourier --duration 8 $(MIT_NOISE) \
-		--seed 2 --out bags/mit_exciting
+		--seed 2 --trajectory-seed 0 --out bags/mit_exciting
 	$(SIM) --config config/identification.yaml --trajectory paper_moves $(MIT_NOISE) \
 		--seed 4 --storage sqlite3 --out bags/mit_paper_moves_sqlite3
 	$(SIM) --config config/crs_a465.yaml --trajectory fourier --duration 10 --torque-std 0.2 \
 		--encoder-counts 262144 --true-parameters bags/crs_a465_friction.yaml \
-		--seed 3 --out bags/crs_a465_fourier
+		--seed 3 --trajectory-seed 0 --out bags/crs_a465_fourier
 
 bench: $(STAMP)
 	@for b in bench/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

@@ -29,8 +29,9 @@ if TYPE_CHECKING:   # the pipeline's defaults come from PARAMETERS below: import
 PARAMETERS: dict[str, tuple[Any, str]] = {
     'robot': ('mit_dd_arm', 'bundled robot name or URDF/MJCF file path'),
     'robot_description': ('', 'URDF XML; when set it is used instead of `robot`'),
-    'joints': ([], 'identified joints in this order (empty: all movable joints; identify: '
-               'those the bag carries, the others locked)'),
+    'joints': ([], 'identified joints in this order (empty: all movable joints but URDF '
+               '<mimic> ones and those they follow; identify: those the bag carries, the others '
+               'locked)'),
     'extras': (['fv', 'fc', 'fo'], 'per-joint extra columns among fv (viscous), fc (Coulomb), '
                'fo (offset), Ia (rotor inertia); [] for none'),
     'coulomb_velocity': (0.0, 'rad/s; > 0 smooths the Coulomb sign as tanh(qd / value)'),

@@ -28,6 +28,44 @@ def test_identified_urdf_round_trips_the_parameters(robot_name):
     np.testing.assert_allclose(back.phi_model, phi, rtol=1e-7, atol=1e-9)
 
 
+def test_identified_urdf_carries_friction():
+    """fv and fc in each joint's <dynamics damping friction>, read back by pinocchio's URDF
+    parser (urdfdom); fo and Ia, which a URDF cannot hold, named in a comment."""
+    import pinocchio as pin
+    robot = load_robot('crs_a465', extras=['fv', 'fc', 'fo', 'Ia'])
+    phi = robot.phi_model.copy()
+    values = np.arange(1.0, 1.0 + 4 * robot.dof).reshape(robot.dof, 4) / 10   # fv fc fo Ia
+    phi[robot.n_inertial:] = values.ravel()
+    xml = identified_urdf(robot, phi, note='test')
+    model = pin.buildModelFromXML(xml)
+    ids = [model.getJointId(j) for j in robot.joint_names]
+    v = [model.joints[i].idx_v for i in ids]
+    np.testing.assert_allclose(np.asarray(model.damping)[v], values[:, 0], rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(model.friction)[v], values[:, 1], rtol=1e-8)
+    comment = xml.split('<!--')[1].split('-->')[0]
+    assert 'test' in comment and 'fo' in comment and 'Ia' in comment
+    # without friction columns the description's own <dynamics> stays
+    plain = load_robot('crs_a465')
+    assert identified_urdf(plain, plain.phi_model).count('damping=') == \
+        plain.description.count('damping=')
+
+
+@pytest.mark.slow
+def test_identify_save_writes_the_identified_friction(tmp_path, capsys):
+    """identify --save on the bundled CRS bag: the exported URDF's joint damping and friction
+    are the friction the bag was simulated with (bags/crs_a465_friction.yaml)."""
+    import pinocchio as pin
+    from identification_node.cli import main
+    assert main(['identify', str(REPO / 'bags' / 'crs_a465_fourier'), '--config',
+                 str(REPO / 'config' / 'crs_a465.yaml'), '--save', str(tmp_path)]) == 0
+    truth = yaml.safe_load((REPO / 'bags' / 'crs_a465_friction.yaml').read_text())
+    model = pin.buildModelFromUrdf(str(tmp_path / 'identified.urdf'))
+    for j in range(1, 7):
+        k = model.joints[model.getJointId(f'joint{j}')].idx_v
+        assert model.damping[k] == pytest.approx(truth[f'joint{j}.fv'], rel=0.2, abs=0.01)
+        assert model.friction[k] == pytest.approx(truth[f'joint{j}.fc'], rel=0.2, abs=0.01)
+
+
 def test_merged_bodies_lose_their_own_inertials():
     # The fixture hangs links on fixed joints; pinocchio merges them into the moving links,
     # so writing the merged values back must not count them twice.

@@ -222,3 +222,35 @@ def test_bad_input_raises(mit_full):
         SensorNoise(position_std=-1.0)
     with pytest.raises(IdentificationError, match='encoder_counts'):
         SensorNoise(encoder_counts=1.5)
+
+
+def test_simulate_verb_seeds_the_motion_and_shows_its_defaults(tmp_path, capsys):
+    """Another --seed is another motion (held-out bags), unless --trajectory-seed fixes it; 100
+    Hz is integrated at 1 kHz; --help states rate, noise and friction defaults."""
+    import yaml
+
+    from identification_node.cli import main
+    from identification_node.offline.identification import read_samples
+    from identification_node.settings import Settings
+
+    def positions(seed: int, *more: str):
+        out = tmp_path / f'{seed}{"".join(more)}'
+        assert main(['simulate', '--robot', 'mit_dd_arm', '--extras', 'none', '--rate', '100',
+                     '--duration', '2', '--seed', str(seed), *more, '--out', str(out)]) == 0
+        settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': []})
+        samples = read_samples(out, settings, load_robot('mit_dd_arm'))
+        assert yaml.safe_load((out / 'true_parameters.yaml').read_text())['rate'] == 100
+        return samples.streams[0].q
+
+    one, two = positions(1), positions(2)
+    assert one.shape == two.shape == (201, 3)
+    assert np.abs(one - two).max() > 0.1
+    np.testing.assert_array_equal(positions(1, '--trajectory-seed', '2'), two)
+    np.testing.assert_array_equal(positions(0), positions(5, '--trajectory-seed', '0'))
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(['simulate', '--help'])
+    text = ' '.join(capsys.readouterr().out.split())
+    for words in ('Hz (default: 1000', 'sensor noise (default: none)',
+                  "friction is the URDF's <dynamics damping friction> (none without)"):
+        assert words in text, words

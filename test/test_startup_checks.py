@@ -128,16 +128,19 @@ def test_urdf_without_movable_joints_is_refused(tmp_path):
     assert 'no movable joints' in line and str(urdf) in line
 
 
-def test_mimic_joints_are_refused_naming_them(tmp_path):
+def test_mimic_joints_are_locked_by_default_and_refused_when_asked_for(tmp_path):
     root = ET.fromstring(MIT_XML)
     j3 = next(j for j in root.iter('joint') if j.get('name') == 'joint3')
     ET.SubElement(j3, 'mimic', joint='joint2', multiplier='1.0')
     xml = ET.tostring(root, encoding='unicode')
+    # by default the mimic joint and the joint it follows are locked together
+    assert load_robot(xml).joint_names == ['joint1']
     with pytest.raises(IdentificationError,
-                       match=r"joint 'joint3' mimics 'joint2'.*joints: \[joint1, joint2\]"):
-        load_robot(xml)
-    robot = load_robot(xml, ['joint1', 'joint2'])     # without it: locked, fine
-    assert robot.joint_names == ['joint1', 'joint2']
+                       match=r"joint 'joint3' mimics 'joint2'.*\(joint2, joint3 asked for\).*"
+                       r"joints: \[joint1\]"):
+        load_robot(xml, ['joint1', 'joint2', 'joint3'])
+    with pytest.raises(IdentificationError, match=r'joint2 asked for.*joints: \[joint1\]'):
+        load_robot(xml, ['joint1', 'joint2'])
 
 
 # -- parameter files -----------------------------------------------------------------------------

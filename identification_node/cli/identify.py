@@ -405,7 +405,8 @@ def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
 def run(args: argparse.Namespace) -> int:
     from identification_node.offline.identification import (make_consistent, offline_identify,
                                                             replay_identify)
-    from identification_node.offline.replay import bag_robot, locked_warning, robot_for_bag
+    from identification_node.offline.replay import (bag_robot, locked_warning, mimic_warning,
+                                                    robot_for_bag)
     from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
@@ -444,6 +445,9 @@ def run(args: argparse.Namespace) -> int:
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
     if locked:
         ident.warnings.insert(0, locked_warning(robot, locked, args.joint_states_topic))
+    mimics = mimic_warning(robot, args.bag, args.joint_states_topic)
+    if mimics:
+        ident.warnings.insert(0, mimics)
     make_consistent(ident, consistency)
     training, validations = evaluate_bags(ident, args, settings, window, topics)
     doc = result_document(ident, validations, training)

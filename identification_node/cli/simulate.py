@@ -18,27 +18,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_robot_arguments(parser, required=False)
     add_settings_arguments(parser)
     parser.add_argument('--trajectory', default='fourier',
-                        help="paper_moves, table1, fourier, or a .yaml/.csv file")
+                        help="paper_moves, table1, fourier (random coefficients, see "
+                        "--trajectory-seed), or a .yaml/.csv file (default: fourier)")
     parser.add_argument('--duration', type=float, default=None,
                         help='s (default: the trajectory duration or one period)')
-    parser.add_argument('--rate', type=float, default=1000.0, help='sample rate, Hz')
+    parser.add_argument('--rate', type=float, default=1000.0,
+                        help='sample rate, Hz (default: 1000; integrated at 1 kHz or faster)')
     parser.add_argument('--out', required=True, help='bag directory to create')
-    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
+                        help='(default: mcap)')
     parser.add_argument('--overwrite', action='store_true')
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--stamp-offset', type=float, default=0.0, help='s added to stamps')
-    noise = parser.add_argument_group('sensor noise')
-    noise.add_argument('--position-std', type=float, default=0.0, help='rad')
-    noise.add_argument('--encoder-counts', type=int, default=0, help='per revolution, 0: none')
-    noise.add_argument('--velocity-std', type=float, default=0.0, help='rad/s')
-    noise.add_argument('--torque-std', type=float, default=0.0, help='N m')
-    noise.add_argument('--current-std', type=float, default=0.0, help='A')
+    parser.add_argument('--seed', type=int, default=0,
+                        help='seed of the sensor noise and of the fourier motion (default: 0)')
+    parser.add_argument('--trajectory-seed', type=int, metavar='SEED',
+                        help='seed of the fourier motion alone (default: --seed)')
+    parser.add_argument('--stamp-offset', type=float, default=0.0,
+                        help='s added to stamps (default: 0)')
+    noise = parser.add_argument_group('sensor noise (default: none)')
+    noise.add_argument('--position-std', type=float, default=0.0, help='rad (default: 0)')
+    noise.add_argument('--encoder-counts', type=int, default=0,
+                       help='per revolution (default: 0, no quantisation)')
+    noise.add_argument('--velocity-std', type=float, default=0.0, help='rad/s (default: 0)')
+    noise.add_argument('--torque-std', type=float, default=0.0, help='N m (default: 0)')
+    noise.add_argument('--current-std', type=float, default=0.0, help='A (default: 0)')
     parser.add_argument('--no-velocity', action='store_true', help='omit JointState.velocity')
     parser.add_argument('--no-effort', action='store_true', help='omit JointState.effort')
     parser.add_argument('--clock', action='store_true', help='also write /clock')
     parser.add_argument('--true-parameters', metavar='FILE',
                         help='YAML mapping of standard parameter names to the values to '
-                        'simulate instead of the model\'s own (e.g. joint1.fv: 0.5)')
+                        'simulate instead of the model\'s own (e.g. joint1.fv: 0.5); default: '
+                        'the model\'s own, whose friction is the URDF\'s <dynamics damping '
+                        'friction> (none without)')
     parser.add_argument('--payload-events', metavar='YAML',
                         help='payloads attached at given times: a YAML file or inline list '
                         'of {time: s, mass: kg, com: [x, y, z], inertia: [ixx, ixy, ixz, iyy, '
@@ -68,6 +78,8 @@ def true_parameters(robot, path: str | None):
 
 
 def run(args: argparse.Namespace) -> int:
+    import math
+
     import numpy as np
 
     from identification_node.bags.writer import BagWriter
@@ -85,10 +97,12 @@ def run(args: argparse.Namespace) -> int:
     converter = TorqueConverter(robot.joint_names, settings.torque_configs(robot.joint_names))
     noise = SensorNoise(args.position_std, args.encoder_counts, args.velocity_std,
                         args.torque_std, args.current_std)
-    trajectory = load_trajectory(args.trajectory, robot)
+    trajectory = load_trajectory(args.trajectory, robot, args.seed if (
+        args.trajectory_seed is None) else args.trajectory_seed)
     phi = true_parameters(robot, args.true_parameters)
     payloads = read_payload_changes(args.payload_events) if args.payload_events else []
-    sim = ArmSimulator(robot, phi, rate=args.rate).run(
+    substeps = max(1, math.ceil(1000.0 / args.rate - 1e-9)) if args.rate > 0 else 1
+    sim = ArmSimulator(robot, phi, rate=args.rate, substeps=substeps).run(
         trajectory, args.duration, noise, args.seed, converter,
         changes=true_parameter_changes(robot, phi, payloads))
     names = list(robot.joint_names)

@@ -584,15 +584,16 @@ def match_joints(traj: Trajectory, robot: object, source: str = 'trajectory') ->
     return traj
 
 
-def load_trajectory(spec: str, robot: object) -> Trajectory:
+def load_trajectory(spec: str, robot: object, seed: int = 0) -> Trajectory:
     """A trajectory for ``robot`` (a RobotModel) from a name or a file.
 
     'paper_moves': the MIT arm's quintic moves (3 joints); 'table1': the CRS A460/A465 Table I
-    Fourier series (6 joints); 'fourier': a seeded 5-harmonic Fourier series inside 80 % of the
-    robot's position and velocity limits; a .yaml/.yml file of Fourier coefficients (keys period,
-    q0, a, b, optional joints; with a 'framing' mapping, the FramedTrajectory that ramps
-    in and out of it, as ``excite`` writes) or a .csv file (t, one column per joint, header with
-    names; or write_motion_csv's layout, whose positions are used).
+    Fourier series (6 joints); 'fourier': a 5-harmonic Fourier series of random coefficients
+    (``seed``) inside 80 % of the robot's position and velocity limits; a .yaml/.yml file of
+    Fourier coefficients (keys period, q0, a, b, optional joints; with a 'framing' mapping, the
+    FramedTrajectory that ramps in and out of it, as ``excite`` writes) or a .csv file (t, one
+    column per joint, header with names; or write_motion_csv's layout, whose positions are
+    used).
     """
     spec = str(spec).strip()
     n = robot.dof
@@ -605,7 +606,7 @@ def load_trajectory(spec: str, robot: object) -> Trajectory:
             return QuinticMoves.mit_paper(joint_names=robot.joint_names)
         return FourierTrajectory.crs_table1(joint_names=robot.joint_names)
     if spec == 'fourier':
-        return FourierTrajectory.random(robot)
+        return FourierTrajectory.random(robot, seed=seed)
     path = Path(spec)
     suffix = path.suffix.lower()
     if suffix not in ('.yaml', '.yml', '.csv'):

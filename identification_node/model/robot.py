@@ -101,15 +101,25 @@ def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
                                   + (f' ({detail})' if detail else '')) from None
 
 
-def _mimic_joints(xml: str) -> dict[str, str]:
-    """URDF joints with a <mimic>: name -> the joint it follows."""
+def _mimic_joints(xml: str) -> dict[str, tuple[str, float, float]]:
+    """URDF joints with a <mimic>: name -> (the joint it follows, multiplier, offset), so that
+    q = multiplier * q_leader + offset."""
     import xml.etree.ElementTree as ET
     try:
         root = ET.fromstring(xml)
     except ET.ParseError:
         return {}
-    return {j.get('name'): j.find('mimic').get('joint', '?') for j in root.iter('joint')
-            if j.find('mimic') is not None}
+    out = {}
+    for j in root.iter('joint'):
+        m = j.find('mimic')
+        if m is not None:
+            try:
+                gain, offset = float(m.get('multiplier', 1.0)), float(m.get('offset', 0.0))
+            except ValueError:
+                raise IdentificationError(f"joint '{j.get('name')}': <mimic> multiplier and "
+                                          'offset must be numbers') from None
+            out[j.get('name')] = (m.get('joint', '?'), gain, offset)
+    return out
 
 
 def _is_prismatic(joint: pin.JointModel) -> bool:
@@ -139,19 +149,22 @@ class RobotModel:
                 description) else f' ({description})'
             raise IdentificationError(f'robot {self.name}{where} has no movable joints: '
                                       'nothing to identify')
-        if joints is None or len(joints) == 0:
-            joints = movable
-        joints = [str(j).strip() for j in joints]
         mimics = _mimic_joints(self.description) if self.kind == 'urdf' else {}
-        mimicking = [j for j in joints if j in mimics]
+        grouped = set(mimics) | {leader for leader, _, _ in mimics.values()}
+        if joints is None or len(joints) == 0:
+            joints = [j for j in movable if j not in grouped] or movable
+        joints = [str(j).strip() for j in joints]
+        mimicking = [j for j in joints if j in grouped]
         if mimicking:
-            others = [j for j in movable if j not in mimics]
+            others = [j for j in joints if j not in grouped]
             raise IdentificationError(
-                f'robot {self.name}: ' + ', '.join(f"joint '{j}' mimics '{mimics[j]}'"
-                                                   for j in mimicking)
-                + ' (URDF <mimic>): mimic joints are not modelled, so they cannot be '
-                f"identified; choose the joints without them (joints: [{', '.join(others)}]), "
-                'which locks them at 0 with their links merged into their parents')
+                f'robot {self.name}: ' + ', '.join(
+                    f"joint '{j}' mimics '{leader}'" for j, (leader, _, _) in mimics.items())
+                + ' (URDF <mimic>): mimic joints are not modelled, so neither they nor the '
+                f"joints they follow can be identified ({', '.join(mimicking)} asked for); "
+                f"without them (joints: [{', '.join(others)}]) they are locked together at "
+                'their reference position')
+        self.mimic_locked = [j for j in movable if j in grouped]
         if len(set(joints)) != len(joints):
             raise IdentificationError(f'joints listed more than once: {joints}')
         for j in joints:
@@ -172,22 +185,30 @@ class RobotModel:
             raise IdentificationError('coulomb_velocity must be finite and >= 0')
         self.extras = tuple(e for e in JOINT_EXTRAS if e in extras)
         self.coulomb_velocity = float(coulomb_velocity)
-        self.model = self._lock(full, joints, movable, dict(locked_positions or {}))
+        self.model = self._lock(full, joints, movable, dict(locked_positions or {}), mimics)
         self.data = self.model.createData()
         self.joint_names = list(joints)
         self._setup_indices()
 
     # -- construction -------------------------------------------------------------------------
     def _lock(self, full: pin.Model, joints: list[str], movable: list[str],
-              locked_positions: dict[str, float]) -> pin.Model:
+              locked_positions: dict[str, float],
+              mimics: dict[str, tuple[str, float, float]]) -> pin.Model:
+        """The model with the movable joints not in ``joints`` locked: at ``locked_positions``
+        (default the neutral one), a mimic joint at multiplier * its leader's + offset."""
         unknown = set(locked_positions) - set(movable)
         if unknown:
             raise IdentificationError(f'locked_positions name unknown joints {sorted(unknown)}')
+        follow = sorted(set(locked_positions) & set(mimics))
+        if follow:
+            raise IdentificationError(f'locked_positions name mimic joints {follow}: they are '
+                                      'locked with the joints they follow; give those')
         lock = [full.getJointId(j) for j in movable if j not in joints]
         if not lock:
             return full
         qref = pin.neutral(full)
-        for name, value in locked_positions.items():
+
+        def put(name: str, value: float) -> None:
             jm = full.joints[full.getJointId(name)]
             if jm.nq == 1:
                 qref[jm.idx_q] = float(value)
@@ -195,6 +216,18 @@ class RobotModel:
                 qref[jm.idx_q:jm.idx_q + 2] = np.cos(value), np.sin(value)
             else:
                 raise IdentificationError(f'cannot lock multi-DOF joint {name} at a scalar')
+
+        def position(name: str) -> float:
+            jm = full.joints[full.getJointId(name)]
+            return float(qref[jm.idx_q] if jm.nq == 1 else
+                         np.arctan2(qref[jm.idx_q + 1], qref[jm.idx_q]))
+
+        for name, value in locked_positions.items():
+            put(name, value)
+        for _ in range(len(mimics)):      # chains of mimics: leaders first
+            for name, (leader, gain, offset) in mimics.items():
+                if name in movable and leader in movable:
+                    put(name, gain * position(leader) + offset)
         return pin.buildReducedModel(full, lock, qref)
 
     def _setup_indices(self) -> None:

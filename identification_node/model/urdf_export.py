@@ -6,7 +6,9 @@ The <inertial> of identified link i is written from its standard parameters [m, 
 it (which keep their own <inertial>, so the model stays right when they move), as the centre of
 mass c = (mx, my, mz) / m and the inertia about it, I_c = I_o - m (|c|^2 1 - c c^T), rpy 0.
 Links attached by fixed joints only lose their <inertial>: the identified values contain them.
-Every link of the description is kept.
+Every link of the description is kept. Each identified joint's viscous and Coulomb friction
+(fv, fc, when identified) go into its <dynamics damping= friction=>; a torque offset fo and a
+rotor inertia Ia have no place in a URDF (estimate.yaml holds them; a comment names them).
 """
 from __future__ import annotations
 
@@ -181,7 +183,33 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
                 'ixx': (0, 0), 'ixy': (0, 1), 'ixz': (0, 2),
                 'iyy': (1, 1), 'iyz': (1, 2), 'izz': (2, 2)}.items()})
         link.insert(0, inertial)
+    _write_friction(robot, root, phi)
+    kept = [e for e in ('fo', 'Ia') if e in robot.extras]
+    if kept:
+        note = (note + '; ' if note else '') + ', '.join(
+            {'fo': 'torque offsets fo', 'Ia': 'rotor inertias Ia'}[e] for e in kept) + (
+                ' are not URDF quantities: see the estimate (estimate.yaml)')
     if note:
         root.insert(0, ET.Comment(f' {note} '))
     ET.indent(root, space='  ')
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding='unicode') + '\n'
+
+
+def _write_friction(robot: RobotModel, root: ET.Element, phi: np.ndarray) -> None:
+    """Each identified joint's fv and fc (those identified) into its <dynamics damping friction>
+    (N m s/rad and N m; N s/m and N for prismatic joints), its other attributes kept."""
+    fields = {'fv': 'damping', 'fc': 'friction'}
+    if not set(fields) & set(robot.extras):
+        return
+    joints = {el.get('name'): el for el in root.findall('joint')}
+    extras = np.reshape(phi[robot.n_inertial:], (robot.dof, len(robot.extras)))
+    for name, values in zip(robot.joint_names, extras):
+        joint = joints.get(name)
+        if joint is None:
+            continue
+        dynamics = joint.find('dynamics')
+        if dynamics is None:
+            dynamics = ET.SubElement(joint, 'dynamics')
+        for extra, value in zip(robot.extras, values):
+            if extra in fields:
+                dynamics.set(fields[extra], f'{value:.9g}')

@@ -96,6 +96,18 @@ def locked_warning(robot: RobotModel, locked: list[str], topic: str = JOINT_STAT
             f"locked at their zero position; identifying {', '.join(robot.joint_names)}")
 
 
+def mimic_warning(robot: RobotModel, bag: str | os.PathLike,
+                  topic: str = JOINT_STATES) -> str | None:
+    """The warning for URDF <mimic> joints (and those they follow) that the bag's joint states
+    carry but the robot locks (RobotModel.mimic_locked); None when there are none."""
+    carried = [j for j in robot.mimic_locked if j in set(bag_joint_names(bag, topic))]
+    if not carried:
+        return None
+    return (f"joint(s) {', '.join(carried)} of {robot.name} are in the bag's {topic} but locked "
+            'at their reference position: mimic joints (URDF <mimic>) and the joints they '
+            'follow are not modelled')
+
+
 def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                  joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                  batch: int = 1000, checkpoints: int = 50,
