@@ -143,6 +143,20 @@ def test_mimic_joints_are_locked_by_default_and_refused_when_asked_for(tmp_path)
         load_robot(xml, ['joint1', 'joint2'])
 
 
+def test_training_bag_of_another_robot_is_refused(tmp_path, capsys):
+    """identify UR5_BAG --urdf ur10.urdf: the bag's /robot_description is a UR5 (the same joint
+    names, other kinematics), so it is refused as a validation bag of another robot is."""
+    from arms import arm_urdf
+    bag = str(tmp_path / 'ur5')
+    assert main(['simulate', '--urdf', str(arm_urdf('ur5')), '--rate', '100', '--duration',
+                 '3', '--out', bag]) == 0
+    assert main(['identify', bag, '--urdf', str(arm_urdf('ur10'))]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f'error: training bag {bag}'), err
+    assert 'another robot' in err and '(ur5)' in err and 'ur10' in err, err
+    assert main(['identify', bag, '--urdf', str(arm_urdf('ur5')), '--json']) == 0
+
+
 # -- parameter files -----------------------------------------------------------------------------
 @pytest.mark.parametrize('content, words', [
     (None, 'cannot read parameter file'),

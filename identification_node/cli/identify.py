@@ -403,8 +403,8 @@ def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
 
 
 def run(args: argparse.Namespace) -> int:
-    from identification_node.offline.identification import (make_consistent, offline_identify,
-                                                            replay_identify)
+    from identification_node.offline.identification import (check_same_robot, make_consistent,
+                                                            offline_identify, replay_identify)
     from identification_node.offline.replay import (bag_robot, locked_warning, mimic_warning,
                                                     robot_for_bag)
     from identification_node.offline.windows import TimeWindow
@@ -422,6 +422,7 @@ def run(args: argparse.Namespace) -> int:
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
     robot, settings, locked = robot_for_bag(robot, settings, args.bag, args.joint_states_topic)
+    check_same_robot(args.bag, robot, 'training')
     from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:

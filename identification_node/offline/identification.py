@@ -843,9 +843,11 @@ def make_consistent(ident: Identification, options: ConsistencyOptions | None,
 
 
 # -- validation on a held-out bag ---------------------------------------------------------------
-def check_same_robot(bag: str | os.PathLike, robot: RobotModel) -> None:
+def check_same_robot(bag: str | os.PathLike, robot: RobotModel, role: str = 'validation'
+                     ) -> None:
     """IdentificationError when the bag's /robot_description is not ``robot`` (its identified
-    joints missing, or other kinematics: the regressor differs at random motions)."""
+    joints missing, or other kinematics: the regressor differs at random motions); ``role``
+    names the bag in the message (validation, training)."""
     with open_bag(bag) as reader:
         xml = read_string_topic(reader, ROBOT_DESCRIPTION)
     if not xml:
@@ -854,14 +856,15 @@ def check_same_robot(bag: str | os.PathLike, robot: RobotModel) -> None:
         other = load_robot(xml, robot.joint_names, extras=robot.extras,
                            coulomb_velocity=robot.coulomb_velocity)
     except IdentificationError as exc:
-        raise IdentificationError(f'validation bag {bag} is of another robot than '
+        raise IdentificationError(f'{role} bag {bag} is of another robot than '
                                   f'{robot.name} ({exc})') from None
     q, qd, qdd = sample_motion(robot, 20, seed=7)
     Y, Z = robot.regressor(q, qd, qdd), other.regressor(q, qd, qdd)
     if Y.shape != Z.shape or not np.allclose(Y, Z, rtol=1e-6, atol=1e-9 * np.abs(Y).max()):
         raise IdentificationError(
-            f'validation bag {bag} describes another robot: its /robot_description gives '
-            f'other dynamics than {robot.name} for the joints {robot.joint_names}')
+            f'{role} bag {bag} describes another robot: its {ROBOT_DESCRIPTION} '
+            f'({other.name}) gives other dynamics than {robot.name} for the joints '
+            f'{robot.joint_names}')
 
 
 def parameter_sets(ident: Identification) -> dict[str, np.ndarray]:
