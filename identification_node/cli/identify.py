@@ -451,6 +451,10 @@ def run(args: argparse.Namespace) -> int:
         ident.warnings.insert(0, mimics)
     make_consistent(ident, consistency)
     training, validations = evaluate_bags(ident, args, settings, window, topics)
+    from identification_node.offline.effort_semantics import training_gravity_warning
+    gravity = training_gravity_warning(ident, training)
+    if gravity:
+        ident.warnings.append(gravity)
     doc = result_document(ident, validations, training)
     if monitor is not None:
         from identification_node.payload.monitor import segments_document

@@ -395,11 +395,13 @@ def _periodic_rows(stream: Stream, robot: RobotModel, base: BaseParameters, peri
 class TorqueSeries:
     """An evenly strided subsample of processed rows: stamps (N,) int64 ns, measured torque
     (N, n) and base regressor rows (N, n, b), so that predicted = regressor @ theta;
-    ``origin_ns``: the bag's first sample (time zero of plots)."""
+    ``origin_ns``: the bag's first sample (time zero of plots); ``q`` (N, n): the rows'
+    positions (rad, m) when kept."""
     stamps_ns: np.ndarray
     measured: np.ndarray
     regressor: np.ndarray
     origin_ns: int | None = None
+    q: np.ndarray | None = None
 
     def predicted(self, theta: np.ndarray) -> np.ndarray:
         return self.regressor @ np.asarray(theta, dtype=float)

@@ -77,7 +77,7 @@ class BagError:
     """Torque errors of several parameter vectors on one bag (``errors`` name -> TorqueError,
     against the raw torque; ``smoothed``: the same against the smoothed torque), over
     ``num_samples`` samples; ``series``: a subsample (stamps ns, raw torque, base regressor
-    rows) for plots."""
+    rows, positions) for plots and checks."""
     bag: str
     joints: list[str]
     num_samples: int
@@ -151,13 +151,14 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         ok = np.isfinite(pred).all(axis=(0, 2))
         if not ok.all():
             counters.reject('implausible', int(np.count_nonzero(~ok)))
-            tau, Yb, pred, t, smoothed = tau[ok], Yb[ok], pred[:, ok], r.t[ok], r.tau[ok]
+            tau, Yb, pred, t, smoothed, q = (tau[ok], Yb[ok], pred[:, ok], r.t[ok],
+                                             r.tau[ok], r.q[ok])
         else:
-            t, smoothed = r.t, r.tau
+            t, smoothed, q = r.t, r.tau, r.q
         raw.add(tau, pred)
         smooth.add(smoothed, pred)
         stamps_ns = counters.stamps_ns(t)
-        sampler.add(stamps_ns=stamps_ns, measured=tau, regressor=Yb)
+        sampler.add(stamps_ns=stamps_ns, measured=tau, regressor=Yb, q=q)
         if predictions is not None:
             predictions.add(label, stamps_ns, tau, pred[names.index(predict)])
 
@@ -173,5 +174,5 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                     {k: raw.error(i) for i, k in enumerate(names)},
                     {k: smooth.error(i) for i, k in enumerate(names)}, window,
                     TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
-                                 origin),
+                                 origin, kept['q']),
                     {k: v for k, v in counters.rejected.items() if v})
