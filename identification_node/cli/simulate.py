@@ -3,8 +3,9 @@
 Writes /joint_states (position, velocity, effort), /motor_currents when the settings' torque
 sources use currents (channels ``<joint>/ia`` ..., amperes in effort, electrical angle in
 position) and /motor_voltages alike (volts in effort; model/drive.py: the drives' true kt may
-differ from the configured one by --kt-error), /robot_description (latched) and /clock, with header stamps and log times at the
-simulated sample times plus ``--stamp-offset``; and ``true_parameters.yaml`` in the bag
+differ from the configured one by --kt-error, true values under ``drives``),
+/robot_description (latched) and /clock, with header stamps and log times at the simulated
+sample times plus ``--stamp-offset``; and ``true_parameters.yaml`` in the bag
 directory with the parameters the arm was simulated with (``--payload-events``: the payloads
 attached at given times, under ``payload_events``, with their stamps).
 """
