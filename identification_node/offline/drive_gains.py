@@ -18,7 +18,8 @@ from identification_node.estimation.drive_gains import (DriveGain, back_emf_equa
 from identification_node.model.drive import emf_shape, motor_speed
 from identification_node.model.robot import RobotModel
 from identification_node.model.torque import TorqueConverter
-from identification_node.offline.identification import BatchOptions, batch_rows, read_samples
+from identification_node.offline.identification import (BatchOptions, auto_cutoff, batch_rows,
+                                                        read_samples)
 from identification_node.offline.replay import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.payload.fit import (PayloadChange, attachment, read_payload_changes,
                                              with_payload)
@@ -159,16 +160,18 @@ def known_payload_from_bags(bag: str | os.PathLike, loaded_bag: str | os.PathLik
     """Known-payload drive gains of every joint from ``bag`` (no payload) and ``loaded_bag``
     (the arm carrying ``payload`` throughout), each processed as batch identification's
     filtered rows (shipped defaults); the payload's torque is its base-parameter increment
-    through the same rows."""
+    through the same rows; both bags filtered at the cut-off chosen for ``bag``."""
     converter = converter_of(settings, robot)
     base = settings.build(robot).base
     attach = attachment(robot, payload.link)
     d_beta = base.to_base(with_payload(robot, attach, np.zeros(robot.num_params),
                                        payload.parameters()))
-    equations = None
+    equations, options = None, None
     for path, loaded in ((bag, False), (loaded_bag, True)):
         samples = read_samples(path, settings, robot, joint_states, motor_currents, base)
-        _, rows = batch_rows(samples, settings, robot, base, BatchOptions())
+        if options is None:   # both motions filtered alike
+            options = BatchOptions(cutoff=auto_cutoff(samples, settings, robot, base)[0])
+        _, rows = batch_rows(samples, settings, robot, base, options)
         for r in rows:
             eq = payload_equations(r.regressor, r.tau, r.regressor @ d_beta if loaded else None,
                                    r.mask)
