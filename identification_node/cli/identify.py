@@ -83,6 +83,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     payload.add_argument('--arm', metavar='ESTIMATE_YAML',
                          help="the arm's parameters without payload (estimate.yaml, ~/save); "
                          "default: the model's own")
+    drive = parser.add_argument_group(
+        'drive gains (N m/A at the joint = kt x gear_ratio, identified in situ; the torques '
+        'then use them)')
+    drive.add_argument('--back-emf', action='store_true',
+                       help='back-EMF method: fit V = R i + L di/dt + K_E omega per joint from '
+                       'the motor voltages (needs motor speed)')
+    drive.add_argument('--voltages-topic', default='/motor_voltages')
+    drive.add_argument('--known-payload-bag', metavar='LOADED_BAG',
+                       help='known-payload method: the same arm moving with --known-payload '
+                       '(its gravity and inertia excited)')
+    drive.add_argument('--known-payload', metavar='PAYLOAD_YAML',
+                       help='the payload of --known-payload-bag: mass, com, inertia, link (the '
+                       'fields of --payload-events entries)')
     parser.add_argument('--report', metavar='DIR',
                         help='write report.md and PNG figures into DIR')
     parser.add_argument('--save', metavar='DIR',
@@ -433,6 +446,14 @@ def run(args: argparse.Namespace) -> int:
                 print(f'warning: bag {bag}: {reader.unverified_chunks} mcap chunk(s) carry no '
                       'CRC, so corruption in them cannot be detected', file=sys.stderr)
     topics = (args.joint_states_topic, args.currents_topic)
+    gains = None
+    if args.back_emf or args.known_payload_bag or args.known_payload:
+        from identification_node.offline.drive_gains import (identify_drive_gains,
+                                                             settings_with_gains, used_gains)
+        gains = identify_drive_gains(args.bag, settings, robot, *topics,
+                                     args.voltages_topic if args.back_emf else None,
+                                     args.known_payload_bag, args.known_payload)
+        settings = settings_with_gains(settings, robot, used_gains(gains))
     options = None
     pipeline = settings.build(robot) if method == 'rls' else None
     monitor = payload_monitor(args, settings, robot, method, pipeline)
@@ -456,13 +477,19 @@ def run(args: argparse.Namespace) -> int:
     if gravity:
         ident.warnings.append(gravity)
     doc = result_document(ident, validations, training)
+    if gains is not None:
+        doc['drive_gains'] = [g.document() for g in gains]
+        doc['warnings'] += [g.warning for g in gains if g.warning]
     if monitor is not None:
         from identification_node.payload.monitor import segments_document
         from identification_node.offline.results import plain
         doc['payload_changes'] = plain(segments_document(monitor.finish()))
     if args.save:
         from identification_node.offline.results import write_results
-        doc['saved'] = [str(p) for p in write_results(args.save, saved_document(ident), robot)]
+        saved = saved_document(ident)
+        if gains is not None:
+            saved['drive_gains'] = doc['drive_gains']
+        doc['saved'] = [str(p) for p in write_results(args.save, saved, robot)]
     if args.report:
         from identification_node.offline.report import write_report
         report = write_report(args.report, ident, validations, training)
@@ -475,6 +502,9 @@ def run(args: argparse.Namespace) -> int:
             print(paper_table3(ident))
         if 'payload_changes' in doc:
             print(format_payload_changes(doc['payload_changes']))
+        if gains is not None:
+            from identification_node.estimation.drive_gains import gains_text
+            print('\n'.join(gains_text(gains)))
         if args.report:
             print(f"\nreport: {doc['report']['report']}")
     return 0

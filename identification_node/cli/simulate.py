@@ -2,8 +2,10 @@
 
 Writes /joint_states (position, velocity, effort), /motor_currents when the settings' torque
 sources use currents (channels ``<joint>/ia`` ..., amperes in effort, electrical angle in
-position), /robot_description (latched) and /clock, with header stamps and log times at the
-simulated sample times plus ``--stamp-offset``; and ``true_parameters.yaml`` in the bag
+position) and /motor_voltages alike (volts in effort; model/drive.py: the drives' true kt may
+differ from the configured one by --kt-error, true values under ``drives``),
+/robot_description (latched) and /clock, with header stamps and log times at the simulated
+sample times plus ``--stamp-offset``; and ``true_parameters.yaml`` in the bag
 directory with the parameters the arm was simulated with (``--payload-events``: the payloads
 attached at given times, under ``payload_events``, with their stamps).
 """
@@ -41,6 +43,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     noise.add_argument('--velocity-std', type=float, default=0.0, help='rad/s (default: 0)')
     noise.add_argument('--torque-std', type=float, default=0.0, help='N m (default: 0)')
     noise.add_argument('--current-std', type=float, default=0.0, help='A (default: 0)')
+    noise.add_argument('--voltage-std', type=float, default=0.0,
+                       help='V, on motor_voltages (default: 0)')
+    drive = parser.add_argument_group(
+        'motor drives (current-driven joints; model/drive.py, README Conventions)')
+    drive.add_argument('--kt-error', type=float, nargs='+', default=[0.0], metavar='E',
+                       help='true kt = configured kt x (1 + E): one value or one per joint '
+                       '(the manufacturer\'s specification off by E)')
+    drive.add_argument('--motor-resistance', type=float, nargs='+', default=[0.5],
+                       metavar='OHM', help='per phase (one value or one per joint)')
+    drive.add_argument('--motor-inductance', type=float, nargs='+', default=[1e-3],
+                       metavar='H', help='per phase (one value or one per joint)')
     parser.add_argument('--no-velocity', action='store_true', help='omit JointState.velocity')
     parser.add_argument('--no-effort', action='store_true', help='omit JointState.effort')
     parser.add_argument('--clock', action='store_true', help='also write /clock')
@@ -94,7 +107,11 @@ def run(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args)
     robot = settings.load_robot()
-    converter = TorqueConverter(robot.joint_names, settings.torque_configs(robot.joint_names))
+    from identification_node.model.drive import DriveModel
+    configured = TorqueConverter(robot.joint_names, settings.torque_configs(robot.joint_names))
+    drives = DriveModel.per_joint(robot.dof, args.motor_resistance, args.motor_inductance,
+                                  args.kt_error)
+    converter = drives.true_converter(configured)
     noise = SensorNoise(args.position_std, args.encoder_counts, args.velocity_std,
                         args.torque_std, args.current_std)
     trajectory = load_trajectory(args.trajectory, robot, args.seed if (
@@ -107,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
         changes=true_parameter_changes(robot, phi, payloads))
     names = list(robot.joint_names)
     slots = converter.current_channel_slots()
+    volts = drives.voltages(converter, sim.t, sim.q, sim.qd, sim.tau, args.voltage_std,
+                            np.random.default_rng([args.seed, 1])) if slots else None
     stamps = np.round((sim.t + args.stamp_offset) * 1e9).astype(np.int64)
     with BagWriter(args.out, args.storage, overwrite=args.overwrite) as bag:
         bag.add_topic('/joint_states', JOINT_STATE)
@@ -122,6 +141,10 @@ def run(args: argparse.Namespace) -> int:
                     '/motor_currents', ns, t, [s[0] for s in slots],
                     [sim.theta_e[k, i] for _, i, _ in slots],
                     (), [sim.currents[k, i, c] for _, i, c in slots])
+                bag.write_joint_state(
+                    '/motor_voltages', ns, t, [s[0] for s in slots],
+                    [sim.theta_e[k, i] for _, i, _ in slots],
+                    (), [volts[k, i, c] for _, i, c in slots])
             if args.clock:
                 bag.write_clock(ns)
     base = BaseParameters.from_robot(robot)
@@ -134,6 +157,12 @@ def run(args: argparse.Namespace) -> int:
         'base_parameters': {n: float(v) for n, v in zip(base.names,
                                                         base.to_base(phi))},
     }
+    if slots:
+        truth['drives'] = {j: {'kt': c.kt, 'gain': c.kt * c.gear_ratio, 'resistance': float(r),
+                               'inductance': float(ind), 'configured_kt': k.kt}
+                           for j, c, k, r, ind in zip(names, converter.configs, configured.configs,
+                                                      drives.resistance, drives.inductance)
+                           if c.source != 'measured'}
     if payloads:
         truth['payload_events'] = [dict(
             c.document(), link=attachment(robot, c.link).link, stamp=c.time + args.stamp_offset,
