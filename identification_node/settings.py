@@ -12,14 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
-import yaml
-
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistencyOptions
 from identification_node.estimation.robust import RobustSettings
 from identification_node.model.plausibility import PlausibilitySettings
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.model.torque import JointTorqueConfig
+from identification_node.safe_yaml import read_yaml
 
 if TYPE_CHECKING:   # the pipeline's defaults come from PARAMETERS below: imported when used
     from identification_node.pipeline import IdentificationPipeline, PipelineConfig
@@ -164,15 +163,14 @@ def flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:
 def read_parameter_file(path: str | Path) -> dict[str, Any]:
     """The parameters of a ROS parameter YAML file (first node's ros__parameters) or of a
     plain YAML mapping, flattened."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        text = ' '.join(str(exc).split())   # one line (YAML errors quote the file's lines)
-        raise IdentificationError(f'cannot read parameter file {path}: {text}') from None
+    data = read_yaml(path, f'parameter file {path}')
     if not isinstance(data, Mapping):
         raise IdentificationError(f'parameter file {path} does not hold a mapping')
-    for value in data.values():
+    for node, value in data.items():
         if isinstance(value, Mapping) and 'ros__parameters' in value:
+            if not isinstance(value['ros__parameters'], Mapping):
+                raise IdentificationError(f'parameter file {path}: {node}.ros__parameters '
+                                          'is not a mapping of parameter names to values')
             return flatten(value['ros__parameters'])
     return flatten(data)
 

@@ -162,8 +162,9 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path, Path | None]:
         if existing:
             raise IdentificationError(f'{", ".join(existing)} exist(s); pass --overwrite to '
                                       'replace')
-    if bag is not None and bag.exists() and not (bag / 'metadata.yaml').is_file():
-        raise IdentificationError(f'--bag {bag} exists and is not a bag; not replacing it')
+    if bag is not None:
+        from identification_node.bags.writer import check_replaceable
+        check_replaceable(bag, '--bag')
     if not (args.rate > 0 and args.rate < float('inf')):
         raise IdentificationError(f'--rate must be a finite number > 0, got {args.rate}')
     return out, csv, png, bag

@@ -415,6 +415,9 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         from identification_node.offline.report import check_writable
         check_writable(args.report)
+    if args.save:
+        from identification_node.fileio import writable_directory
+        writable_directory(args.save, '--save')
     if args.predictions:
         from identification_node.offline.predictions import check_predictions
         check_predictions(args.predictions)

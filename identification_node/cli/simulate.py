@@ -70,7 +70,7 @@ def true_parameters(robot, path: str | None):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from identification_node.bags.writer import BagWriter
+    from identification_node.bags.writer import BagWriter, check_replaceable
     from identification_node.wire.cdr import JOINT_STATE
     from identification_node.fileio import atomic_write_yaml
     from identification_node.model.identifiability import BaseParameters
@@ -81,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     from identification_node.excitation.trajectories import load_trajectory
 
     settings = settings_from_args(args)
+    if args.overwrite:   # before simulating: only a bag is replaced
+        check_replaceable(args.out, '--out')
     robot = settings.load_robot()
     converter = TorqueConverter(robot.joint_names, settings.torque_configs(robot.joint_names))
     noise = SensorNoise(args.position_std, args.encoder_counts, args.velocity_std,
