@@ -125,15 +125,11 @@ def _noise(args: argparse.Namespace, n: int) -> list[float] | None:
 
 def _config(args: argparse.Namespace) -> dict:
     """The --config file's settings, overridden by the command line's."""
-    import yaml
-
     from identification_node.errors import IdentificationError
+    from identification_node.safe_yaml import read_yaml
     conf: dict = {}
     if args.config:
-        try:
-            conf = yaml.safe_load(Path(args.config).read_text()) or {}
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-            raise IdentificationError(f'cannot read --config {args.config}: {exc}') from None
+        conf = read_yaml(args.config, f'--config {args.config}') or {}
         if not isinstance(conf, dict):
             raise IdentificationError(f'--config {args.config} must be a mapping of '
                                       f'{", ".join(CONFIG_KEYS)}')

@@ -405,7 +405,8 @@ def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
 def run(args: argparse.Namespace) -> int:
     from identification_node.offline.identification import (make_consistent, offline_identify,
                                                             replay_identify)
-    from identification_node.offline.replay import bag_robot, locked_warning, robot_for_bag
+    from identification_node.offline.replay import (bag_robot, foreign_joints_warning,
+                                                    locked_warning, robot_for_bag)
     from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
@@ -424,6 +425,9 @@ def run(args: argparse.Namespace) -> int:
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
     robot, settings, locked = robot_for_bag(robot, settings, args.bag, args.joint_states_topic)
+    foreign = foreign_joints_warning(robot, args.bag, args.joint_states_topic)
+    if foreign:
+        print(f'warning: {foreign}', file=sys.stderr)
     from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:
@@ -447,6 +451,8 @@ def run(args: argparse.Namespace) -> int:
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
     if locked:
         ident.warnings.insert(0, locked_warning(robot, locked, args.joint_states_topic))
+    if foreign:
+        ident.warnings.insert(0, foreign)
     make_consistent(ident, consistency)
     training, validations = evaluate_bags(ident, args, settings, window, topics)
     doc = result_document(ident, validations, training)

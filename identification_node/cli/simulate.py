@@ -48,16 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def true_parameters(robot, path: str | None):
     """The robot's own standard parameters with the overrides of a YAML file."""
-    import yaml
-
     from identification_node.errors import IdentificationError
+    from identification_node.safe_yaml import read_yaml
     phi = robot.phi_model
     if not path:
         return phi
-    try:
-        given = yaml.safe_load(open(path)) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read true parameters {path}: {exc}') from None
+    given = read_yaml(path, f'true parameters {path}') or {}
     if not isinstance(given, dict):
         raise IdentificationError(f'{path} must map parameter names to values')
     for name, value in given.items():

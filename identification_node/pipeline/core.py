@@ -93,7 +93,7 @@ class IdentificationPipeline:
 
     def add_malformed(self) -> None:
         """Count a message that could not even be decoded (received, and rejected)."""
-        self.samples.joint_states.malformed()
+        self.samples.add_malformed()
 
     @property
     def pending(self) -> int:
