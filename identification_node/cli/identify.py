@@ -407,6 +407,7 @@ def run(args: argparse.Namespace) -> int:
                                                             replay_identify)
     from identification_node.offline.replay import (bag_robot, foreign_joints_warning,
                                                     locked_warning, robot_for_bag)
+    from identification_node.errors import IdentificationError
     from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
@@ -449,6 +450,10 @@ def run(args: argparse.Namespace) -> int:
     else:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
+    offset = None if pipeline is None else pipeline.time_offset.result
+    if offset is not None and offset.level == 2:
+        raise IdentificationError(f'bag {args.bag}: {offset.describe()}; not identified '
+                                  '(time_offset.warn: 0 in --config skips the check)')
     if locked:
         ident.warnings.insert(0, locked_warning(robot, locked, args.joint_states_topic))
     if foreign:
