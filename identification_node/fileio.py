@@ -25,10 +25,30 @@ def atomic_file(path: str | os.PathLike, mode: str = 'w') -> Iterator[IO]:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
+            # a failed write (disk full) names no file: name the one being written
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
+
+
+def writable_directory(directory: str | os.PathLike, what: str) -> Path:
+    """``directory``, created if needed, once a file could be made in it (before any long
+    computation); IdentificationError saying why not otherwise (``what`` goes there)."""
+    from identification_node.error_lines import os_error_line
+    from identification_node.errors import IdentificationError
+    path = Path(directory)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix='.probe.', dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise IdentificationError(f'cannot write {what} into {str(directory)!r}: '
+                                  f'{os_error_line(exc)}') from None
+    return path
 
 
 def umask() -> int:

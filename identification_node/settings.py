@@ -12,14 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
-import yaml
-
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistencyOptions
 from identification_node.estimation.robust import RobustSettings
 from identification_node.model.plausibility import PlausibilitySettings
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.model.torque import JointTorqueConfig
+from identification_node.safe_yaml import read_yaml
 
 if TYPE_CHECKING:   # the pipeline's defaults come from PARAMETERS below: imported when used
     from identification_node.pipeline import IdentificationPipeline, PipelineConfig
@@ -54,6 +53,14 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'align_tolerance': (0.002, 's; currents are matched to joint states within this'),
     'hold_time': (0.1, 's to wait for currents before a joint state is given up'),
     'restart_jump': (1.0, 's; a larger backward stamp jump is a restarted stream'),
+    'time_offset.warn': (0.02, 's; the offset between the torque (currents or effort) and the '
+                         'motion is estimated (pipeline/time_offset.py); one beyond this is '
+                         'warned of (identify, /diagnostics); 0: not checked'),
+    'time_offset.refuse': (0.1, 's; an offset beyond this makes identify refuse the bag and the '
+                           'node report an error in /diagnostics'),
+    'time_offset.seconds': (10.0, 's of motion (the first of a stream) the offset is estimated '
+                            'from'),
+    'time_offset.search': (1.0, 's; offsets are searched within +- this'),
     'update_batch': (50, 'samples gathered per RLS update (predictions use the estimate so far)'),
     'joint_noise_std': ([], 'per joint torque noise std for weighting, N m (empty: equal)'),
     'coulomb_exclusion_speed': (0.1, 'rad/s (m/s); > 0 with fc identified: a joint equation '
@@ -137,6 +144,10 @@ RANGES: dict[str, tuple[float, float]] = {
     'smoother.auto_seconds': (0.1, 3600.0),
     'smoother.order': (2, 4),
     'update_batch': (1, 10**9),
+    'time_offset.warn': (0.0, 10.0),
+    'time_offset.refuse': (0.0, 10.0),
+    'time_offset.seconds': (1.0, 3600.0),
+    'time_offset.search': (0.01, 60.0),
     'coulomb_exclusion_speed': (0.0, math.inf),
     'min_samples': (0, 10**12),
     'publish.effort_rate': (0.0, math.inf),
@@ -147,7 +158,9 @@ CONFIG_FIELD_PARAMETERS = {
     'forgetting': 'forgetting_factor', 'half_window': 'smoother.half_window',
     'smoother_order': 'smoother.order', 'max_gap': 'smoother.max_gap',
     'cutoff': 'smoother.cutoff', 'auto_seconds': 'smoother.auto_seconds',
-    'velocity': 'velocity_source'}
+    'velocity': 'velocity_source', 'offset_warn': 'time_offset.warn',
+    'offset_refuse': 'time_offset.refuse',
+    'offset_seconds': 'time_offset.seconds', 'offset_search': 'time_offset.search'}
 
 
 def flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:
@@ -165,15 +178,14 @@ def flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:
 def read_parameter_file(path: str | Path) -> dict[str, Any]:
     """The parameters of a ROS parameter YAML file (first node's ros__parameters) or of a
     plain YAML mapping, flattened."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        text = ' '.join(str(exc).split())   # one line (YAML errors quote the file's lines)
-        raise IdentificationError(f'cannot read parameter file {path}: {text}') from None
+    data = read_yaml(path, f'parameter file {path}')
     if not isinstance(data, Mapping):
         raise IdentificationError(f'parameter file {path} does not hold a mapping')
-    for value in data.values():
+    for node, value in data.items():
         if isinstance(value, Mapping) and 'ros__parameters' in value:
+            if not isinstance(value['ros__parameters'], Mapping):
+                raise IdentificationError(f'parameter file {path}: {node}.ros__parameters '
+                                          'is not a mapping of parameter names to values')
             return flatten(value['ros__parameters'])
     return flatten(data)
 
@@ -280,6 +292,8 @@ class Settings:
             max_gap=v['smoother.max_gap'], velocity=v['velocity_source'],
             align_tolerance=v['align_tolerance'], hold_time=v['hold_time'],
             restart_jump=v['restart_jump'], update_batch=v['update_batch'],
+            offset_warn=v['time_offset.warn'], offset_refuse=v['time_offset.refuse'],
+            offset_seconds=v['time_offset.seconds'], offset_search=v['time_offset.search'],
             joint_noise_std=v['joint_noise_std'],
             coulomb_exclusion_speed=v['coulomb_exclusion_speed'],
             converged_ratio=v['converged_ratio'], max_condition=v['max_condition'],

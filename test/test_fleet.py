@@ -630,3 +630,45 @@ def test_a_scheduler_without_workers_is_a_clear_error(fleet_dir, tmp_path):
             scheduler.wait(timeout=30)
     assert r.returncode == 2
     assert r.stderr.count('\n') == 1 and 'has no workers' in r.stderr
+
+
+# -- duplicate content and nothing identified (issue 31) ------------------------------------------
+def test_duplicate_content_is_recognised_whatever_the_path(fleet_dir):
+    bags = fleet_dir / 'bags'
+    copy = fleet_dir / 'copy_of_a'
+    if not copy.exists():
+        shutil.copytree(bags / 'arm_a_day1_0', copy)
+    entries = [fleet.FleetEntry(str(p), 'arm_a', 'day1') for p in (
+        bags / 'arm_a_day1_0', bags / 'arm_a_day1_1', copy,
+        bags / '..' / 'bags' / 'arm_a_day1_0', bags / 'corrupt', bags / 'corrupt')]
+    kept, duplicates = fleet.drop_duplicates(entries)
+    assert [e.bag for e in kept] == [entries[i].bag for i in (0, 1, 4, 5)]  # unreadable: kept
+    assert duplicates == [{'bag': str(copy), 'duplicate_of': str(bags / 'arm_a_day1_0')},
+                          {'bag': entries[3].bag, 'duplicate_of': str(bags / 'arm_a_day1_0')}]
+    assert fleet.content_hash(bags / 'arm_a_day1_0') != fleet.content_hash(bags / 'arm_a_day1_1')
+
+
+@pytest.mark.slow
+def test_fleet_counts_a_copy_once_and_exits_2_when_nothing_is_identified(fleet_dir, capsys):
+    copy = fleet_dir / 'copy_of_a'
+    if not copy.exists():
+        shutil.copytree(fleet_dir / 'bags' / 'arm_a_day1_0', copy)
+    once, twice = fleet_dir / 'once.csv', fleet_dir / 'twice.csv'
+    once.write_text('bag,robot,period,config\nbags/arm_a_day1_0,arm_a,day1,arm.yaml\n')
+    twice.write_text(once.read_text() + 'copy_of_a,arm_a,day1,arm.yaml\n'
+                     'bags/../bags/arm_a_day1_0,arm_a,day1,arm.yaml\n')
+    docs = []
+    for manifest in (once, twice):
+        assert main(['fleet', str(manifest), '--workers', '1', '--json']) == 0
+        out = capsys.readouterr()
+        docs.append(json.loads(out.out))
+    assert 'holds the same messages as' in out.err and 'counted once' in out.err
+    assert [Path(d['bag']).name for d in docs[1]['duplicates']] == ['copy_of_a', 'arm_a_day1_0']
+    a, b = (d['robots']['arm_a']['day1'] for d in docs)
+    assert a['num_samples'] == b['num_samples']
+    np.testing.assert_allclose(b['stddev'], a['stddev'], rtol=1e-9)
+    bad = fleet_dir / 'bad.csv'
+    bad.write_text('bag,robot,period,config\nbags/corrupt,arm_a,day1,arm.yaml\n')
+    assert main(['fleet', str(bad), '--workers', '1']) == 2
+    err = capsys.readouterr().err
+    assert 'nothing identified' in err and 'skipped' in err

@@ -13,8 +13,8 @@ from identification_node.settings import Settings, read_parameter_file
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _one_by_one(reader, topic):
-    for _, t_ns, record in iter_joint_states(reader, [topic]):
+def _one_by_one(reader, topic, on_malformed=None):
+    for _, t_ns, record in iter_joint_states(reader, [topic], on_malformed):
         yield np.array([t_ns]), record
 
 

@@ -13,13 +13,12 @@ the receive time stored by the recorder, ``stamp`` the message's ``header.stamp`
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
 
 import numpy as np
-import yaml
 
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
@@ -27,6 +26,7 @@ from rosbags.typesys.store import Typestore
 
 from identification_node.bags.mcap_check import verify_chunks
 from identification_node.errors import IdentificationError
+from identification_node.safe_yaml import read_yaml
 from identification_node.wire.cdr import (JOINT_STATE, STRING, JointStateDecoder, decode_rows,
                                           deserialize_cdr, jazzy_typestore)
 from identification_node.wire.records import JointStateRecord
@@ -40,14 +40,28 @@ __all__ = [
 ]
 
 
+def _storage_of(path: Path) -> str | None:
+    """'sqlite3' or 'mcap' by the bag's storage files (None when it has neither)."""
+    files = [path] if path.is_file() else (list(path.glob('*.db3')) + list(path.glob('*.mcap'))
+                                           if path.is_dir() else [])
+    suffixes = {f.suffix for f in files}
+    return 'sqlite3' if '.db3' in suffixes else 'mcap' if '.mcap' in suffixes else None
+
+
 def _reader_error(path: Path, err: BaseException) -> IdentificationError:
-    """Translate a rosbags/storage exception into a readable IdentificationError."""
-    text = str(err) or type(err).__name__
+    """Translate a rosbags/storage exception into a readable IdentificationError (one
+    line; the hint fits the bag's storage)."""
+    text = ' '.join(str(err).split()) or type(err).__name__
     low = text.lower()
+    storage = _storage_of(path)
     if isinstance(err, OSError):
         hint = 'cannot open a file of the bag'
     elif 'missing' in low and 'files' in low:
         hint = 'storage files listed in metadata.yaml are missing'
+    elif storage == 'sqlite3' and not ('storage plugin' in low
+                                       or 'unrecognized storage' in low):
+        hint = ('the sqlite3 storage file is corrupt, truncated or not a rosbag2 database '
+                '(recording interrupted? `sqlite3 IN.db3 .recover` may salvage it)')
     elif 'end magic' in low or 'footer' in low or 'truncated' in low:
         hint = ('the mcap file is truncated or corrupt (recording interrupted?); '
                 '`mcap recover IN.mcap -o OUT.mcap` (mcap CLI) may salvage it')
@@ -76,6 +90,7 @@ def _storage_target(path: Path) -> Path:
                 f'bag {str(path)!r}: not a rosbag2 directory nor a .mcap/.db3 storage file')
         return path
     if (path / 'metadata.yaml').is_file():
+        _check_metadata(path / 'metadata.yaml')
         return path
     files = sorted(p for p in path.iterdir() if p.suffix in _STORAGE_FILES and p.is_file())
     if len(files) == 1:
@@ -87,6 +102,18 @@ def _storage_target(path: Path) -> Path:
         f'bag {str(path)!r}: no metadata.yaml and several storage files '
         f'({", ".join(p.name for p in files)}); restore metadata.yaml with '
         '`ros2 bag reindex` or pass one storage file')
+
+
+def _check_metadata(metadata: Path) -> dict:
+    """The bag information of a rosbag2 metadata.yaml (safe_yaml's limits); one-line
+    IdentificationError when it is not YAML or not rosbag2 metadata."""
+    what = f'bag {str(metadata.parent)!r}: metadata.yaml'
+    data = read_yaml(metadata, what)
+    info = data.get('rosbag2_bagfile_information') if isinstance(data, dict) else None
+    if not isinstance(info, dict):
+        raise IdentificationError(f'{what} holds no rosbag2_bagfile_information mapping '
+                                  '(restore it with `ros2 bag reindex`)')
+    return info
 
 
 class BagReader:
@@ -263,16 +290,33 @@ def iter_messages(reader: BagReader, topics: Iterable[str] | None = None
             raise IdentificationError(f'topic {topic!r} at log time {t_ns} ns: {err}') from None
 
 
-def iter_joint_states(reader: BagReader, topics: str | Iterable[str]
+# on_malformed(topic, log time ns, error): told of a message that cannot be decoded, which
+# is then skipped; without it such a message raises IdentificationError.
+Malformed = Callable[[str, int, IdentificationError], None]
+
+
+def _undecodable(topic: str, t_ns: int, err: IdentificationError,
+                 on_malformed: Malformed | None) -> None:
+    """Tell ``on_malformed`` of an undecodable message, or raise the error naming it."""
+    if on_malformed is None:
+        raise IdentificationError(f'topic {topic!r} at log time {t_ns} ns: {err}') from None
+    on_malformed(topic, t_ns, err)
+
+
+def iter_joint_states(reader: BagReader, topics: str | Iterable[str],
+                      on_malformed: Malformed | None = None
                       ) -> Iterator[tuple[str, int, JointStateRecord]]:
-    """Yield (topic, log time ns, record) in log-time order across JointState topics."""
+    """Yield (topic, log time ns, record) in log-time order across JointState topics (an
+    undecodable message: see Malformed)."""
     topics = reader.check_topics(topics, JOINT_STATE)
     decoders = {t: JointStateDecoder() for t in topics}
     for topic, _, t_ns, raw in reader.raw_messages(topics):
         try:
-            yield topic, t_ns, decoders[topic](raw)
+            record = decoders[topic](raw)
         except IdentificationError as err:
-            raise IdentificationError(f'topic {topic!r} at log time {t_ns} ns: {err}') from None
+            _undecodable(topic, t_ns, err, on_malformed)
+            continue
+        yield topic, t_ns, record
 
 
 def read_string_topic(reader: BagReader, topic: str = '/robot_description') -> str | None:
@@ -295,7 +339,8 @@ _MESSAGE = 0x05                 # mcap message record; its body: channel id (u16
 _MESSAGE_HEAD = 22              # (u32), log time (u64), publish time (u64), then the data
 
 
-def iter_joint_state_blocks(reader: BagReader, topic: str
+def iter_joint_state_blocks(reader: BagReader, topic: str,
+                            on_malformed: Malformed | None = None
                             ) -> Iterator[tuple[np.ndarray, JointStateRecord]]:
     """The messages of ``iter_joint_states(reader, [topic])``, in the same order with the
     same values and errors, as (log times ns (M,), record). Consecutive messages sharing their
@@ -303,11 +348,11 @@ def iter_joint_state_blocks(reader: BagReader, topic: str
     (M, k) arrays, decoded at once from the bag's indexed mcap chunks (one chunk in memory at a
     time). Other messages come one by one (M = 1, a plain record), and so do all messages of
     bags this does not handle (sqlite3, unindexed or time-overlapping chunks, per-message
-    compression)."""
+    compression). An undecodable message: see Malformed."""
     reader.check_topics([topic], JOINT_STATE)
     storages = _mcap_storages(reader, topic)
     if storages is None:
-        for _, t_ns, record in iter_joint_states(reader, [topic]):
+        for _, t_ns, record in iter_joint_states(reader, [topic], on_malformed):
             yield np.array([t_ns]), record
         return
     decoder = JointStateDecoder()
@@ -318,7 +363,7 @@ def iter_joint_state_blocks(reader: BagReader, topic: str
                 found = _message_records(buf)
             except Exception as err:
                 raise _reader_error(reader.path, err) from None
-            yield from _chunk_blocks(buf, *found, ids, chunk, decoder, topic)
+            yield from _chunk_blocks(buf, *found, ids, chunk, decoder, topic, on_malformed)
 
 
 def _mcap_files(reader: BagReader) -> list[Path] | None:
@@ -330,7 +375,7 @@ def _mcap_files(reader: BagReader) -> list[Path] | None:
     if not (path / 'metadata.yaml').is_file():
         lone = _storage_target(path)
         return [lone] if lone.suffix == '.mcap' else None
-    info = yaml.safe_load((path / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    info = _check_metadata(path / 'metadata.yaml')
     if info.get('storage_identifier') != 'mcap' or info.get('compression_mode'):
         return None
     return [path / name for name in info['relative_file_paths']]
@@ -443,7 +488,7 @@ def _fields(a: np.ndarray, offsets: np.ndarray, dtype: str) -> np.ndarray:
 
 
 def _chunk_blocks(buf: bytes, body: np.ndarray, length: np.ndarray, ids: set[int], chunk: Any,
-                  decoder: JointStateDecoder, topic: str
+                  decoder: JointStateDecoder, topic: str, on_malformed: Malformed | None
                   ) -> Iterator[tuple[np.ndarray, JointStateRecord]]:
     """The topic's messages in a chunk in rosbags' order (stable by log time, within the
     chunk's declared time range), decoded in blocks of equal layout."""
@@ -458,15 +503,16 @@ def _chunk_blocks(buf: bytes, body: np.ndarray, length: np.ndarray, ids: set[int
     cuts = np.flatnonzero(np.diff(length)) + 1
     for first, stop in zip(np.r_[0, cuts], np.r_[cuts, len(length)]):
         rows = _gather(a, body[first:stop], int(length[first]))
-        yield from _same_layout_blocks(rows, log[first:stop], decoder, topic)
+        yield from _same_layout_blocks(rows, log[first:stop], decoder, topic, on_malformed)
 
 
 def _same_layout_blocks(rows: np.ndarray, log: np.ndarray, decoder: JointStateDecoder,
-                        topic: str) -> Iterator[tuple[np.ndarray, JointStateRecord]]:
-    """The decoded blocks of rows (M, L) of a bag's topic; a message that cannot be decoded
-    raises IdentificationError naming the topic and its log time."""
+                        topic: str, on_malformed: Malformed | None = None
+                        ) -> Iterator[tuple[np.ndarray, JointStateRecord]]:
+    """The decoded blocks of rows (M, L) of a bag's topic (an undecodable message: see
+    Malformed)."""
     for start, stop, record in decode_rows(rows, decoder):
         if isinstance(record, IdentificationError):
-            raise IdentificationError(
-                f'topic {topic!r} at log time {int(log[start])} ns: {record}') from None
+            _undecodable(topic, int(log[start]), record, on_malformed)
+            continue
         yield log[start:stop], record

@@ -33,9 +33,47 @@ from identification_node.wire.cdr import (CLOCK, DIAGNOSTIC_ARRAY, FLOAT64_MULTI
 _BAG_VERSION = 9  # rosbag2 metadata version written by Jazzy
 
 __all__ = [
-    'BagWriter', 'make_time', 'make_duration', 'make_header', 'make_joint_state', 'make_string',
-    'make_clock', 'make_float64_multi_array', 'make_diagnostic_array', 'make_joint_trajectory',
+    'BagWriter', 'check_replaceable', 'not_a_bag', 'make_time', 'make_duration', 'make_header',
+    'make_joint_state', 'make_string', 'make_clock', 'make_float64_multi_array',
+    'make_diagnostic_array', 'make_joint_trajectory',
 ]
+
+
+# Files a bag directory holds besides its storage: rosbag2's metadata and the simulated
+# arm's truth (cli/simulate.py); sqlite3 storage may leave its journal files beside it.
+BAG_DIRECTORY_FILES = ('metadata.yaml', 'true_parameters.yaml')
+_STORAGE_SUFFIXES = ('.mcap', '.db3', '.db3-wal', '.db3-shm', '.db3-journal')
+
+
+def not_a_bag(path: str | Path) -> str | None:
+    """Why the existing ``path`` is not a bag that may be replaced (a regular file, a link,
+    a directory without metadata.yaml or storage files, or holding any other file), or None
+    when it is one (or does not exist)."""
+    path = Path(path)
+    if path.is_symlink():
+        return 'a symbolic link'
+    if not path.exists():
+        return None
+    if not path.is_dir():
+        return 'not a directory'
+    entries = sorted(path.iterdir())
+    other = [p.name for p in entries if not p.is_file() or p.is_symlink() or not (
+        p.name in BAG_DIRECTORY_FILES or p.name.endswith(_STORAGE_SUFFIXES))]
+    if other:
+        return f'a directory holding {", ".join(other[:3])}{", ..." if len(other) > 3 else ""}'
+    if not any(p.name == 'metadata.yaml' or p.name.endswith(('.mcap', '.db3'))
+               for p in entries):
+        return 'a directory without metadata.yaml or storage files'
+    return None
+
+
+def check_replaceable(path: str | Path, what: str = 'bag') -> None:
+    """IdentificationError when ``path`` exists and is not a bag (``not_a_bag``): writers
+    replace (``--overwrite``) only what they wrote themselves."""
+    reason = not_a_bag(path)
+    if reason is not None:
+        raise IdentificationError(f'{what} {str(path)!r} exists and is not a bag ({reason}); '
+                                  'not replacing it')
 
 
 def _qos(latched: bool) -> Qos:
@@ -64,6 +102,7 @@ class BagWriter:
         if self.path.exists() and not overwrite:
             raise IdentificationError(
                 f'bag {str(self.path)!r} exists already (pass overwrite=True to replace it)')
+        check_replaceable(self.path)
         if not self.path.name:
             raise IdentificationError(f'invalid bag path {str(self.path)!r}')
         self.storage = storage
@@ -185,6 +224,7 @@ class BagWriter:
             if not self.overwrite:
                 raise IdentificationError(
                     f'bag {str(self.path)!r} appeared while writing; not overwriting')
+            check_replaceable(self.path)
             old = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.', suffix='.old',
                                         dir=self.path.parent))
             self.path.rename(old / self.path.name)

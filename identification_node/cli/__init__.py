@@ -2,8 +2,9 @@
 
 Each verb lives in its own module of this package with ``add_arguments(parser)`` and
 ``run(args) -> int``; heavy imports happen inside ``run`` so ``--help`` stays fast.
-User mistakes (IdentificationError) print one line and exit 2, never a traceback; so does
-any other failure (numerical ones on absurd data), unless IDENTIFICATION_DEBUG is set.
+User mistakes (IdentificationError) print one line and exit 2, never a traceback; so do
+OS and input-file errors (error_lines.py says what is wrong with which file) and any other
+failure (numerical ones on absurd data), unless IDENTIFICATION_DEBUG is set.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import os
 import sys
 from typing import Sequence
 
+from identification_node.error_lines import error_line
 from identification_node.errors import IdentificationError
 
 VERBS = {
@@ -134,12 +136,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
-    except Exception as exc:   # noqa: BLE001 - numerical failure or a bug: one line, exit 2
-        if os.environ.get('IDENTIFICATION_DEBUG'):
-            raise
-        print(f'error: {args.verb} failed: {type(exc).__name__}: {exc} '
-              '(IDENTIFICATION_DEBUG=1 shows the traceback)', file=sys.stderr)
-        return 2
     except BrokenPipeError:  # output piped into head and the like
         sys.stderr.close()
         return 0
+    except Exception as exc:   # noqa: BLE001 - one line, exit 2
+        if os.environ.get('IDENTIFICATION_DEBUG'):
+            raise
+        line = error_line(exc)   # OS, input-file, range and memory errors: what is wrong
+        if line is None:   # a numerical failure or a bug
+            line = (f'{args.verb} failed: {type(exc).__name__}: {" ".join(str(exc).split())} '
+                    '(IDENTIFICATION_DEBUG=1 shows the traceback)')
+        print(f'error: {line}', file=sys.stderr)
+        return 2

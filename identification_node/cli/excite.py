@@ -125,15 +125,11 @@ def _noise(args: argparse.Namespace, n: int) -> list[float] | None:
 
 def _config(args: argparse.Namespace) -> dict:
     """The --config file's settings, overridden by the command line's."""
-    import yaml
-
     from identification_node.errors import IdentificationError
+    from identification_node.safe_yaml import read_yaml
     conf: dict = {}
     if args.config:
-        try:
-            conf = yaml.safe_load(Path(args.config).read_text()) or {}
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-            raise IdentificationError(f'cannot read --config {args.config}: {exc}') from None
+        conf = read_yaml(args.config, f'--config {args.config}') or {}
         if not isinstance(conf, dict):
             raise IdentificationError(f'--config {args.config} must be a mapping of '
                                       f'{", ".join(CONFIG_KEYS)}')
@@ -162,8 +158,9 @@ def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Path, Path | None]:
         if existing:
             raise IdentificationError(f'{", ".join(existing)} exist(s); pass --overwrite to '
                                       'replace')
-    if bag is not None and bag.exists() and not (bag / 'metadata.yaml').is_file():
-        raise IdentificationError(f'--bag {bag} exists and is not a bag; not replacing it')
+    if bag is not None:
+        from identification_node.bags.writer import check_replaceable
+        check_replaceable(bag, '--bag')
     if not (args.rate > 0 and args.rate < float('inf')):
         raise IdentificationError(f'--rate must be a finite number > 0, got {args.rate}')
     return out, csv, png, bag

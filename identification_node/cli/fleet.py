@@ -11,8 +11,9 @@ cluster is a LocalCluster with one single-threaded worker process per core (``--
 N``); ``--scheduler tcp://HOST:PORT`` uses a running one
 (``dask scheduler`` / ``dask worker``). Progress goes to stderr. Prints per robot the estimate
 over the periods with standard deviations, the flags (parameters moved by more than
-``--sigma`` standard deviations between periods, robots that are outliers against the fleet)
-and the bags that failed; ``--json`` prints the same as one object, ``--report DIR`` writes
+``--sigma`` standard deviations between periods, robots that are outliers against the fleet),
+the bags that failed and those holding the same messages as another (counted once); exit 2
+when nothing was identified; ``--json`` prints the same as one object, ``--report DIR`` writes
 fleet.md and figures.
 """
 from __future__ import annotations
@@ -69,6 +70,8 @@ def format_fleet(doc: dict) -> str:
                      f"{f['change_sigma']:.1f} sigma")
     for f in doc['failed']:
         lines.append(f"failed: {f['bag']}: {f['error']}")
+    for d in doc.get('duplicates', []):
+        lines.append(f"counted once: {d['bag']} holds the messages of {d['duplicate_of']}")
     return '\n'.join(lines)
 
 
@@ -127,4 +130,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"\nreport: {doc['report']['report']}")
     for f in doc['failed']:
         print(f"fleet: skipped {f['bag']}: {f['error']}", file=sys.stderr)
+    for d in doc['duplicates']:
+        print(f"warning: fleet: {d['bag']} holds the same messages as {d['duplicate_of']}: "
+              'counted once', file=sys.stderr)
+    if not doc['robots'] and not doc['totals']:
+        print(f'error: fleet: nothing identified: all {len(doc["failed"])} bag(s) failed',
+              file=sys.stderr)
+        return 2
     return 0

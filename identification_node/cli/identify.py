@@ -416,10 +416,11 @@ def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
 
 
 def run(args: argparse.Namespace) -> int:
+    from identification_node.errors import IdentificationError
     from identification_node.offline.identification import (check_same_robot, make_consistent,
                                                             offline_identify, replay_identify)
-    from identification_node.offline.replay import (bag_robot, locked_warning, mimic_warning,
-                                                    robot_for_bag)
+    from identification_node.offline.replay import (bag_robot, foreign_joints_warning,
+                                                    locked_warning, mimic_warning, robot_for_bag)
     from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
@@ -429,6 +430,9 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         from identification_node.offline.report import check_writable
         check_writable(args.report)
+    if args.save:
+        from identification_node.fileio import writable_directory
+        writable_directory(args.save, '--save')
     if args.predictions:
         from identification_node.offline.predictions import check_predictions
         check_predictions(args.predictions)
@@ -436,6 +440,9 @@ def run(args: argparse.Namespace) -> int:
              else bag_robot(args.bag, settings))
     robot, settings, locked = robot_for_bag(robot, settings, args.bag, args.joint_states_topic)
     check_same_robot(args.bag, robot, 'training')
+    foreign = foreign_joints_warning(robot, args.bag, args.joint_states_topic)
+    if foreign:
+        print(f'warning: {foreign}', file=sys.stderr)
     from identification_node.bags.reader import open_bag
     from identification_node.estimation.prior import safe_prior
     for note in safe_prior(robot)[1]:
@@ -465,11 +472,17 @@ def run(args: argparse.Namespace) -> int:
     else:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
+    offset = None if pipeline is None else pipeline.time_offset.result
+    if offset is not None and offset.level == 2:
+        raise IdentificationError(f'bag {args.bag}: {offset.describe()}; not identified '
+                                  '(time_offset.warn: 0 in --config skips the check)')
     if locked:
         ident.warnings.insert(0, locked_warning(robot, locked, args.joint_states_topic))
     mimics = mimic_warning(robot, args.bag, args.joint_states_topic)
     if mimics:
         ident.warnings.insert(0, mimics)
+    if foreign:
+        ident.warnings.insert(0, foreign)
     make_consistent(ident, consistency)
     training, validations = evaluate_bags(ident, args, settings, window, topics)
     from identification_node.offline.effort_semantics import training_gravity_warning

@@ -33,6 +33,9 @@ def run(args: argparse.Namespace) -> int:
                         ('--discovery-timeout', args.discovery_timeout)):
         if value is not None and (not math.isfinite(value) or value <= 0):
             raise IdentificationError(f'{name} must be a positive number, got {value}')
+    if args.overwrite:   # before recording: only a bag is replaced
+        from identification_node.bags.writer import check_replaceable
+        check_replaceable(args.out, 'OUT')
     with ros_session(args, 'bag_recorder') as (node, signals):
         with BagRecorder(node, args.out, args.topics, args.storage,
                          overwrite=args.overwrite) as recorder:

@@ -71,16 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def true_parameters(robot, path: str | None):
     """The robot's own standard parameters with the overrides of a YAML file."""
-    import yaml
-
     from identification_node.errors import IdentificationError
+    from identification_node.safe_yaml import read_yaml
     phi = robot.phi_model
     if not path:
         return phi
-    try:
-        given = yaml.safe_load(open(path)) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read true parameters {path}: {exc}') from None
+    given = read_yaml(path, f'true parameters {path}') or {}
     if not isinstance(given, dict):
         raise IdentificationError(f'{path} must map parameter names to values')
     for name, value in given.items():
@@ -95,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from identification_node.bags.writer import BagWriter
+    from identification_node.bags.writer import BagWriter, check_replaceable
     from identification_node.wire.cdr import JOINT_STATE
     from identification_node.fileio import atomic_write_yaml
     from identification_node.model.identifiability import BaseParameters
@@ -106,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
     from identification_node.excitation.trajectories import load_trajectory
 
     settings = settings_from_args(args)
+    if args.overwrite:   # before simulating: only a bag is replaced
+        check_replaceable(args.out, '--out')
     robot = settings.load_robot()
     from identification_node.model.drive import DriveModel
     configured = TorqueConverter(robot.joint_names, settings.torque_configs(robot.joint_names))

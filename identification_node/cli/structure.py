@@ -16,6 +16,7 @@ from identification_node.cli import add_robot_arguments, robot_from_args
 
 UNITS = {'m': 'kg', 'mx': 'kg m', 'my': 'kg m', 'mz': 'kg m', 'fv': 'N m s/rad', 'fc': 'N m',
          'fo': 'N m', 'Ia': 'kg m^2'}
+MAX_REGRESSOR_BYTES = 1 << 28   # --samples: the rank tests' regressor stays within 256 MiB
 PRISMATIC_UNITS = {'fv': 'N s/m', 'fc': 'N', 'fo': 'N', 'Ia': 'kg'}
 
 
@@ -93,6 +94,13 @@ def run(args: argparse.Namespace) -> int:
     if args.samples is not None and args.samples < 1:
         raise IdentificationError(f'--samples must be a positive count, got {args.samples}')
     robot = robot_from_args(args)
+    if args.samples is not None:
+        most = MAX_REGRESSOR_BYTES // (8 * robot.dof * robot.num_params)
+        if args.samples > most:
+            raise IdentificationError(
+                f'--samples {args.samples}: at most {most} for {robot.name} (each sample is '
+                f'{robot.dof} x {robot.num_params} regressor values; the default '
+                f'{max(100, -(-4 * robot.num_params // robot.dof))} is enough)')
     base = BaseParameters.from_robot(robot, num_samples=args.samples, seed=args.seed)
     if args.json:
         print(json.dumps(base.to_dict(robot.phi_model), indent=2))

@@ -18,13 +18,12 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import yaml
 
 from identification_node.errors import IdentificationError
+from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectories import DEFAULT_VELOCITY, Trajectory, check_limits
 
 DEFAULT_ACCELERATION_RATE = 2.0  # 1/s: default acceleration limit = rate * velocity limit
@@ -187,10 +186,7 @@ def load_limits(path: str | os.PathLike, robot, effort: bool = True) -> Excitati
     """The robot's limits (:meth:`ExcitationLimits.from_robot`) overridden by a YAML file of
     per-joint limits: ``joint: {position: [lo, hi], velocity, acceleration, effort}``."""
     base = ExcitationLimits.from_robot(robot, effort)
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read limits file {path}: {exc}') from None
+    data = read_yaml(path, f'limits file {path}')
     if data is None:
         return base
     return base.updated(data, f'limits file {path}')
@@ -256,10 +252,7 @@ def _torque_models(robot, phis: Sequence[np.ndarray] | None) -> list[np.ndarray]
 def estimate_parameters(path: str | os.PathLike, robot) -> np.ndarray:
     """The standard parameters (robot.param_names order) of an estimate file (estimate.yaml
     of the node or ``identify``: its 'standard_parameters' mapping)."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read estimate {path}: {exc}') from None
+    doc = read_yaml(path, f'estimate {path}')
     given = doc.get('standard_parameters') if isinstance(doc, Mapping) else None
     if not isinstance(given, Mapping):
         raise IdentificationError(f'estimate {path} has no standard_parameters mapping')

@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
-import yaml
 from scipy.interpolate import CubicSpline
 
 from identification_node.errors import IdentificationError
+from identification_node.safe_yaml import read_yaml
 from identification_node.fileio import atomic_write_text
 
 # Table I of Radkhah, Kulic and Croft: rows are harmonics l = 1..5, columns joints 1..6.
@@ -617,10 +617,7 @@ def load_trajectory(spec: str, robot: object, seed: int = 0) -> Trajectory:
         raise IdentificationError(f'trajectory file {spec} does not exist')
     if suffix == '.csv':
         return match_joints(SampledTrajectory.from_csv(path), robot, f'trajectory {spec}')
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read trajectory YAML {spec}: {exc}') from None
+    data = read_yaml(path, f'trajectory YAML {spec}')
     if isinstance(data, Mapping) and 'framing' in data:
         return match_joints(FramedTrajectory.from_dict(data), robot, f'trajectory {spec}')
     return match_joints(FourierTrajectory.from_dict(data), robot, f'trajectory {spec}')

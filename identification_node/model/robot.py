@@ -101,6 +101,28 @@ def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
                                   + (f' ({detail})' if detail else '')) from None
 
 
+def _check_joint_frames(model: pin.Model, label: str) -> None:
+    """IdentificationError naming the joint whose axis is zero (URDF ``<axis xyz="0 0 0">``:
+    its torque would be identically zero) or whose frame is degenerate (not finite, a
+    rotation that is not one, a placement beyond any arm's size)."""
+    for j in range(1, model.njoints):
+        name = model.names[j]
+        axis = getattr(model.joints[j].extract(), 'axis', None)
+        if axis is not None and not np.linalg.norm(axis) > 0.5:   # pinocchio normalises it
+            raise IdentificationError(f"robot {label}: joint '{name}' has a zero axis "
+                                      f'{np.asarray(axis).tolist()}; give its direction '
+                                      '(URDF <axis xyz="...">)')
+    placements = [(model.names[j], model.jointPlacements[j]) for j in range(1, model.njoints)]
+    for name, placement in placements + [(f.name, f.placement) for f in model.frames]:
+        rotation, translation = placement.rotation, placement.translation
+        if not (np.isfinite(placement.homogeneous).all()
+                and np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6)
+                and np.linalg.det(rotation) > 0 and np.abs(translation).max() <= 1e3):
+            raise IdentificationError(f"robot {label}: the frame of '{name}' is "
+                                      f'degenerate (origin {translation.tolist()} m, rotation '
+                                      f'{rotation.tolist()}); check its URDF <origin>')
+
+
 def _mimic_joints(xml: str) -> dict[str, tuple[str, float, float]]:
     """URDF joints with a <mimic>: name -> (the joint it follows, multiplier, offset), so that
     q = multiplier * q_leader + offset."""
@@ -143,6 +165,8 @@ class RobotModel:
         self.description, self.kind, self.name = read_description(description)
         full = _build_pin_model(self.description, self.kind, self.name)
         self.name = full.name or self.name    # the URDF's <robot name> (MJCF: model)
+        _check_joint_frames(full, self.name)
+        self.description_joints = list(full.names)[1:]   # every joint, movable or not
         movable = [full.names[j] for j in range(1, full.njoints) if full.joints[j].nv > 0]
         if not movable:
             where = '' if str(description).lstrip().startswith('<') or self.name == str(

@@ -543,6 +543,7 @@ class FleetResult:
     total_identifications: dict
     failed: list
     smoothers: dict = field(default_factory=dict)   # robot -> choose_smoother's parameters
+    duplicates: list = field(default_factory=list)   # drop_duplicates': counted once
 
 
 def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | None = None,
@@ -554,6 +555,7 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
     consistent too unless ``physical_consistency`` is False)."""
     from distributed import as_completed
 
+    entries, duplicates = drop_duplicates(entries, client)
     smoothers = _smoothers(entries, client, joint_states, motor_currents, retries)
     tasks = plan_tasks(entries, segment_seconds, joint_states, motor_currents, smoothers)
     futures = client.map(run_task, tasks, pure=True, retries=retries)
@@ -602,7 +604,7 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
                 total_idents[robot] = ident
         except IdentificationError as exc:
             failures.append({'bag': ', '.join(stats.bags), 'error': str(exc)})
-    return FleetResult(groups, totals, idents, total_idents, failures, smoothers)
+    return FleetResult(groups, totals, idents, total_idents, failures, smoothers, duplicates)
 
 
 def _smoothers(entries: Sequence[FleetEntry], client, joint_states: str,
@@ -626,6 +628,42 @@ def _smoothers(entries: Sequence[FleetEntry], client, joint_states: str,
                 if not pending[robot]:
                     pending.pop(robot)
     return out
+
+
+def content_hash(bag: str | os.PathLike) -> str | None:
+    """A hash of the bag's messages (topic, log time, bytes, in log-time order): the same for
+    a copy of a bag or the bag under another spelling of its path; None when the bag cannot
+    be read (its map task says why)."""
+    from identification_node.bags.reader import open_bag
+    digest = hashlib.blake2b(digest_size=16)
+    try:
+        with open_bag(bag) as reader:
+            for topic, _, t_ns, raw in reader.raw_messages():
+                digest.update(b'%s\0%d\0%d\0' % (topic.encode(), t_ns, len(raw)))
+                digest.update(raw)
+    except Exception:   # noqa: BLE001 - reported by the bag's own task
+        return None
+    return digest.hexdigest()
+
+
+def drop_duplicates(entries: Sequence[FleetEntry], client=None
+                    ) -> tuple[list[FleetEntry], list[dict]]:
+    """(entries without those whose bag holds the same messages as an earlier one's,
+    [{bag, duplicate_of}]): the same data counted twice would shrink the stddev by sqrt(2).
+    The hashes are computed on the cluster when ``client`` is given."""
+    bags = [e.bag for e in entries]
+    hashes = (client.gather(client.map(content_hash, bags, pure=True)) if client is not None
+              else [content_hash(b) for b in bags])
+    first: dict[str, str] = {}
+    kept, duplicates = [], []
+    for entry, key in zip(entries, hashes):
+        if key is not None and key in first:
+            duplicates.append({'bag': entry.bag, 'duplicate_of': first[key]})
+            continue
+        if key is not None:
+            first[key] = entry.bag
+        kept.append(entry)
+    return kept, duplicates
 
 
 def print_progress(done: int, total: int, unit: str = 'bags') -> None:
@@ -714,4 +752,5 @@ def fleet_document(result: FleetResult, k: float = DEFAULT_SIGMA) -> dict:
     flags = [f for robot, periods in robots.items() for f in drift_flags(periods, robot, k)]
     flags += outlier_flags(totals, {r: result.totals[r].model for r in totals}, k)
     return {'robots': robots, 'totals': totals, 'flags': flags, 'failed': result.failed,
-            'sigma': k, 'smoothers': {r: dict(v) for r, v in sorted(result.smoothers.items())}}
+            'duplicates': result.duplicates, 'sigma': k,
+            'smoothers': {r: dict(v) for r, v in sorted(result.smoothers.items())}}

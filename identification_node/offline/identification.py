@@ -802,6 +802,7 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
     """The Identification of a streamed replay (replay.ReplayResult)."""
     p = result.pipeline
     est = p.estimate()
+    offset = p.time_offset.result   # the torque against the motion (time_offset.py)
     return Identification(
         result.bag, 'rls', 'smoothed', p.robot, p.base, est.values, p.covariance,
         est.num_samples, result.messages, {k: v for k, v in p.rejected.items() if v},
@@ -814,10 +815,12 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
          'forgetting_factor': float(p.config.forgetting),
          'excluded_equations': p.excluded_rows,
          'excluded_per_joint': dict(zip(p.robot.joint_names,
-                                        p.excluded_equations.tolist()))}, p,
+                                        p.excluded_equations.tolist())),
+         'time_offset': None if offset is None else offset.document()}, p,
         *pipeline_equations(p),
-        warnings=exclusion_warnings(p.robot.joint_names, p.excluded_equations, p.used,
-                                    p.config.coulomb_exclusion_speed)
+        warnings=([offset.describe()] if offset is not None and offset.level else [])
+        + exclusion_warnings(p.robot.joint_names, p.excluded_equations, p.used,
+                             p.config.coulomb_exclusion_speed)
         + p.model_term_warnings(), residual_scale=p.estimator.joint_scale)
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from identification_node.bags.writer import BagWriter
+from identification_node.bags.writer import BagWriter, check_replaceable
 from identification_node.wire.cdr import JOINT_STATE, encode_joint_states
 from identification_node.errors import IdentificationError
 from identification_node.fileio import atomic_file
@@ -34,9 +34,8 @@ def check_predictions(out: str | os.PathLike) -> None:
     """IdentificationError before any computation when ``out`` would replace something
     that is not a bag (a directory without metadata.yaml, or a file)."""
     bag, _ = prediction_paths(out)
-    if bag is not None and bag.exists() and not (bag / 'metadata.yaml').is_file():
-        raise IdentificationError(f'--predictions {out}: exists and is not a bag; not '
-                                  'replacing it')
+    if bag is not None:
+        check_replaceable(bag, '--predictions')
 
 
 class PredictionsWriter:

@@ -61,7 +61,7 @@ def bag_joint_names(bag: str | os.PathLike, topic: str = JOINT_STATES) -> list[s
     with open_bag(bag) as reader:
         if topic not in reader.topics:
             return []
-        for _, block in iter_joint_state_blocks(reader, topic):
+        for _, block in iter_joint_state_blocks(reader, topic, lambda *_: None):
             return [str(n) for n in block.names]
     return []
 
@@ -88,6 +88,20 @@ def robot_for_bag(robot: RobotModel, settings: Settings, bag: str | os.PathLike,
     return (load_robot(robot.description, carried, extras=robot.extras,
                        coulomb_velocity=robot.coulomb_velocity),
             Settings(values, settings.given), locked)
+
+
+def foreign_joints_warning(robot: RobotModel, bag: str | os.PathLike,
+                           topic: str = JOINT_STATES) -> str | None:
+    """The warning when the bag's joint states carry joints the robot's description does not
+    have (a description of another robot, or of part of it), else None."""
+    names = bag_joint_names(bag, topic)
+    foreign = [n for n in names if n not in robot.description_joints]
+    if not foreign:
+        return None
+    return (f"the bag's {topic} carries {len(names)} joints, {len(foreign)} of them not in "
+            f"the description of {robot.name} ({', '.join(foreign[:6])}"
+            f"{', ...' if len(foreign) > 6 else ''}): is the description of another robot? "
+            f"Identifying {', '.join(robot.joint_names)} only")
 
 
 def locked_warning(robot: RobotModel, locked: list[str], topic: str = JOINT_STATES) -> str:
@@ -209,14 +223,27 @@ def feed_records(reader, pipeline, topics: list[str], batch: int,
 
 def _records(reader, pipeline, topics: list[str], batch: int, bounds: tuple[int, int] | None
              ) -> Iterator[tuple[Callable[[], None], int]]:
+    # an undecodable message (a corrupt one in a good bag) is counted 'malformed' and skipped
+    malformed = []
+
+    def skip(topic: str, t_ns: int, err: IdentificationError) -> None:
+        if bounds is None or bounds[0] <= t_ns < bounds[1]:
+            malformed.append(pipeline.add_malformed)
     if len(topics) > 1:
         add = {topics[0]: pipeline.add_joint_state, topics[1]: pipeline.add_currents}
-        for topic, t_ns, record in iter_joint_states(reader, topics):
+        for topic, t_ns, record in iter_joint_states(reader, topics, skip):
+            while malformed:
+                yield malformed.pop(), 1
             if bounds is None or bounds[0] <= t_ns < bounds[1]:
                 yield functools.partial(add[topic], record), 1
+        while malformed:
+            yield malformed.pop(), 1
         return
     done = 0
-    for log_ns, block in iter_joint_state_blocks(reader, topics[0]):
+    for log_ns, block in iter_joint_state_blocks(reader, topics[0], skip):
+        while malformed:
+            done += 1
+            yield malformed.pop(), 1
         if bounds is not None:
             keep = in_window(log_ns, bounds)
             if not keep.any():
@@ -236,6 +263,8 @@ def _records(reader, pipeline, topics: list[str], batch: int, bounds: tuple[int,
             done += stop - start
             yield functools.partial(pipeline.add_joint_states, part), stop - start
             start = stop
+    while malformed:
+        yield malformed.pop(), 1
 
 
 def _checkpoint(pipeline: IdentificationPipeline) -> Checkpoint:

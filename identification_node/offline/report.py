@@ -15,7 +15,6 @@ is written to a temporary name in the directory and renamed into place.
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.fileio import atomic_file, atomic_write_text
+from identification_node.fileio import atomic_file, atomic_write_text, writable_directory
 from identification_node.model.identifiability import BaseParameters, format_expression
 from identification_node.model.papers import MIT_TABLE1, MIT_TABLE3
 from identification_node.model.robot import LINK_PARAMS, RobotModel
@@ -51,16 +50,7 @@ class Report:
 def check_writable(directory: str | os.PathLike) -> Path:
     """Create ``directory`` if needed and make sure files can be written in it, before any
     long computation; IdentificationError otherwise."""
-    path = Path(directory)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix='.probe.', dir=path)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise IdentificationError(f'cannot write the report into {directory}: '
-                                  f'{exc.strerror or exc}') from None
-    return path
+    return writable_directory(directory, 'the report')
 
 
 # -- figure data ----------------------------------------------------------------------------------

@@ -40,8 +40,11 @@ class TimeWindow:
         """Log-time bounds [lo, hi) ns of the window in a bag whose messages span
         [start_ns, end_ns]; IdentificationError when the window misses the bag."""
         self.validate()
-        lo = start_ns + (0 if self.start is None else int(round(self.start * 1e9)))
-        hi = end_ns + 1 if self.end is None else start_ns + int(round(self.end * 1e9))
+        span = (end_ns - start_ns) * 1e-9   # a bound past the bag's end is its end
+        lo = start_ns + (0 if self.start is None else int(round(min(self.start, span + 1)
+                                                                * 1e9)))
+        hi = end_ns + 1 if self.end is None or self.end > span else \
+            start_ns + int(round(self.end * 1e9))
         if lo > end_ns:
             raise IdentificationError(
                 f'{bag}: --start {self.start:g} s is after the end of the bag (its messages '

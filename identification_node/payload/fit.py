@@ -26,6 +26,7 @@ from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.model.urdf_export import link_inertia
+from identification_node.safe_yaml import load_yaml, read_yaml
 
 INERTIA_KEYS = ('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz')
 COM_KEYS = ('x', 'y', 'z')
@@ -106,15 +107,10 @@ def payload_regressor(attach: Attachment, Y: np.ndarray) -> np.ndarray:
 def arm_parameters(robot: RobotModel, estimate: str | None = None) -> np.ndarray:
     """The arm's standard parameters: the model's own, with the ``standard_parameters`` of a
     saved estimate.yaml (results.save_results) where it names the robot's parameters."""
-    import yaml
     phi = robot.phi_model
     if not estimate:
         return phi
-    try:
-        with open(estimate) as f:
-            doc = yaml.safe_load(f) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read arm estimate {estimate}: {exc}') from None
+    doc = read_yaml(estimate, f'arm estimate {estimate}') or {}
     given = doc.get('standard_parameters') if isinstance(doc, dict) else None
     if not isinstance(given, dict):
         raise IdentificationError(f'{estimate} has no standard_parameters mapping (an '
@@ -334,13 +330,9 @@ def read_payload_changes(spec: str) -> list[PayloadChange]:
     kg, com: [x, y, z], inertia: [ixx, ixy, ixz, iyy, iyz, izz], link: L}`` (com, inertia
     and link optional: a point mass on the last identified link; mass 0: detach)."""
     import os
-
-    import yaml
     text = str(spec)
-    try:
-        data = yaml.safe_load(open(text).read() if os.path.isfile(text) else text)
-    except (OSError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'cannot read payload events {spec!r}: {exc}') from None
+    what = f'payload events {spec!r}'
+    data = read_yaml(text, what) if os.path.isfile(text) else load_yaml(text, what)
     if isinstance(data, dict):
         data = [data]
     if not isinstance(data, list):

@@ -34,6 +34,10 @@ class PipelineConfig:
     hold_time: float = _default('hold_time')
     restart_jump: float = _default('restart_jump')
     update_batch: int = _default('update_batch')
+    offset_warn: float = _default('offset_warn')   # s; 0: no time offset check
+    offset_refuse: float = _default('offset_refuse')
+    offset_seconds: float = _default('offset_seconds')
+    offset_search: float = _default('offset_search')
     joint_noise_std: Sequence[float] = _default('joint_noise_std')
     coulomb_exclusion_speed: float = _default('coulomb_exclusion_speed')
     converged_ratio: float = _default('converged_ratio')
@@ -60,6 +64,10 @@ class PipelineConfig:
             ('hold_time', self.hold_time > 0, '> 0'),
             ('restart_jump', self.restart_jump > 0, '> 0'),
             ('update_batch', int(self.update_batch) >= 1, '>= 1'),
+            ('offset_warn', self.offset_warn >= 0, '>= 0 s (0: no check)'),
+            ('offset_refuse', self.offset_refuse >= self.offset_warn, '>= time_offset.warn'),
+            ('offset_seconds', self.offset_seconds > 0, '> 0 s'),
+            ('offset_search', self.offset_search > 0, '> 0 s'),
             ('joint_noise_std', len(self.joint_noise_std) in (0, dof)
              and all(s > 0 for s in self.joint_noise_std), f'empty or {dof} values > 0'),
             ('coulomb_exclusion_speed', self.coulomb_exclusion_speed >= 0, '>= 0'),

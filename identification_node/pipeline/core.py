@@ -17,6 +17,7 @@ from identification_node.model.robot import RobotModel
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.estimate import EstimateReport, OnlineEstimate
 from identification_node.pipeline.rows import RowBuilder
+from identification_node.pipeline.time_offset import TimeOffsetCheck
 from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.wire.records import JointStateRecord
 
@@ -63,6 +64,9 @@ class IdentificationPipeline:
         self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
                                         'fc' in robot.extras, self.samples.counters.reject)
         self.gate = self.estimator.gate    # robust.InnovationGate: listeners, events, counts
+        # time_offset.TimeOffsetCheck: is the torque late or early against the motion?
+        self.time_offset = TimeOffsetCheck(c.offset_warn, c.offset_refuse, c.offset_seconds,
+                                           c.offset_search)
         self.bounds = self.samples.bounds  # plausibility.PlausibilityBounds
         # the model's parameters, degenerate inertials replaced (prior.py); notes say which
         self.prior, self.prior_notes = safe_prior(robot)
@@ -93,7 +97,7 @@ class IdentificationPipeline:
 
     def add_malformed(self) -> None:
         """Count a message that could not even be decoded (received, and rejected)."""
-        self.samples.joint_states.malformed()
+        self.samples.add_malformed()
 
     @property
     def pending(self) -> int:
@@ -128,6 +132,7 @@ class IdentificationPipeline:
         self.row_builder.reset()
         self.row_builder.reset_counts()
         self.estimator.reset()
+        self.time_offset.reset()
         self.used = 0
         self._restarts_seen = 0
         self._last_output_stamp = math.nan
@@ -164,11 +169,14 @@ class IdentificationPipeline:
                 outputs.append(self._use(held))
             self.row_builder.reset()
             self.estimator.end_stream()
+            self.time_offset.restart()
         if len(s) or flush or self.row_builder.searching:
             est = self.estimator
             outputs.append(self._use(self.row_builder(
                 s, self.samples.velocity_measured,
                 self.config.update_batch if est.batch_due and not outputs else None, flush)))
+        if flush:
+            self.time_offset.finish()
         outputs = [o for o in outputs if len(o.stamps_ns)]
         if not outputs:
             return PipelineOutput.empty(self.robot.dof)
@@ -195,6 +203,7 @@ class IdentificationPipeline:
             if len(r.t) == 0:
                 return PipelineOutput.empty(self.robot.dof)
         stamps_ns = self.samples.counters.stamps_ns(r.t)
+        self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau)
         if not self.frozen:
             est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns, q=r.q)
             self.used += len(r.t)

@@ -67,6 +67,10 @@ class TorqueSamples:
     def add_currents_cdr(self, messages: list[bytes]) -> None:
         self.motor_currents.add_cdr(messages)
 
+    def add_malformed(self) -> None:
+        """Count a message that could not even be decoded (received, and rejected)."""
+        self.joint_states.malformed()
+
     @property
     def pending(self) -> int:
         """Queued inputs not yet processed."""

@@ -546,7 +546,7 @@ class IdentificationNode(Node):
                       ) if gate.settings.enabled else 'off'
             shifts, cache = gate.shifts, p.layout_cache_bytes
             excluded, terms = p.excluded_equations, p.model_term_warnings()
-            counters = p.samples.counters
+            counters, offset = p.samples.counters, p.time_offset.result
             missing = sorted(counters.missing_joints | counters.missing_current_joints)
         now = self.get_clock().now()
         dt = (now - self._last_diag_time).nanoseconds * 1e-9
@@ -581,6 +581,7 @@ class IdentificationNode(Node):
             'robust_gate': robust, 'residual_shifts': shifts, 'numerical_failures': failures,
             'smoother_edge_samples': edges, 'layout_cache_bytes': cache,
             'callback_errors': sum(self.callback_errors.values()),
+            'time_offset_s': 'not estimated yet' if offset is None else f'{offset.offset:.4f}',
         }
         result = self._consistent
         values['consistency_status'] = ('disabled' if self._consistency_options is None else
@@ -608,6 +609,10 @@ class IdentificationNode(Node):
         if self.payload is not None:
             with self._lock:
                 values.update(self.payload.diagnostics())
+        if offset is not None and offset.level:   # time_offset.py: torque late or early
+            status.level = max(status.level, (DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[
+                offset.level - 1])
+            status.message += f'; torque {offset.offset:+.3f} s off the motion'
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = now.to_msg()

@@ -34,11 +34,9 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field, fields
-from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import yaml
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -46,6 +44,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from identification_node.errors import IdentificationError
+from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectories import Trajectory, load_trajectory
 from identification_node.model.robot import RobotModel
 from identification_node.model.simulation import ArmSimulator, SensorNoise, SimResult
@@ -105,10 +104,7 @@ def read_true_parameters(path: str, robot: RobotModel) -> np.ndarray:
     nested mappings joined with dots) put in; the links it changes must stay physically
     consistent."""
     name = 'true_parameters_file'
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise IdentificationError(f'parameter {name}: cannot read {path}: {exc}') from None
+    data = read_yaml(path, f'parameter {name}: {path}')
     if not isinstance(data, Mapping):
         raise IdentificationError(f'parameter {name}: {path} does not hold a mapping')
     phi = robot.phi_model.copy()

@@ -129,25 +129,20 @@ class Watchdog:
 def check_parameter_files(args: list[str] | None) -> None:
     """IdentificationError naming the file when a ``--params-file`` of the ROS arguments is
     missing, unreadable or not a YAML mapping (rcl's own message is a multi-line trace)."""
-    import yaml
+    from identification_node.safe_yaml import read_yaml
     args = list(args or [])
     for flag, path in zip(args, args[1:]):
         if flag != '--params-file':
             continue
-        try:
-            with open(path, encoding='utf-8') as f:
-                data = yaml.safe_load(f)
-        except (OSError, UnicodeDecodeError) as exc:
-            raise IdentificationError(f'cannot read parameter file {path}: '
-                                      f'{exc.strerror or exc}') from None
-        except yaml.YAMLError as exc:
-            where = getattr(exc, 'problem_mark', None)
-            at = f' (line {where.line + 1})' if where is not None else ''
-            raise IdentificationError(f'parameter file {path} is not valid YAML{at}: '
-                                      f'{getattr(exc, "problem", None) or exc}') from None
+        data = read_yaml(path, f'parameter file {path}')
         if not isinstance(data, dict):
             raise IdentificationError(f'parameter file {path} does not hold a mapping of '
                                       'node names to ros__parameters')
+        for node, section in data.items():
+            if isinstance(section, dict) and not isinstance(
+                    section.get('ros__parameters', {}), dict):
+                raise IdentificationError(f'parameter file {path}: {node}.ros__parameters '
+                                          'is not a mapping of parameter names to values')
 
 
 def given_parameter_names(args: list[str] | None, node: Any) -> set[str]:
@@ -155,7 +150,8 @@ def given_parameter_names(args: list[str] | None, node: Any) -> set[str]:
     ``-p``/``--param NAME:=VALUE`` and, of each ``--params-file``, the sections for ``/**``,
     the node's name or its fully qualified name (other wildcard patterns are not read)."""
     from rclpy.parameter import parameter_dict_from_yaml_file
-    import yaml
+
+    from identification_node.safe_yaml import read_yaml
     args = list(sys.argv if args is None else args)
     keys = {'/**', node.get_name(), node.get_fully_qualified_name(),
             node.get_fully_qualified_name().lstrip('/')}
@@ -168,8 +164,7 @@ def given_parameter_names(args: list[str] | None, node: Any) -> set[str]:
         if flag in ('-p', '--param') and ':=' in value:
             names.add(value.split(':=', 1)[0].rpartition(':')[2])
         elif flag == '--params-file':
-            with open(value, encoding='utf-8') as f:
-                sections = [k for k in yaml.safe_load(f) if k in keys]
+            sections = [k for k in read_yaml(value) if k in keys]
             for key in sections:
                 names |= set(parameter_dict_from_yaml_file(value, target_nodes=[key]))
     return names

@@ -1,0 +1,155 @@
+"""Stage 6b, the time alignment check: does the torque belong to the motion it is paired with?
+
+Motor currents and joint states often come from two drivers with two clocks; a torque
+stamped late or early by a fraction of a second is paired with the wrong motion, and the
+estimate is silently wrong. The check fits the base regressor rows Yb(t) of the motion to
+the torque shifted in time, tau(t + s), by least squares for every shift s within
+``search`` seconds, and takes the shift of the smallest residual: the offset by which the
+torque is late (s > 0: the torque's stamps are s too late against the joint states; the same
+holds for an effort carried in the joint states themselves). Model-free: the parameters are
+refitted at each shift, so it does not trust the description's inertials.
+
+The streaming pipeline buffers the rows of the first ``seconds`` of used samples of a stream
+(decimated to about RATE Hz) and estimates once, searching at most a quarter of what it
+has. An offset beyond ``warn`` seconds whose shift explains the torque better (residual RMS
+at zero shift more than SIGNIFICANCE times the best one) is warned of, one beyond ``refuse``
+seconds refused (identify exits 2; the node reports an error). The sums over shifts are
+correlations, computed by FFT.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.signal import fftconvolve
+
+RATE = 250.0           # Hz the buffered rows are decimated to (lag resolution 4 ms)
+SIGNIFICANCE = 1.05    # residual RMS ratio (zero shift / best shift) needed to report
+
+
+@dataclass(frozen=True)
+class TimeOffset:
+    """The estimated offset (s; > 0: the torque is late), the residual RMS of the fit at zero
+    shift and at the best one (per joint relative to its torque's RMS), the seconds of data
+    and the +- seconds searched; ``level`` 0 fine, 1 warned of, 2 refused."""
+    offset: float
+    rms_aligned: float
+    rms_best: float
+    seconds: float
+    search: float
+    level: int = 0
+
+    @property
+    def ratio(self) -> float:
+        return self.rms_aligned / self.rms_best if self.rms_best > 0 else math.inf
+
+    def describe(self) -> str:
+        late = 'late' if self.offset > 0 else 'early'
+        return (f'the torque is {abs(self.offset):.3f} s {late} against the joint states: the '
+                f'motion explains it {self.ratio:.2f}x better (residual RMS) shifted by '
+                f'{self.offset:+.3f} s (time_offset.warn/refuse; estimated on '
+                f'{self.seconds:.1f} s); check the stamps of the current or effort stream')
+
+    def document(self) -> dict:
+        return {'offset_s': self.offset, 'residual_ratio': self.ratio,
+                'seconds': self.seconds, 'search_s': self.search,
+                'level': ('ok', 'warning', 'refused')[self.level]}
+
+
+def estimate_offset(rows: np.ndarray, tau: np.ndarray, dt: float, search: float,
+                    warn: float = 0.0, refuse: float = math.inf) -> TimeOffset | None:
+    """The offset of ``tau`` (M, n) against the motion of the base regressor ``rows``
+    (M, n, b), sampled evenly every ``dt`` s, searched within +-``search`` s, with its level
+    against ``warn`` and ``refuse`` (s; warn 0: level 0); None when there are too few samples
+    for that search (fewer than 4 search spans and 2b rows)."""
+    M, n, b = rows.shape
+    L = int(search / dt)
+    if L < 1 or M - 2 * L < max(2 * b, 2 * L):
+        return None
+    rms = np.sqrt(np.mean(tau ** 2, axis=0))
+    scale = np.divide(1.0, rms, out=np.zeros_like(rms), where=rms > 0)
+    rows, tau = rows * scale[None, :, None], tau * scale
+    centre = rows[L:M - L]                                   # (Mc, n, b)
+    A = np.einsum('ijk,ijl->kl', centre, centre)
+    # b_s = sum_i sum_j centre[i, j] tau[L + i + s, j] for s = -L..L: a correlation
+    cross = fftconvolve(tau[:, :, None], centre[::-1], mode='valid', axes=0).sum(axis=1)
+    sq = np.concatenate([[0.0], np.cumsum((tau ** 2).sum(axis=1))])
+    Mc = M - 2 * L
+    energy = sq[Mc:Mc + 2 * L + 1] - sq[:2 * L + 1]          # sum of tau^2 at each shift
+    w, V = np.linalg.eigh(A)
+    keep = w > max(w.max(), 0.0) * 1e-10
+    proj = (cross @ V[:, keep]) / np.sqrt(w[keep])
+    rss = np.maximum(energy - (proj ** 2).sum(axis=1), 0.0)
+    k = int(np.argmin(rss))
+    shift = float(k - L)
+    if 0 < k < 2 * L:   # parabola through the minimum and its neighbours
+        curve = rss[k - 1] - 2 * rss[k] + rss[k + 1]
+        if curve > 0:
+            shift += 0.5 * float(rss[k - 1] - rss[k + 1]) / curve
+    residual = np.sqrt(rss / (Mc * n))
+    found = TimeOffset(float(shift * dt), float(residual[L]), float(residual[k]),
+                       float(M * dt), float(L * dt))
+    if warn > 0 and found.ratio > SIGNIFICANCE and abs(found.offset) > warn:
+        return replace(found, level=2 if abs(found.offset) > refuse else 1)
+    return found
+
+
+class TimeOffsetCheck:
+    """Buffers the rows of a stream's first ``seconds`` of used samples and estimates the
+    offset once (``result``); ``finish`` estimates on what is buffered (end of a bag).
+    ``warn`` 0: no check."""
+
+    def __init__(self, warn: float, refuse: float, seconds: float, search: float):
+        self.warn, self.refuse = float(warn), float(refuse)
+        self.seconds, self.search = float(seconds), float(search)
+        self.reset()
+
+    def reset(self) -> None:
+        self.result: TimeOffset | None = None
+        self.restart()
+
+    def restart(self) -> None:
+        """A new stream: what is buffered no longer continues (a result stays)."""
+        self._t: list[np.ndarray] = []
+        self._rows: list[np.ndarray] = []
+        self._tau: list[np.ndarray] = []
+        self._step, self._dt, self._next = 0, 0.0, -math.inf
+
+    @property
+    def active(self) -> bool:
+        return self.warn > 0 and self.result is None
+
+    def add(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray) -> None:
+        """Used samples at t (M,) s: base regressor rows (M, n, b) and torque (M, n)."""
+        if not self.active or len(t) < 2:
+            return
+        if not self._step:   # decimation step from the stream's own rate
+            dt = float(np.median(np.diff(t)))
+            if not dt > 0:
+                return
+            self._step, self._dt = max(1, int(round(1.0 / (RATE * dt)))), dt
+        pick = np.flatnonzero(t >= self._next - 0.5 * self._dt)[::self._step]
+        if len(pick):   # every step-th sample, continued across batches
+            self._next = t[pick[-1]] + self._step * self._dt
+            self._t.append(t[pick])
+            self._rows.append(rows[pick])
+            self._tau.append(tau[pick])
+            if self._t[-1][-1] - self._t[0][0] >= self.seconds:
+                self.finish()
+
+    def finish(self) -> None:
+        """Estimate from what is buffered: its longest evenly sampled run, searched within
+        +-search s or a quarter of the run."""
+        if not self.active or not self._t:
+            return
+        t = np.concatenate(self._t)
+        dt = self._step * self._dt
+        cuts = np.r_[0, np.flatnonzero(np.diff(t) > 1.5 * dt) + 1, len(t)]
+        k = int(np.argmax(np.diff(cuts)))
+        run = slice(cuts[k], cuts[k + 1])
+        span = (cuts[k + 1] - cuts[k]) * dt
+        self.result = estimate_offset(np.concatenate(self._rows)[run],
+                                      np.concatenate(self._tau)[run], dt,
+                                      min(self.search, span / 4.5), self.warn, self.refuse)
+        self._t, self._rows, self._tau = [], [], []
