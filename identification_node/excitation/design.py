@@ -52,7 +52,6 @@ COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
 COLLISION_RHO = 20.0        # KS sharpness over the samples: 2.5 mm of distance, smooth
 COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and between them)
-COLLISION_WEIGHT_FLOOR = 1e-12  # KS weights below it: the sample's distance gradient not needed
 RAMP_BLENDS = (0.25, 0.5, 0.75)  # ramp configurations start + w (motion - start) constrained
 RAMP_MIN = 0.5              # s: shortest ramp tried; then RAMP_GROWTH times longer each try
 RAMP_GROWTH = 1.15
@@ -442,27 +441,24 @@ class _Design:
 
     def _collision_ks(self, x: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Per pair, KS over the collision samples of 1 + (d_req - d) / COLLISION_SCALE, and
-        its Jacobian (pairs, nx). The distances' gradients are computed only at the samples
-        where some pair's KS weight exceeds COLLISION_WEIGHT_FLOOR (elsewhere their terms
-        vanish), which are few: the weights fall by e per 2.5 mm from a pair's closest sample."""
+        its Jacobian (pairs, nx)."""
         key = x.tobytes()
         cached = self._collision
-        if cached is None or cached[0] != key:
+        if cached is None or cached[0] != key or (jac and cached[2] is None):
             self.tick()
             q = self.collision_configs(x)                            # (S, n)
-            self._collision = cached = (key, q, self.checker.distances(q), None)
-        _, q, d, g = cached
+            if jac:
+                d, g = self.checker.distances_and_gradients(q)       # (S, P), (S, P, n)
+            else:
+                d, g = self.checker.distances(q), None
+            self._collision = cached = (key, d, g)
+        _, d, g = cached
         need = self.checker.min_distance + COLLISION_PAD
         ks, w = _ks(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if not jac:
             return ks, None
-        use = np.flatnonzero((w > COLLISION_WEIGHT_FLOOR).any(axis=1))
-        if g is None:
-            self.tick()
-            g = self.checker.distances_and_gradients(q[use])[1]    # (U, P, n)
-            self._collision = (key, q, d, g)
         # d r / d x[i, :] = -g[s, p, i] Bc[s, :] / scale, weighted by w[s, p]
-        dks = -np.einsum('sp,spi,sk->pik', w[use], g, self.Bc[use]) / COLLISION_SCALE
+        dks = -np.einsum('sp,spi,sk->pik', w, g, self.Bc) / COLLISION_SCALE
         return ks, dks.reshape(len(ks), -1)
 
     def constraint(self, x: np.ndarray) -> np.ndarray:
