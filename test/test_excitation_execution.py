@@ -279,6 +279,35 @@ def test_package_dir_resolves_meshes(tmp_path):
     assert CollisionChecker(robot, package_dirs=[tmp_path]).num_pairs == 33
 
 
+def test_hulls_bound_the_meshes_and_clearance_is_the_exact_minimum():
+    """example-robot-data's Panda (meshes, its SRDF): the convex hulls' distances never exceed
+    the meshes' (a hull contains its mesh), and clearance, which computes mesh distances
+    only where the hulls cannot rule a pair out, equals the minimum over every pair and
+    sample of the meshes' distances."""
+    from arms import ARMS, arm_urdf, robots_dir
+    urdf = arm_urdf('panda')
+    robot = load_robot(str(urdf), ARMS['panda'][1])
+    exact = CollisionChecker(robot, [robots_dir().parent.parent],
+                             urdf.parent.parent / 'srdf' / 'panda.srdf')
+    hulls = exact.hulls()
+    assert exact.meshes and hulls.convex and not exact.convex
+    assert hulls.pairs == exact.pairs and hulls.hulls() is hulls
+    kinds = {type(o.geometry).__name__ for o in hulls.geometry.geometryObjects}
+    assert 'BVHModelOBBRSS' not in kinds and 'Convex' in kinds
+    rng = np.random.default_rng(8)
+    lo, hi = robot.position_limits.T
+    q = rng.uniform(lo, hi, size=(25, 7))
+    mesh, bound = exact.distances(q), hulls.distances(q)
+    clear = mesh > 0
+    assert np.all(bound[clear] <= mesh[clear] + 1e-6)
+    for part in (q, q[mesh.min(axis=1) > 0]):   # penetrating samples, then only clear ones
+        d = exact.distances(part)
+        k, i = np.unravel_index(np.argmin(d), d.shape)
+        c = exact.clearance(part)
+        assert c['distance'] == pytest.approx(d[k, i], abs=1e-6)
+        assert c['pair'] == exact.pairs[i] and c['sample'] == k
+
+
 # -- limits ----------------------------------------------------------------------------------
 def test_assumed_limits_listed_and_overridden(tmp_path):
     robot = load_robot(PANDA)
@@ -331,13 +360,35 @@ def test_torque_limits_hold_under_an_estimate(tmp_path):
 
 
 # -- outcome ---------------------------------------------------------------------------------
-def test_iteration_limit_is_a_warning_with_the_best_feasible_point():
+def test_iteration_limit_is_said_not_warned_with_the_best_feasible_point():
     robot = load_robot('mit_dd_arm')
     res = ex.optimize_excitation(robot, 3, 2.0, maxiter=3, num_samples=60, periods=2)
     assert not res.success and res.status == 9
-    assert any('iteration' in w.lower() and 'best feasible' in w for w in res.warnings)
+    assert 'stopped at the limit of 3 iterations' in res.message and not res.warnings
     assert res.value <= res.initial_value
     assert max(res.ratios[k] for k in LIMIT_KINDS) <= 0.9 + 1e-9
+
+
+def test_progress_lines_and_time_limit_keep_the_best_feasible_design(monkeypatch):
+    robot = load_robot('crs_a465')
+    lines = []
+    monkeypatch.setattr(ex, 'PROGRESS_INTERVAL', 0.0)   # a line at every evaluation
+    res = ex.optimize_excitation(robot, 3, 4.0, maxiter=5, num_samples=60, periods=1,
+                                 progress=lines.append)
+    assert any(line.startswith('optimising: 42 coefficients, 24 constraints')
+               for line in lines)
+    assert lines[-1].startswith('verifying') or 'verifying the best' in lines[-1]
+    steps = [line for line in lines if line.startswith('iteration ')]
+    assert steps and all('criterion cond' in line and 'worst constraint' in line
+                         and line.endswith(' s') for line in steps)
+    # a limit that passes before the first iteration: the initial guess is kept, verified
+    res = ex.optimize_excitation(robot, 3, 4.0, maxiter=200, num_samples=60, periods=1,
+                                 time_limit=1e-6)
+    assert res.status == -1 and 'stopped at the time limit of 1e-06 s' in res.message
+    assert res.iterations == 0 and res.value == pytest.approx(res.initial_value)
+    assert max(res.ratios[k] for k in LIMIT_KINDS) <= 0.9 + 1e-9
+    with pytest.raises(IdentificationError, match='time limit'):
+        ex.optimize_excitation(robot, 3, 4.0, maxiter=1, time_limit=0)
 
 
 def test_start_configuration(designs):
@@ -395,7 +446,8 @@ def test_cli_outputs_a_robot_can_execute(tmp_path, capsys):
     text = captured.out
     assert 'durations: ramp in' in text and 'assumed' in text and 'collision: 39 pairs' in text
     assert 'joint1.acceleration' not in text and 'joint2.acceleration: 4.35' in text
-    assert 'warning:' in captured.err and '--maxiter' in captured.err
+    assert 'stopped at the limit of 6 iterations' in text and 'warning:' not in captured.err
+    assert 'iteration' not in captured.err   # progress lines go to stdout
     doc = yaml.safe_load(out.read_text())
     assert doc['limit_margin'] == 0.15 and doc['collision']['srdf_disabled'] == 3
     assert doc['collision']['min_distance'] == 0.02 and doc['collision']['clearance'] >= 0.02
@@ -403,7 +455,8 @@ def test_cli_outputs_a_robot_can_execute(tmp_path, capsys):
     assert doc['limits']['joint7']['velocity'] == 2.0
     assert 'joint1' not in doc['assumed_limits']
     assert doc['assumed_limits']['joint7'] == {'acceleration': pytest.approx(4.0)}
-    assert doc['warnings'] and doc['criterion']['value'] < doc['criterion']['initial']
+    assert 'stopped at the limit' in doc['optimisation']['message']
+    assert doc['criterion']['value'] < doc['criterion']['initial']
     assert all(doc['limit_ratios'][k]['worst'] <= 0.85 + 1e-9 for k in LIMIT_KINDS)
     framed = load_trajectory(str(out), robot)
     assert isinstance(framed, FramedTrajectory) and framed.periods == 2

@@ -70,6 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--seed', type=int, default=0, help='seed of the initial guess')
     parser.add_argument('--maxiter', type=int, default=None,
                         help='SLSQP iterations (default 200)')
+    parser.add_argument('--time-limit', type=float, default=None, metavar='S',
+                        help='stop optimising after S seconds and keep the best feasible '
+                        'design found by then (default: none)')
     parser.add_argument('--samples', type=int, default=None,
                         help='criterion samples over one period (default 100)')
     parser.add_argument('--rate', type=float, default=100.0,
@@ -227,12 +230,17 @@ def run(args: argparse.Namespace) -> int:
     samples = DEFAULT_SAMPLES if args.samples is None else args.samples
     margin = conf.get('margin', DEFAULT_LIMIT_MARGIN)
     base = BaseParameters.from_robot(robot)
+    print(f'robot {robot.name}: {robot.dof} joints, {base.num_base} base parameters; '
+          f'{harmonics} harmonics, period {period:g} s, {samples} criterion samples'
+          + (f', {checker.num_pairs} collision pairs' if checker is not None else ''),
+          flush=True)
     result = optimize_excitation(
         robot, harmonics, period, args.criterion, limits, seed=args.seed,
         maxiter=DEFAULT_MAXITER if args.maxiter is None else args.maxiter,
         num_samples=samples, initial=initial, base=base, noise_std=noise, margin=margin,
         start=conf.get('start'), periods=conf.get('periods', DEFAULT_PERIODS), phis=phis,
-        checker=checker)
+        checker=checker, progress=lambda line: print(line, flush=True),
+        time_limit=args.time_limit)
     framed = result.framed
 
     baseline = None
@@ -260,8 +268,6 @@ def run(args: argparse.Namespace) -> int:
         doc['bag'] = {'path': str(bag), 'topic': TOPIC, 'rate': args.rate}
     atomic_write_yaml(out, doc)
 
-    print(f'robot {robot.name}: {robot.dof} joints, {base.num_base} base parameters; '
-          f'{harmonics} harmonics, period {period:g} s, {samples} criterion samples')
     line = (f'criterion {args.criterion}: {result.initial_value:.6g} (initial {label}'
             + ('' if result.initial_feasible else ', infeasible') + f') -> {result.value:.6g}')
     if baseline is not None:

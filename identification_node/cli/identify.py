@@ -101,6 +101,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--save', metavar='DIR',
                         help="write estimate.yaml and identified.urdf into DIR (the node's "
                         '~/save)')
+    parser.add_argument('--workers', type=int, default=1, metavar='N',
+                        help='rls: stream the bag\'s 60 s segments in N processes and merge '
+                        'their statistics (offline/parallel.py; 0: one per core; default 1). '
+                        'Not with --report, --payload, --start/--end')
     parser.add_argument('--no-physical-consistency', action='store_true',
                         help='the unconstrained least-squares estimate only (config: '
                         'physical_consistency: false)')
@@ -424,6 +428,10 @@ def run(args: argparse.Namespace) -> int:
     from identification_node.offline.windows import TimeWindow
 
     settings = settings_from_args(args)
+    if args.workers < 0:
+        from identification_node.errors import IdentificationError
+        raise IdentificationError(f'--workers must be >= 0 (0: one per core), got '
+                                  f'{args.workers}')
     window = TimeWindow(args.start, args.end).validate()
     consistency = None if args.no_physical_consistency else settings.consistency_options()
     method = _method(args)
@@ -464,12 +472,18 @@ def run(args: argparse.Namespace) -> int:
     options = None
     pipeline = settings.build(robot) if method == 'rls' else None
     monitor = payload_monitor(args, settings, robot, method, pipeline)
-    if method == 'rls':
+    ident = None
+    if method == 'rls' and args.workers != 1 and monitor is None and not args.report \
+            and args.start is None and args.end is None:
+        from identification_node.offline.parallel import default_workers, parallel_identify
+        ident = parallel_identify(args.bag, settings, robot, args.workers or default_workers(),
+                                  *topics)
+    if ident is None and method == 'rls':
         ident = replay_identify(args.bag, settings, robot, *topics, on_output=None if (
             monitor is None) else lambda out: monitor.add(
                 out.stamps_ns, out.q, out.qd, out.qdd, out.measured), window=window,
             pipeline=pipeline)
-    else:
+    elif ident is None:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
     offset = None if pipeline is None else pipeline.time_offset.result

@@ -8,6 +8,13 @@ an SRDF disables (MoveIt ``<disable_collisions>``), and geometry fixed to the wo
 the environment. The environment: an optional floor (a half space, z >= height in the world
 frame) and boxes (size, centre xyz, rpy, world frame). Distances in m, signed (negative when
 penetrating); joint arrays in the robot's joint order.
+
+Meshes cost most of the time (GJK on bounding-volume trees): :meth:`CollisionChecker.hulls` is
+the same checker with every mesh replaced by its convex hull (coal, Qhull), tens of times
+faster. A hull contains its mesh, so hull distances are lower bounds of the exact ones: the
+excitation optimiser's constraints use them (conservative), and :meth:`CollisionChecker.clearance`
+computes the exact (mesh) distance only of the pairs and samples whose hull bound could be the
+smallest.
 """
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ import pinocchio as pin
 from identification_node.errors import IdentificationError
 
 DEFAULT_MIN_DISTANCE = 0.01   # m
+HULL_TOLERANCE = 1e-6         # m: GJK's tolerance, allowed between a hull bound and the mesh
 
 
 def has_collision_geometry(robot) -> bool:
@@ -35,13 +43,15 @@ class CollisionChecker:
     ``package_dirs``: directories resolving ``package://`` mesh paths; ``srdf``: an SRDF file
     whose disabled pairs are not checked; ``min_distance`` (m): the clearance required by
     :meth:`clear`; ``floor``: a height (m) or a mapping ``{height: z}``; ``boxes``: mappings
-    ``{size: [x, y, z], xyz: [x, y, z], rpy: [r, p, y], name: str}`` (m, rad, world frame).
+    ``{size: [x, y, z], xyz: [x, y, z], rpy: [r, p, y], name: str}`` (m, rad, world frame);
+    ``convex``: every mesh replaced by its convex hull (see :meth:`hulls`).
     """
 
     def __init__(self, robot, package_dirs: Sequence[str | os.PathLike] = (),
                  srdf: str | os.PathLike | None = None,
                  min_distance: float = DEFAULT_MIN_DISTANCE,
-                 floor: float | Mapping | None = None, boxes: Sequence[Mapping] = ()):
+                 floor: float | Mapping | None = None, boxes: Sequence[Mapping] = (),
+                 convex: bool = False):
         if robot.kind != 'urdf':
             raise IdentificationError(f'robot {robot.name}: collision checking needs a URDF')
         if not (isinstance(min_distance, (int, float)) and math.isfinite(min_distance)):
@@ -60,6 +70,12 @@ class CollisionChecker:
             raise IdentificationError(f'robot {robot.name}: collision geometry: {exc} '
                                       '(--package-dir resolves package:// paths)') from None
         self.robot_geometries = len(geom.geometryObjects)
+        self.meshes = _mesh_objects(geom)
+        self.convex = bool(convex)
+        if convex:
+            _to_hulls(robot, geom, self.meshes)
+        self._hulls = self if convex or not self.meshes else None
+        self._args = (robot, dirs, srdf, self.min_distance, floor, boxes)
         geom.addAllCollisionPairs()   # every pair on different joints
         parents = self.model.parents
         # index pairs first: the elements of geom.collisionPairs refer into its vector
@@ -100,6 +116,13 @@ class CollisionChecker:
     def num_pairs(self) -> int:
         return len(self.pairs)
 
+    def hulls(self) -> CollisionChecker:
+        """This checker with every mesh replaced by its convex hull (itself when it has no
+        mesh or is that already): same pairs and obstacles, distances <= the exact ones."""
+        if self._hulls is None:
+            self._hulls = CollisionChecker(*self._args, convex=True)
+        return self._hulls
+
     def distances(self, q: np.ndarray) -> np.ndarray:
         """Signed distances (N, pairs) in m for joint positions q (N, n)."""
         Q = self.robot.configuration(np.atleast_2d(q))
@@ -113,48 +136,86 @@ class CollisionChecker:
         """Distances (N, pairs) and their gradients in the joint positions (N, pairs, n):
         d(distance)/dq = normal . (J_p2 - J_p1), J_p the Jacobian of each witness point."""
         Q = self.robot.configuration(np.atleast_2d(q))
-        N, n = Q.shape[0], self.robot.dof
-        dist = np.empty((N, self.num_pairs))
-        grad = np.zeros((N, self.num_pairs, n))
-        if not self.num_pairs:
-            return dist, grad
+        N, n, P = Q.shape[0], self.robot.dof, self.num_pairs
+        dist = np.empty((N, P))
+        if not P:
+            return dist, np.zeros((N, P, n))
         model, data, cols = self.model, self.data, self.robot.idx_v
         world = pin.ReferenceFrame.WORLD
         joints = np.unique(self._joints)
         slot = np.searchsorted(joints, self._joints)            # (pairs, 2) into joints
-        J = np.zeros((len(joints), 6, n))
-        for k in range(N):
+        J = np.zeros((N, len(joints), 6, n))
+        normal, points = np.empty((N, P, 3)), np.empty((N, 2, P, 3))
+        moving = [(s, int(j)) for s, j in enumerate(joints) if j != 0]   # the world is still
+        for k in range(N):   # only the calls into pinocchio per sample; the algebra batched
             pin.computeDistances(model, data, self.geometry, self.geometry_data, Q[k])
             pin.computeJointJacobians(model, data, Q[k])
-            for s, j in enumerate(joints):
-                if j != 0:   # the world's geometry does not move
-                    J[s] = pin.getJointJacobian(model, data, int(j), world)[:, cols]
+            for s, j in moving:
+                J[k, s] = pin.getJointJacobian(model, data, j, world)[:, cols]
             results = self.geometry_data.distanceResults
             dist[k] = [r.min_distance for r in results]
-            normal = np.array([r.normal for r in results])                   # (P, 3)
-            grad_k = 0.0
-            for side, get in ((0, 'getNearestPoint1'), (1, 'getNearestPoint2')):
-                p = np.array([getattr(r, get)() for r in results])          # (P, 3) world
-                Jj = J[slot[:, side]]                                        # (P, 6, n)
-                # velocity of the world point p carried by the joint: v + w x p
-                Jp = Jj[:, :3] - np.cross(p[:, :, None], Jj[:, 3:], axisa=1, axisb=1, axisc=1)
-                grad_k = grad_k + (1 if side else -1) * np.einsum('pi,pin->pn', normal, Jp)
-            grad[k] = grad_k
+            normal[k] = [r.normal for r in results]
+            points[k, 0] = [r.getNearestPoint1() for r in results]
+            points[k, 1] = [r.getNearestPoint2() for r in results]
+        grad = np.zeros((N, P, n))
+        for side in (0, 1):
+            Jj = J[:, slot[:, side]]                                       # (N, P, 6, n)
+            # velocity of the world point p carried by the joint: v + w x p
+            Jp = Jj[:, :, :3] - np.cross(points[:, side, :, :, None], Jj[:, :, 3:], axisa=2,
+                                         axisb=2, axisc=2)
+            grad += (1 if side else -1) * np.einsum('spi,spin->spn', normal, Jp)
         return dist, grad
 
     def clearance(self, q: np.ndarray) -> dict[str, Any]:
         """The smallest distance over samples q (N, n) and where: {'distance': m, 'pair':
-        (name, name), 'sample': index}; distance inf when no pair is checked."""
+        (name, name), 'sample': index}; distance inf when no pair is checked. With meshes,
+        their exact distance is computed only where the hulls' lower bound does not rule the
+        pair and sample out (branch and bound over the bounds in increasing order)."""
         if not self.num_pairs or len(q) == 0:
             return {'distance': math.inf, 'pair': None, 'sample': None}
-        d = self.distances(q)
-        k, i = np.unravel_index(int(np.argmin(d)), d.shape)
-        return {'distance': float(d[k, i]), 'pair': self.pairs[i], 'sample': int(k)}
+        q = np.atleast_2d(q)
+        if self.hulls() is self:
+            d = self.distances(q)
+            k, i = np.unravel_index(int(np.argmin(d)), d.shape)
+            return {'distance': float(d[k, i]), 'pair': self.pairs[i], 'sample': int(k)}
+        bound = self.hulls().distances(q)
+        Q = self.robot.configuration(q)
+        best, where = math.inf, (0, 0)
+        for flat in np.argsort(bound, axis=None):
+            k, i = np.unravel_index(int(flat), bound.shape)
+            if bound[k, i] - HULL_TOLERANCE >= best:
+                break
+            pin.updateGeometryPlacements(self.model, self.data, self.geometry,
+                                         self.geometry_data, Q[k])
+            d = pin.computeDistance(self.geometry, self.geometry_data, int(i)).min_distance
+            if d < best:
+                best, where = d, (int(k), int(i))
+        return {'distance': float(best), 'pair': self.pairs[where[1]], 'sample': where[0]}
 
     def summary(self) -> dict:
         """Plain data for YAML: pairs checked, SRDF-disabled count, minimum distance."""
         return {'pairs': self.num_pairs, 'robot_geometries': self.robot_geometries,
                 'srdf_disabled': self.srdf_removed, 'min_distance': self.min_distance}
+
+
+def _mesh_objects(geom) -> list[int]:
+    """Indices of the geometry objects that are meshes (bounding-volume trees)."""
+    import coal
+    return [k for k, o in enumerate(geom.geometryObjects)
+            if isinstance(o.geometry, coal.BVHModelBase)]
+
+
+def _to_hulls(robot, geom, meshes: Sequence[int]) -> None:
+    """Replace the meshes ``meshes`` of ``geom`` by their convex hulls, in place."""
+    for k in meshes:
+        obj = geom.geometryObjects[k]
+        mesh = obj.geometry
+        try:
+            mesh.buildConvexHull(True, 'Qt')
+        except (ValueError, RuntimeError) as exc:  # degenerate (flat) meshes
+            raise IdentificationError(f'robot {robot.name}: convex hull of {obj.name}: '
+                                      f'{exc}') from None
+        obj.geometry = mesh.convex
 
 
 def _vector(where: str, value: Any, size: int) -> np.ndarray:

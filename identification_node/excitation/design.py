@@ -25,7 +25,8 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from types import SimpleNamespace
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -62,6 +63,7 @@ GRID_PER_HARMONIC = 40      # constraint grid points per period and harmonic
 KS_RHO = 200.0              # sharpness of the smooth maximum of the limit ratios
 INITIAL_MARGIN = 0.95        # the initial guess reaches this fraction of its tightest limit
 VERIFY_RATIO = 0.999        # a verified result stays below this fraction of every limit
+PROGRESS_INTERVAL = 10.0    # s between progress lines, at most
 # Table I's joint zeros -> ours (crs_a465.urdf: arm straight up at zero), q_ours = q_paper +
 # offset. Table I moves joint 2 over [36, 148] deg and joint 3 over [-163, -10] deg: centred on
 # +90 and -90 deg, where our symmetric +-90 / +-110 deg ranges are centred on 0. With the
@@ -213,6 +215,64 @@ def _ks(r: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray]:
     return top + np.log(total) / rho, e / total
 
 
+def _no_tick() -> None:
+    pass
+
+
+class _TimeUp(Exception):
+    """The optimisation's time limit passed (raised from inside SLSQP's callbacks)."""
+
+
+class _Progress:
+    """Progress lines (iteration, criterion, worst constraint, elapsed) to ``report`` at most
+    ``interval`` s apart, checked at every evaluation; and the optimiser's time limit (s after
+    ``start``, None: none), which raises _TimeUp from the next evaluation."""
+
+    def __init__(self, report: Callable[[str], None] | None, time_limit: float | None,
+                 start: float, criterion: str):
+        self.report, self.start, self.interval = report, start, PROGRESS_INTERVAL
+        self.deadline = None if time_limit is None else start + time_limit
+        self.criterion = criterion
+        self.iteration, self.value, self.worst = 0, math.nan, math.nan
+        self.best = math.inf     # criterion of the best iterate meeting the constraints
+        self.last = start
+        self.optimising = False
+        self.verifying = False
+
+    def iterate(self, value: float, worst: float) -> None:
+        self.iteration += 1
+        self.value, self.worst = value, worst
+        if worst >= 0:
+            self.best = min(self.best, value)
+        self.tick()
+
+    def tick(self) -> None:
+        now = time.perf_counter()
+        if self.optimising and self.deadline is not None and now >= self.deadline:
+            self.optimising = False
+            raise _TimeUp
+        if self.report is not None and now - self.last >= self.interval:
+            self.say(now)
+
+    def say(self, now: float | None = None, what: str = '') -> None:
+        now = time.perf_counter() if now is None else now
+        self.last = now
+        if self.report is None:
+            return
+        best = f', best feasible {self.best:.6g}' if math.isfinite(self.best) else ''
+        if what:
+            self.report(what)
+        elif self.verifying:
+            self.report(f'verifying: {now - self.start:.0f} s')
+        elif not self.iteration:
+            self.report(f'{"optimising" if self.optimising else "preparing"}: no iteration '
+                        f'finished yet, {now - self.start:.0f} s')
+        else:
+            self.report(f'iteration {self.iteration}: criterion {self.criterion} '
+                        f'{self.value:.6g}{best}, worst constraint {self.worst:+.3g} '
+                        f'(< 0: violated), {now - self.start:.0f} s')
+
+
 class _Design:
     """Criterion and limit constraints, with gradients, of coefficient vectors x (per joint
     [a_1..a_H, b_1..b_H, q0], joints in order).
@@ -229,7 +289,8 @@ class _Design:
     (COLLISION_RHO) over the criterion samples, COLLISION_OVERSAMPLE - 1 samples between each
     two of them, the ramps' configurations start + w (q(t) - start) at the criterion samples
     for w in RAMP_BLENDS, and the start (q0 unless ``start`` is given) of
-    1 + (d_min + COLLISION_PAD - distance) / COLLISION_SCALE.
+    1 + (d_min + COLLISION_PAD - distance) / COLLISION_SCALE, on the checker's convex hulls
+    (CollisionChecker.hulls: lower bounds of the mesh distances, and much faster).
     """
 
     def __init__(self, robot, base, limits: ExcitationLimits, harmonics: int, period: float,
@@ -247,7 +308,8 @@ class _Design:
         self.grid = fourier_basis(np.arange(grid) * (period / grid), harmonics, period)
         self.Phi = np.column_stack(_torque_models(robot, phis))    # (p, models)
         self.margin = margin
-        self.checker = checker if checker is not None and checker.num_pairs else None
+        self.checker = checker.hulls() if checker is not None and checker.num_pairs else None
+        self.tick = _no_tick
         # collision samples q = Bc X + Cc: the motion, then the ramps' blends of the start
         # (q0, or the given ``start``) and the motion at the criterion samples, then the start
         m = COLLISION_OVERSAMPLE * num_samples
@@ -284,6 +346,7 @@ class _Design:
         key = x.tobytes()
         if self._value is None or self._value[0] != key:
             self.evaluations += 1
+            self.tick()
             Y = self.robot.regressor(*self.kinematics(x))
             f = _objective(self._W(Y), self.criterion, False)[0]
             self._value = (key, f, Y @ self.Phi)
@@ -299,6 +362,7 @@ class _Design:
         if self._grad is not None and self._grad[0] == key:
             return self._grad[1], self._grad[2]
         self.evaluations += 1
+        self.tick()
         n, N = self.n, self.Bq.shape[0]
         q, qd, qdd = self.kinematics(x)
         Q, QD, QDD = (np.repeat(a[None], 3 * n + 1, axis=0) for a in (q, qd, qdd))
@@ -381,6 +445,7 @@ class _Design:
         key = x.tobytes()
         cached = self._collision
         if cached is None or cached[0] != key or (jac and cached[2] is None):
+            self.tick()
             q = self.collision_configs(x)                            # (S, n)
             if jac:
                 d, g = self.checker.distances_and_gradients(q)       # (S, P), (S, P, n)
@@ -580,7 +645,8 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                         margin: float = DEFAULT_LIMIT_MARGIN,
                         start: Sequence[float] | None = None, periods: int = DEFAULT_PERIODS,
                         phis: Sequence[np.ndarray] | None = None,
-                        checker=None) -> ExcitationResult:
+                        checker=None, progress: Callable[[str], None] | None = None,
+                        time_limit: float | None = None) -> ExcitationResult:
     """Optimise a Fourier excitation of ``robot`` (a RobotModel) with SLSQP (the paper used
     Matlab's fmincon, also SQP), and frame it with ramps from and back to rest.
 
@@ -595,8 +661,11 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     (shrink_into_limits), framed by ramps from ``start`` (default: the offset q0) into
     ``periods`` periods and back (frame_excitation), and the framed trajectory's collisions
     checked densely (clearance_samples); the best verified one is kept. Stopping at the
-    iteration limit or on infeasibility is a warning (``warnings``); IdentificationError when
-    no feasible point was found. ``base``: BaseParameters of the robot (default: computed).
+    iteration limit (``maxiter``) or the time limit (``time_limit`` s of optimisation; the
+    verification follows) is said in ``message``; stopping on infeasibility is a warning
+    (``warnings``); IdentificationError when no feasible point was found. ``base``:
+    BaseParameters of the robot (default: computed). ``progress`` receives a line at least
+    every PROGRESS_INTERVAL s: iteration, criterion, worst constraint, elapsed time.
     """
     from scipy.optimize import minimize
 
@@ -613,6 +682,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                          ('periods', periods, 1)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
             raise IdentificationError(f'{name} must be an integer >= {low}, got {v!r}')
+    if time_limit is not None and not (isinstance(time_limit, (int, float)) and time_limit > 0
+                                       and not isinstance(time_limit, bool)):
+        raise IdentificationError(f'time limit must be a number of seconds > 0, got '
+                                  f'{time_limit!r}')
     limits = _as_limits(robot, limits)
     work = limits.with_margin(margin)
     start_q = None if start is None else _start(start, work)
@@ -629,6 +702,8 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                   f'determine {base.num_base} base parameters')
     design = _Design(robot, base, work, H, period, int(num_samples), criterion, noise_std,
                      MARGIN, phis, checker, start_q)
+    watch = _Progress(progress, time_limit, start_time, criterion)
+    design.tick = watch.tick
     init = initial_trajectory(robot, initial, work, H, period, seed, phis)
     if checker is not None:
         init = _out_of_collision(init, design, work)
@@ -639,7 +714,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                   'parameter: try another seed or more harmonics')
     # init is inside the limits (shrunk on the fine grid); collisions at the design's samples
     initial_feasible = checker is None or bool(
-        checker.distances(design.collision_configs(x0)).min()
+        design.checker.distances(design.collision_configs(x0)).min()
         >= checker.min_distance)
     # SLSQP's first step follows the gradient with a unit Hessian: scale the function so that
     # its gradient has unit norm at the start, or the first steps leave the limits far behind.
@@ -654,15 +729,29 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     def track(x: np.ndarray) -> None:
         f = design.value(x)[0]
         if np.isfinite(f):
-            iterates.append((f, float(design.constraint(x).min()), x.copy()))
+            worst = float(design.constraint(x).min())
+            iterates.append((f, worst, x.copy()))
+            watch.iterate(_report_value(f, criterion), worst)
 
     res = None
     if maxiter > 0:
-        res = minimize(lambda x: design.fun(x) * fscale, x0,
-                       jac=lambda x: design.jac(x) * fscale, method='SLSQP',
-                       constraints=[{'type': 'ineq', 'fun': design.constraint,
-                                     'jac': design.constraint_jac}],
-                       callback=track, options={'maxiter': int(maxiter), 'ftol': 1e-9})
+        watch.say(what=f'optimising: {x0.size} coefficients, {design.constraint(x0).size} '
+                  f'constraints, at most {maxiter} iterations'
+                  + ('' if time_limit is None else f' or {time_limit:g} s'))
+        watch.optimising = True
+        try:
+            res = minimize(lambda x: design.fun(x) * fscale, x0,
+                           jac=lambda x: design.jac(x) * fscale, method='SLSQP',
+                           constraints=[{'type': 'ineq', 'fun': design.constraint,
+                                         'jac': design.constraint_jac}],
+                           callback=track, options={'maxiter': int(maxiter), 'ftol': 1e-9})
+        except _TimeUp:
+            last = iterates[-1][2] if iterates else x0
+            res = SimpleNamespace(x=last, nit=watch.iteration, success=False, status=-1,
+                                  message=f'time limit of {time_limit:g} s reached')
+        watch.optimising, watch.verifying = False, True
+        watch.say(what=f'{watch.iteration} iterations in {time.perf_counter() - start_time:.0f}'
+                  ' s; verifying the best iterates on dense grids')
     names = list(robot.joint_names)
     reasons: list[str] = []
 
@@ -730,11 +819,16 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     value, traj, framed, scale, clearance = best
     is_initial = initial_kept
     warnings = []
-    if res is not None and not res.success:
-        advice = ('raise --maxiter' if res.status == 9 else
-                  'the constraints may be too tight: loosen the limits or the margin')
+    message = str(res.message) if res is not None else 'no iterations'
+    if res is not None and res.status == 9:   # the iteration limit: said, not a warning
+        message = (f'stopped at the limit of {res.nit} iterations (--maxiter); kept the best '
+                   'feasible point found')
+    elif res is not None and res.status == -1:
+        message = f'stopped at the {message}; kept the best feasible point found'
+    elif res is not None and not res.success:
         warnings.append(f'SLSQP stopped without converging after {res.nit} iterations '
-                        f'({res.message}); kept the best feasible point found ({advice})')
+                        f'({res.message}); kept the best feasible point found (the '
+                        'constraints may be too tight: loosen the limits or the margin)')
     if is_initial or value >= f_init:
         warnings.append('no feasible point improved on the initial guess; kept '
                         + ('it' if initial_feasible else 'it, scaled into the constraints'))
@@ -743,7 +837,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         initial_value=f_init, ratios=limit_ratios(framed, robot, limits, phis=phis),
         iterations=int(res.nit) if res is not None else 0, evaluations=design.evaluations,
         success=bool(res.success) if res is not None else False,
-        message=str(res.message) if res is not None else 'no iterations',
+        message=message,
         scale=scale, runtime=time.perf_counter() - start_time, num_samples=int(num_samples),
         limits=limits,
         noise_std=None if noise_std is None else [float(s) for s in noise_std],

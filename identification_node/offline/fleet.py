@@ -301,14 +301,21 @@ def bag_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     """The smoother parameters the pipeline of ``settings`` uses on ``bag`` (as identify):
     () when they fix the half window, else the half window and cut-off it chooses (the bag
     read until chosen)."""
+    choice = chosen_smoother(bag, settings, robot, joint_states, motor_currents)
+    return () if choice is None else (('smoother.half_window', int(choice.half_window)),
+                                      ('smoother.cutoff', float(choice.cutoff)))
+
+
+def chosen_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                    joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS):
+    """The smoother (rows.SmootherChoice) the pipeline of ``settings`` chooses on ``bag``, the
+    bag read until chosen; None when the settings fix the half window."""
     if settings['smoother.half_window']:
-        return ()
+        return None
     pipeline = settings.build(robot)
     identify_bag(bag, settings, robot, joint_states, motor_currents, checkpoints=1,
                  pipeline=pipeline, until=lambda p: p.smoother is not None)
-    choice = pipeline.smoother
-    return (('smoother.half_window', int(choice.half_window)),
-            ('smoother.cutoff', float(choice.cutoff)))
+    return pipeline.smoother
 
 
 def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
