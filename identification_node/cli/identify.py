@@ -429,7 +429,6 @@ def run(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args)
     if args.workers < 0:
-        from identification_node.errors import IdentificationError
         raise IdentificationError(f'--workers must be >= 0 (0: one per core), got '
                                   f'{args.workers}')
     window = TimeWindow(args.start, args.end).validate()
