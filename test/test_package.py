@@ -23,7 +23,7 @@ COLCON = (str(Path(sys.executable).with_name('colcon'))
 NOT_SOURCE = {'.venv', '.git', 'build', 'install', 'log', 'test', 'bench', 'bags', '.ci',
               '.pytest_cache', '__pycache__', f'{PACKAGE}.egg-info'}
 EXEC_DEPENDS = {'rclpy', 'sensor_msgs', 'std_msgs', 'std_srvs', 'geometry_msgs',
-                'diagnostic_msgs', 'trajectory_msgs'}
+                'diagnostic_msgs', 'launch', 'launch_ros'}
 
 
 def setup_keywords() -> dict:
@@ -142,6 +142,15 @@ def test_config_and_robots_installed(install, site_packages):
     assert sorted(p.name for p in share.glob('robots/*.urdf')) == robots
     # package_data: load_robot('<name>') reads the copy inside the installed Python package.
     assert sorted(p.name for p in (site_packages / PACKAGE / 'robots').glob('*.urdf')) == robots
+
+
+def test_launch_files_installed(install):
+    launch = sorted(p.name for p in (ROOT / 'launch').glob('*.launch.py'))
+    assert 'identification.launch.py' in launch
+    share = install / 'share' / PACKAGE / 'launch'
+    assert sorted(p.name for p in share.glob('*.launch.py')) == launch
+    for name in launch:
+        assert (share / name).read_bytes() == (ROOT / 'launch' / name).read_bytes()
 
 
 def test_installed_python_package_is_used(install, site_packages, tmp_path):
