@@ -3,33 +3,40 @@ package's process-wide environment before numpy loads, then runs its program. Im
 package changes nothing in the process."""
 from __future__ import annotations
 
-import importlib
 import os
+from typing import Sequence
 
 
-def _run(module: str) -> int:
-    """``main()`` of ``module`` (relative to this package) after setting the environment."""
+def _environment() -> None:
     # The matrices here are small (tens of columns): threaded BLAS only spins on the few
     # cores a robot computer shares with its controllers. A user's choice wins.
     os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
-    return importlib.import_module(module, __package__).main()
 
 
-def identification_node() -> int:
-    """``ros2 run identification_node identification_node``."""
-    return _run('.ros.node')
+def _program(verb: str, script: str, argv: Sequence[str] | None) -> int:
+    """The CLI verb ``verb`` as the program ``script`` (its --help, then ROS arguments)."""
+    _environment()
+    from identification_node.cli import run_program
+    return run_program(verb, f'ros2 run identification_node {script}', argv)
 
 
-def simulated_arm() -> int:
-    """``ros2 run identification_node simulated_arm``."""
-    return _run('.ros.sim_node')
+def identification_node(argv: Sequence[str] | None = None) -> int:
+    """``ros2 run identification_node identification_node [--help] [--ros-args ...]``."""
+    return _program('node', 'identification_node', argv)
 
 
-def payload_forwarder() -> int:
+def simulated_arm(argv: Sequence[str] | None = None) -> int:
+    """``ros2 run identification_node simulated_arm [--help] [--ros-args ...]``."""
+    return _program('sim', 'simulated_arm', argv)
+
+
+def payload_forwarder(argv: Sequence[str] | None = None) -> int:
     """``ros2 run identification_node payload_forwarder``: ~/payload to a controller."""
-    return _run('.ros.payload_forwarder')
+    return _program('forward_payload', 'payload_forwarder', argv)
 
 
-def identification_cli() -> int:
+def identification_cli(argv: Sequence[str] | None = None) -> int:
     """``identification_cli VERB ...`` / ``python -m identification_node VERB ...``."""
-    return _run('.cli')
+    _environment()
+    from identification_node.cli import main
+    return main(argv)

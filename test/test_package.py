@@ -180,6 +180,17 @@ def test_installed_cli_help_lists_verbs(install, site_packages, tmp_path):
     assert bad.returncode == 2 and 'invalid choice' in bad.stderr
 
 
+def test_installed_scripts_print_help(install, site_packages, tmp_path):
+    """``ros2 run identification_node SCRIPT --help`` runs lib/<package>/SCRIPT --help."""
+    for script in console_scripts():
+        proc = subprocess.run([str(install / 'lib' / PACKAGE / script), '--help'], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=120,
+                              env=installed_env(site_packages, install))
+        assert proc.returncode == 0, f'{script}: {proc.stderr}'
+        assert proc.stdout.startswith('usage: '), script
+        assert script == 'identification_cli' or f'ros2 run {PACKAGE} {script}' in proc.stdout
+
+
 def test_importing_the_package_leaves_the_process_environment_alone(tmp_path):
     """A controller importing controller_client (and so the package) keeps its environment;
     the package's programs set theirs in their entry points (programs.py)."""

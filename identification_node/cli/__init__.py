@@ -125,7 +125,23 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args, rest = parser.parse_known_args(argv)
-    module = importlib.import_module(f'{__name__}.{VERBS[args.verb][0]}')
+    return _run_verb(parser, args.verb, args, rest)
+
+
+def run_program(verb: str, prog: str, argv: Sequence[str] | None = None) -> int:
+    """One verb as a program of its own (an installed entry point, ``ros2 run``): its
+    ``--help``, and every other argument (``--ros-args ...``) handed on as ``main`` does."""
+    module, text = VERBS[verb]
+    parser = argparse.ArgumentParser(prog=prog, description=text, conflict_handler='resolve')
+    importlib.import_module(f'{__name__}.{module}').add_arguments(parser)
+    args, rest = parser.parse_known_args(sys.argv[1:] if argv is None else argv)
+    return _run_verb(parser, verb, args, rest)
+
+
+def _run_verb(parser: argparse.ArgumentParser, verb: str, args: argparse.Namespace,
+              rest: list[str]) -> int:
+    args.verb = verb
+    module = importlib.import_module(f'{__name__}.{VERBS[verb][0]}')
     if rest and not getattr(module, 'ROS_ARGS', False):
         parser.error(f'unrecognized arguments: {" ".join(rest)}')
     args.ros_args = rest   # verbs running a ROS node (ROS_ARGS = True) pass these to rclpy

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -411,7 +412,17 @@ class SolverProcess:
             self._conn, child = ctx.Pipe()
             self._process = ctx.Process(target=_serve, args=(child, *self._args),
                                         daemon=True, name='identification_consistency')
-            self._process.start()
+            # Ctrl-C in a terminal signals the whole process group: the child is ended by its
+            # parent (close), not by SIGINT mid-import (a traceback). It inherits an ignored
+            # SIGINT, which only the main thread can set (a child started by another thread,
+            # after a time-out, is spared only once it runs _serve).
+            main = threading.current_thread() is threading.main_thread()
+            sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+            try:
+                self._process.start()
+            finally:
+                if main:
+                    signal.signal(signal.SIGINT, sigint)
             child.close()
             self._started = False
             return self._conn
@@ -453,7 +464,9 @@ class SolverProcess:
 def _serve(conn, base, phi_prior, bodies, options) -> None:
     """The child of SolverProcess: build the solver, then answer (equations, weights) with
     ('ok', ConsistentEstimate) or ('error', message) until None or the pipe closes. It runs
-    at a lower priority (nice +NICE) than the node, whose 1 kHz processing comes first."""
+    at a lower priority (nice +NICE) than the node, whose 1 kHz processing comes first.
+    SIGINT is ignored (see SolverProcess.start): the parent ends it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(NICE)
     solver, error = None, ''
     try:

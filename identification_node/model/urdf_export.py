@@ -29,34 +29,36 @@ def link_inertia(phi10: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return m, c, Io - m * (c @ c * np.eye(3) - np.outer(c, c))
 
 
+def link_problem(link: str, phi10: np.ndarray, rtol: float = 1e-9) -> str:
+    """Why one link block [m, mx, my, mz, Ixx, ...] is not physically consistent (mass > 0,
+    inertia about the centre of mass positive definite and obeying the triangle inequality);
+    '' when it is."""
+    if not np.isfinite(phi10).all():
+        return f'{link}: parameters not finite (' + ' '.join(f'{v:.4g}' for v in phi10) + ')'
+    with np.errstate(over='ignore', invalid='ignore'):
+        m, _, Ic = link_inertia(phi10)
+    if not m > 0:
+        return f'{link}: mass {m:.6g} kg is not positive'
+    try:
+        ev = np.linalg.eigvalsh(Ic)
+    except (np.linalg.LinAlgError, ValueError):   # overflow on absurd values
+        return f'{link}: inertia about the centre of mass is not finite'
+    tol = rtol * max(1.0, float(np.abs(ev).max()))
+    if ev[0] <= tol:
+        return (f'{link}: inertia about the centre of mass is not positive definite '
+                f'(principal moments {np.array2string(ev, precision=4)})')
+    if 2 * ev.max() > ev.sum() + tol:
+        return (f'{link}: principal moments {np.array2string(ev, precision=4)} '
+                'violate the triangle inequality')
+    return ''
+
+
 def consistency_problems(robot: RobotModel, phi: np.ndarray, rtol: float = 1e-9) -> list[str]:
-    """Why ``phi`` is not physically consistent (empty when it is): per link mass > 0, inertia
-    about the centre of mass positive definite and obeying the triangle inequality; rotor
-    inertia and friction coefficients >= 0."""
-    problems = []
-    for i, link in enumerate(robot.link_names):
-        block = phi[10 * i:10 * i + 10]
-        if not np.isfinite(block).all():
-            problems.append(f'{link}: parameters not finite ('
-                            + ' '.join(f'{v:.4g}' for v in block) + ')')
-            continue
-        with np.errstate(over='ignore', invalid='ignore'):
-            m, _, Ic = link_inertia(block)
-        if not m > 0:
-            problems.append(f'{link}: mass {m:.6g} kg is not positive')
-            continue
-        try:
-            ev = np.linalg.eigvalsh(Ic)
-        except (np.linalg.LinAlgError, ValueError):   # overflow on absurd values
-            problems.append(f'{link}: inertia about the centre of mass is not finite')
-            continue
-        tol = rtol * max(1.0, float(np.abs(ev).max()))
-        if ev[0] <= tol:
-            problems.append(f'{link}: inertia about the centre of mass is not positive definite '
-                            f'(principal moments {np.array2string(ev, precision=4)})')
-        elif 2 * ev.max() > ev.sum() + tol:
-            problems.append(f'{link}: principal moments {np.array2string(ev, precision=4)} '
-                            'violate the triangle inequality')
+    """Why ``phi`` is not physically consistent (empty when it is): every link's block
+    (link_problem); rotor inertia and friction coefficients >= 0."""
+    problems = [link_problem(link, phi[10 * i:10 * i + 10], rtol)
+                for i, link in enumerate(robot.link_names)]
+    problems = [p for p in problems if p]
     for name, value in zip(robot.param_names[robot.n_inertial:], phi[robot.n_inertial:]):
         if not np.isfinite(value):
             problems.append(f'{name} = {value} is not finite')

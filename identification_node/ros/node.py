@@ -59,6 +59,7 @@ from identification_node.offline.results import plain, snapshot_document, write_
 from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
+from identification_node.ros.link_outputs import LinkOutputs
 from identification_node.ros.payload_outputs import PayloadOutputs
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
                                                       ServiceThread, Snapshot, failed)
@@ -181,6 +182,7 @@ class IdentificationNode(Node):
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
         self._pub_urdf = self.create_publisher(String, '~/robot_description', LATCHED_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.links = LinkOutputs(self, self.robot)
         self._service_thread.add(Trigger, '~/reset', self._srv_reset)
         self._service_thread.add(SetBool, '~/freeze', self._srv_freeze)
         self._service_thread.add(Trigger, '~/save', self._srv_save)
@@ -204,6 +206,11 @@ class IdentificationNode(Node):
         self._jobs: list[Snapshot] = []     # taken by the worker in order
         self._job_ready = threading.Condition()
         self._worker_running = True
+        if self._consistency_options is not None:
+            try:   # spawned here, on the main thread, so that Ctrl-C spares it (SolverProcess)
+                self._solver_instance()
+            except Exception as exc:  # noqa: BLE001 - reported by the first solve again
+                self.get_logger().error(f'physical consistency solver: {exc}')
         self._worker = threading.Thread(target=self._consistency_worker,
                                         name='identification_consistency', daemon=True)
         self._worker.start()
@@ -429,11 +436,6 @@ class IdentificationNode(Node):
         self._requests.want_snapshot()
 
     def _consistency_worker(self) -> None:
-        if self._consistency_options is not None:
-            try:
-                self._solver_instance()   # built once, ahead of the first refresh
-            except Exception as exc:  # noqa: BLE001 - reported by the first solve again
-                self.get_logger().error(f'physical consistency solver: {exc}')
         while True:
             with self._job_ready:
                 while not self._jobs and self._worker_running:
@@ -491,7 +493,7 @@ class IdentificationNode(Node):
         with self._solver_lock:
             result = solver.solve(*equations)
         self._consistent = result
-        if not result.ok and result.status != self._solver_failure:
+        if not result.ok and result.status != self._solver_failure and self._worker_running:
             self.get_logger().warning(
                 f'physically consistent solve: {result.status}; publishing the '
                 'unconstrained estimate')
@@ -534,6 +536,10 @@ class IdentificationNode(Node):
                 if payload is not None:
                     urdf = urdf_with_payload(urdf, payload)
                 self._pub_urdf.publish(String(data=urdf))
+            if est.num_samples and math.isfinite(est.stamp):
+                with self._lock:
+                    phi = consistent.phi if ok else self.pipeline.standard_parameters()
+                self.links.publish(phi, int(round(est.stamp * 1e9)))
 
     def _publish_diagnostics(self) -> None:
         p = self.pipeline
