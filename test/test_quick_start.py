@@ -51,7 +51,7 @@ def test_the_readme_quick_start_identifies_the_simulated_arm(ros):
                      if s.name.startswith('identification_node:')]
             last[0] = diagnostic_values(found[-1]) if found else {}
             done = (int(last[0].get('samples_used', 0)) >= 2000
-                    and last[0].get('converged') == 'True')
+                    and last[0].get('converged') == 'true')
             return last[0] if done or any(p.poll() is not None for p in procs) else None
         values = wait_for(status, 90.0, period=0.2)
         for p in procs:
@@ -64,7 +64,7 @@ def test_the_readme_quick_start_identifies_the_simulated_arm(ros):
                     and k != 'rejected.outlier'}
         assert not rejected, rejected
         assert int(values.get('rejected.outlier', 0)) < 0.05 * int(values['samples_used'])
-        assert values['converged'] == 'True' and float(values['condition_number']) < 1e8
+        assert values['converged'] == 'true' and float(values['condition_number']) < 1e8
     finally:
         diag.close()
 

@@ -39,7 +39,7 @@ import traceback
 from typing import Any, Callable
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -59,6 +59,7 @@ from identification_node.offline.results import plain, snapshot_document, write_
 from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
+from identification_node.ros.diagnostics import SMOOTHER_SOURCES, key_values, vector
 from identification_node.ros.link_outputs import LinkOutputs
 from identification_node.ros.payload_outputs import PayloadOutputs
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
@@ -137,7 +138,8 @@ def smoother_text(choice) -> str:
     rate = f'{choice.rate:.6g} Hz' if choice.rate > 0 else 'a rate not known yet'
     delay = f'{1e3 * choice.delay:.1f} ms' if choice.rate > 0 else f'{choice.half_window} samples'
     cutoff = f'cut-off {choice.cutoff:.3g} Hz' if choice.rate > 0 else 'cut-off not known yet'
-    return (f'{cutoff} ({choice.source}), half window {choice.half_window} samples at {rate}, '
+    source = SMOOTHER_SOURCES.get(choice.source, choice.source)
+    return (f'{cutoff} ({source}), half window {choice.half_window} samples at {rate}, '
             f'delay of ~/predicted_effort {delay}')
 
 
@@ -145,10 +147,10 @@ def smoother_values(choice, holding: int) -> dict[str, Any]:
     """The diagnostics of the smoother (rows.SmootherChoice, None while being chosen)."""
     if choice is None:
         return {'smoother': f'being chosen ({holding} samples held back)',
-                'smoother_delay_samples': 'not chosen yet'}
-    return {'smoother': choice.source, 'smoother_delay_samples': choice.half_window,
-            'smoother_delay_ms': f'{1e3 * choice.delay:.3f}',
-            'smoother_cutoff_hz': f'{choice.cutoff:.6g}', 'smoother_order': choice.order}
+                'smoother_delay_samples': None}
+    return {'smoother': SMOOTHER_SOURCES.get(choice.source, choice.source),
+            'smoother_delay_samples': choice.half_window, 'smoother_delay_ms': 1e3 * choice.delay,
+            'smoother_cutoff_hz': choice.cutoff, 'smoother_order': choice.order}
 
 
 class IdentificationNode(Node):
@@ -577,33 +579,31 @@ class IdentificationNode(Node):
             status.level = DiagnosticStatus.WARN
             status.message += '; missing model term?'
         values = {
-            'input_rate_hz': f'{rate:.1f}', 'samples_received': received,
+            'input_rate_hz': rate, 'samples_received': received,
             'samples_used': used, 'samples_rejected': sum(rejected.values()),
-            'condition_number': f'{est.condition_number:.6g}',
-            'min_information_eigenvalue': f'{est.min_eigenvalue:.6g}',
+            'condition_number': est.condition_number,
+            'min_information_eigenvalue': est.min_eigenvalue,
             'converged': est.converged, 'frozen': est.frozen, 'stream_restarts': restarts,
             **smoother_values(p.smoother, p.row_builder.holding),
             'physically_consistent': not self._consistency,
             'robust_gate': robust, 'residual_shifts': shifts, 'numerical_failures': failures,
             'smoother_edge_samples': edges, 'layout_cache_bytes': cache,
             'callback_errors': sum(self.callback_errors.values()),
-            'time_offset_s': 'not estimated yet' if offset is None else f'{offset.offset:.4f}',
+            'time_offset_s': None if offset is None else offset.offset,
         }
         result = self._consistent
         values['consistency_status'] = ('disabled' if self._consistency_options is None else
                                         'not solved yet' if result is None else result.status)
         if result is not None:
-            values['consistency_solve_time_ms'] = f'{1e3 * result.solve_time:.1f}'
+            values['consistency_solve_time_ms'] = 1e3 * result.solve_time
             if not result.ok:
                 status.level = DiagnosticStatus.WARN
                 status.message += '; consistent solve failed: unconstrained estimate published'
             if result.notes:
                 values['consistency_notes'] = '; '.join(result.notes)
-        values.update({f'lost_messages.{s.topic}': 'not known with this middleware'
-                       if s.lost is None else s.lost for s in self._inputs})
+        values.update({f'lost_messages.{s.topic}': s.lost for s in self._inputs})
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
-        values.update({f'residual_rms.{j}': f'{r:.6g}' if np.isfinite(r) else 'no samples yet'
-                       for j, r in zip(self.robot.joint_names, est.residual_rms)})
+        values.update(vector('residual_rms', self.robot.joint_names, est.residual_rms))
         values.update({f'excluded_equations.{j}': int(k)
                        for j, k in zip(self.robot.joint_names, excluded)})
         if missing:
@@ -619,7 +619,7 @@ class IdentificationNode(Node):
             status.level = max(status.level, (DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[
                 offset.level - 1])
             status.message += f'; torque {offset.offset:+.3f} s off the motion'
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        status.values = key_values(values)
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = now.to_msg()
         self._pub_diag.publish(msg)

@@ -33,6 +33,7 @@ from identification_node.errors import IdentificationError
 from identification_node.payload.fit import (PayloadEstimate, payload_parameters,
                                              prepare_consistency)
 from identification_node.payload.monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
+from identification_node.ros.diagnostics import NOT_EXCITED, vector
 from identification_node.ros.service_requests import (Outcome, RequestQueue, ServiceThread,
                                                       failed)
 
@@ -114,16 +115,17 @@ class PayloadOutputs:
         m = self.monitor
         est = m.current
         values = {'payload.link': self.link, 'payload.changes': m.changes,
-                  'payload.detector_statistic': f'{m.detector.statistic:.3g}',
+                  'payload.detector_statistic': m.detector.statistic,
                   'payload.stream_gaps': m.detector.gaps,
                   'payload.state': m.state}
         if self.last_change is not None:
             values['payload.last_change'] = f'{self.last_change.stamp:.6f}'
             values['payload.last_change_detected'] = f'{self.last_change.detected:.6f}'
-        if est is not None:
+        if est is not None:   # unexcited quantities: 'not excited' (diagnostics.py)
             doc = est.document()
-            values['payload.mass'] = doc['mass']
-            values['payload.com'] = doc['com']
+            values['payload.mass'] = NOT_EXCITED if doc['mass'] is None else doc['mass']
+            values.update(vector('payload.com', 'xyz', doc['com'],
+                                 [v is not None for v in doc['com']]))
             values['payload.excited'] = ' '.join(doc['excited'])
             values['payload.not_excited'] = ' '.join(doc['not_excited'])
         return values
