@@ -55,6 +55,7 @@ setup(
             'identification_node = identification_node.programs:identification_node',
             'simulated_arm = identification_node.programs:simulated_arm',
             'payload_forwarder = identification_node.programs:payload_forwarder',
+            'parameter_forwarder = identification_node.programs:parameter_forwarder',
             'identification_cli = identification_node.programs:identification_cli',
         ],
     },

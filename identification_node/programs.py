@@ -35,6 +35,11 @@ def payload_forwarder(argv: Sequence[str] | None = None) -> int:
     return _program('forward_payload', 'payload_forwarder', argv)
 
 
+def parameter_forwarder(argv: Sequence[str] | None = None) -> int:
+    """``ros2 run identification_node parameter_forwarder``: quantities to node parameters."""
+    return _program('forward_parameters', 'parameter_forwarder', argv)
+
+
 def identification_cli(argv: Sequence[str] | None = None) -> int:
     """``identification_cli VERB ...`` / ``python -m identification_node VERB ...``."""
     _environment()

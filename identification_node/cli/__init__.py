@@ -29,6 +29,9 @@ VERBS = {
     'node': ('node', 'run the identification node'),
     'forward_payload': ('forward_payload', 'forward the identified payload to a controller '
                         'service (UR set_payload, Franka SetLoad, any Inertia-shaped request)'),
+    'forward_parameters': ('forward_parameters', 'push identified quantities into another '
+                           "node's parameters (admittance_controller's gravity compensation, "
+                           'friction coefficients)'),
 }
 
 

@@ -5,6 +5,9 @@
   the payload link; m (kg), com (m) and the inertia about the com (kg m^2), in that link's
   frame. A quantity the motion did not excite is published as 0 (a point mass / a centre of
   mass on the axis), and named in diagnostics (``payload.not_excited``).
+- ``~/payload/stddev`` (InertiaStamped, transient local): the standard deviations of those
+  quantities in the same fields and header (inf where not excited; 0 for a payload set by
+  ``~/payload/set``), published just before each ``~/payload``.
 - ``~/payload_changed`` (std_msgs/Header): a detected change, stamp = its estimated onset,
   frame_id = the payload link (the new payload follows on ``~/payload``).
 - ``~/payload/reset`` (std_srvs/Trigger): forget the payload (e.g. after a tool change);
@@ -59,6 +62,21 @@ def inertia_message(est: PayloadEstimate, stamp: float) -> InertiaStamped:
     return msg
 
 
+def stddev_message(est: PayloadEstimate, stamp: float) -> InertiaStamped:
+    """The standard deviations of ``est``'s quantities in InertiaStamped's layout (inf where
+    not excited), header as ``inertia_message``'s."""
+    msg = InertiaStamped()
+    msg.header.frame_id = est.link
+    msg.header.stamp.sec, msg.header.stamp.nanosec = _split(stamp)
+    sd = {q: float(v) for q, v in est.stddev.items()}
+    msg.inertia.m = sd.get('mass', math.inf)
+    for axis in 'xyz':
+        setattr(msg.inertia.com, axis, sd.get(f'com.{axis}', math.inf))
+    for key in ('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz'):
+        setattr(msg.inertia, key, sd.get(f'inertia.{key}', math.inf))
+    return msg
+
+
 def _split(stamp: float) -> tuple[int, int]:
     ns = int(round(stamp * 1e9)) if math.isfinite(stamp) else 0
     return ns // 1_000_000_000, ns % 1_000_000_000
@@ -80,6 +98,7 @@ class PayloadOutputs:
         self.version = 0
         self.last_change: PayloadEvent | None = None
         self._pub = node.create_publisher(InertiaStamped, '~/payload', LATCHED)
+        self._pub_sd = node.create_publisher(InertiaStamped, '~/payload/stddev', LATCHED)
         self._pub_changed = node.create_publisher(Header, '~/payload_changed', EVENTS)
         services.add(Trigger, '~/payload/reset', self._srv_reset)
         services.add(SetParameters, '~/payload/set', self._srv_set)
@@ -109,7 +128,11 @@ class PayloadOutputs:
                     f'payload change at {e.stamp:.3f} s (detected {e.detected:.3f} s, mass '
                     f'change about {e.detection.delta[0]:+.3g} kg)')
             elif e.payload is not None:
-                self._pub.publish(inertia_message(e.payload, e.stamp))
+                self._publish_payload(e.payload, e.stamp)
+
+    def _publish_payload(self, est: PayloadEstimate, stamp: float) -> None:
+        self._pub_sd.publish(stddev_message(est, stamp))   # first: ~/payload completes a pair
+        self._pub.publish(inertia_message(est, stamp))
 
     def diagnostics(self) -> dict:
         m = self.monitor
@@ -178,5 +201,4 @@ class PayloadOutputs:
         elif kind == 'payload_set':
             est = self.monitor.set_payload(argument)
             self.version += 1
-            self._pub.publish(inertia_message(
-                est, self.node.get_clock().now().nanoseconds * 1e-9))
+            self._publish_payload(est, self.node.get_clock().now().nanoseconds * 1e-9)
