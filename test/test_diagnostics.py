@@ -85,6 +85,22 @@ def test_node_diagnostics_are_plain(ros):
     for axis in 'xyz':
         assert NUMBER.fullmatch(values[f'payload.com.{axis}']) or \
             values[f'payload.com.{axis}'] == NOT_EXCITED
+    # ~/get_estimate: the keys and types the README writes down
+    import json
+    from std_srvs.srv import Trigger
+    from ros_helpers import ROOT
+    res = ros.call(Trigger, '/plain/get_estimate', Trigger.Request())
+    got = json.loads(res.message)
+    readme = (ROOT / 'README.md').read_text()
+    block = readme[readme.index('`~/get_estimate` answers'):]
+    block = block[:block.index('"condition_number"') + 60]
+    documented = dict(re.findall(r'"(\w+)": (\[?\w+)', block))
+    assert set(got) == set(documented)
+    kinds = {'[str': list, '[float': list, 'str': str, 'int': int, 'float': float,
+             'bool': bool}
+    for key, kind in documented.items():
+        assert isinstance(got[key], kinds[kind]), (key, got[key])
+    assert len(got['names']) == len(got['values']) == len(got['stddev'])
     diag.close()
     ros.client.destroy_publisher(sender)
     ros.remove(node)
