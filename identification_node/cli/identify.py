@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import textwrap
 import sys
 
 import numpy as np
@@ -210,19 +211,32 @@ def format_report(doc: dict) -> str:
     if doc['rejected']:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in doc['rejected'].items()))
     rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['unconstrained_estimate']:.6g}",
-             f"{b['stddev']:.3g}" if b['stddev'] is not None
-             else 'inf', f"{b['rel_stddev']:.2f}" if b['rel_stddev'] is not None else 'inf',
-             f"{b['model']:.6g}", b['expression']) if b['estimate'] is not None else
-            (b['name'], 'not excited', '', '', '', f"{b['model']:.6g}", b['expression'])
+             f"{b['stddev']:.3g}" if b['stddev'] is not None else 'inf',
+             _relative(b['estimate'], b['stddev']), f"{b['model']:.6g}")
+            if b['estimate'] is not None else
+            (b['name'], 'not excited', '', '', '', f"{b['model']:.6g}")
             for b in doc['base_parameters']]
     lines += ['', 'base parameters (SI units):'] + _table(
-        ('name', 'estimate', 'unconstrained', 'stddev', 'rel %', 'model', 'expression'), rows)
+        ('name', 'estimate', 'unconstrained', 'stddev', 'rel %', 'model'), rows) + [
+        f'  rel %: stddev / |estimate|; - where the estimate is within {ABOUT_ZERO:g} stddev '
+        'of zero']
+    regrouped = [b for b in doc['base_parameters'] if b['expression'] != b['name']]
+    if regrouped:
+        lines += ['', 'regrouped base parameters (sums of standard parameters; `structure` '
+                  'explains them):']
+        for b in regrouped:
+            lines += textwrap.wrap(f"{b['name']} = {b['expression']}", TEXT_WIDTH,
+                                   initial_indent='  ', subsequent_indent='      ',
+                                   break_on_hyphens=False)
+        lines.append('')
     solver = doc['consistency_solver']
     lines.append(f"physically consistent solve: {solver['status']}" + (
         f" ({solver['solve_time']:.3f} s)" if solver['solve_time'] is not None else '')
         + ('' if solver['status'] in ('optimal', 'disabled') else
            ': the unconstrained estimate is given'))
-    lines += [f'  note: {n}' for n in solver['notes']]
+    for n in solver['notes']:
+        lines += textwrap.wrap(f'note: {n}', TEXT_WIDTH, initial_indent='  ',
+                               subsequent_indent='    ')
     lines += ['']
     for what, e in ([('training bag', doc['training_error'])] if 'training_error' in doc
                     else []) + [(f"validation bag {v['bag']}", v)
@@ -326,13 +340,24 @@ def paper_table3(fit) -> str:
         ('combination', 'identified', 'stddev', 'Table 1', 'paper CAD', 'paper est.'), rows))
 
 
+ABOUT_ZERO = 3.0     # an estimate within this many stddev of zero has no relative stddev
+TEXT_WIDTH = 100    # columns of the text output
+
+
+def _relative(value: float, stddev: float | None) -> str:
+    """stddev / |value| in percent, '-' where the value is about zero (or stddev unknown)."""
+    if stddev is None or not np.isfinite(stddev) or abs(value) <= ABOUT_ZERO * stddev:
+        return '-'
+    return f'{100 * stddev / abs(value):.2f}'
+
+
 def _spread(n: int, k: int) -> list[int]:
     return sorted({int(round(i)) for i in np.linspace(0, n - 1, min(n, k))}) if n else []
 
 
 def _table(header: tuple, rows: list[tuple]) -> list[str]:
     widths = [max(len(str(r[i])) for r in [header] + rows) for i in range(len(header))]
-    return ['  ' + '  '.join(f'{str(c):<{w}}' if i in (0, len(header) - 1) else
+    return ['  ' + '  '.join(f'{str(c):<{w}}' if i == 0 else
                              f'{str(c):>{w}}' for i, (c, w) in enumerate(zip(r, widths))).rstrip()
             for r in [header] + rows]
 
@@ -520,6 +545,8 @@ def run(args: argparse.Namespace) -> int:
         from identification_node.offline.report import write_report
         report = write_report(args.report, ident, validations, training)
         doc['report'] = {k: str(p) for k, p in report.files.items()}
+    if args.predictions:
+        doc['predictions'] = str(args.predictions)
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
@@ -531,6 +558,14 @@ def run(args: argparse.Namespace) -> int:
         if gains is not None:
             from identification_node.estimation.drive_gains import gains_text
             print('\n'.join(gains_text(gains)))
-        if args.report:
-            print(f"\nreport: {doc['report']['report']}")
+        print(format_outputs(doc))
     return 0
+
+
+def format_outputs(doc: dict) -> str:
+    """The files --save, --report and --predictions wrote, by name."""
+    written = [('--save', doc.get('saved') or []),
+               ('--report', list((doc.get('report') or {}).values())),
+               ('--predictions', [doc['predictions']] if doc.get('predictions') else [])]
+    lines = [f'  {option}: {path}' for option, paths in written for path in paths]
+    return '\n'.join(['', 'files written:'] + lines) if lines else ''

@@ -115,6 +115,11 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+# measured: light and wide beneath; identified and model: saturated, distinct hues on top
+COLOURS = {'measured': '0.72', 'identified': 'tab:blue', 'model': 'tab:orange',
+           'residual': 'tab:purple'}
+
+
 def plot_torque(data: dict, path: str | os.PathLike, title: str, xlabel: str = 'time (s)',
                 measured: str = 'measured (raw)') -> Path:
     """Per joint: measured, identified and model torque against time, and below it the
@@ -127,15 +132,16 @@ def plot_torque(data: dict, path: str | os.PathLike, title: str, xlabel: str = '
                         gridspec_kw={'height_ratios': [3, 1] * n})[:, 0]
     for j in range(n):
         ax, res = axes[2 * j], axes[2 * j + 1]
-        ax.plot(data['t'], data['measured'][:, j], color='0.2', lw=0.8, label=measured)
-        ax.plot(data['t'], data['predicted'][:, j], color='tab:blue', lw=1.0,
+        ax.plot(data['t'], data['measured'][:, j], color=COLOURS['measured'], lw=1.8,
+                label=measured)
+        ax.plot(data['t'], data['predicted'][:, j], color=COLOURS['identified'], lw=1.0,
                 label='identified')
-        ax.plot(data['t'], data['model'][:, j], color='tab:red', lw=1.0, ls='--',
+        ax.plot(data['t'], data['model'][:, j], color=COLOURS['model'], lw=1.0, ls='--',
                 label='model (URDF/CAD)')
-        ax.set_ylabel(f"{data['joints'][j]} (N m)")
-        res.plot(data['t'], data['residual'][:, j], color='tab:purple', lw=0.6)
+        ax.set_ylabel(f"{data['joints'][j]} torque (N m)")
+        res.plot(data['t'], data['residual'][:, j], color=COLOURS['residual'], lw=0.6)
         res.axhline(0.0, color='0.5', lw=0.5)
-        res.set_ylabel('residual (N m)', fontsize='small')
+        res.set_ylabel('torque residual\n(N m)', fontsize='small')
         for a in (ax, res):
             a.grid(alpha=0.3)
     axes[0].legend(loc='upper right', fontsize='small', ncol=3)
@@ -167,9 +173,9 @@ def plot_convergence(data: dict, path: str | os.PathLike) -> Path:
         bottom.plot(x, np.nanmax(rel, axis=1), lw=1.2, label='largest')
     top.set_title('Convergence of the estimate')
     top.set_ylabel('|estimate - final| / stddev')
-    middle.set_ylabel(f'the {len(data["worst"])} furthest')
-    bottom.set_ylabel('relative stddev (%)')
-    bottom.set_xlabel('samples')
+    middle.set_ylabel(f'|estimate - final| / stddev,\nthe {len(data["worst"])} furthest')
+    bottom.set_ylabel('relative stddev of the\nestimates (%)')
+    bottom.set_xlabel('samples used')
     for ax in (top, middle, bottom):
         ax.set_yscale('symlog', linthresh=1.0) if ax is not bottom else ax.set_yscale('log')
         if ax is not bottom:
@@ -197,7 +203,7 @@ def plot_estimates(data: dict, path: str | os.PathLike) -> Path:
     ax.plot(data['model'] / scale, y, 'x', color='tab:red', label='model (URDF/CAD)')
     ax.axvline(0.0, color='0.5', lw=0.5)
     ax.set_yticks(y, [f'{n} ({s:.3g})' for n, s in zip(names, scale)], fontsize='x-small')
-    ax.set_xlabel('value / scale (scale in parentheses, SI units)')
+    ax.set_xlabel('base parameter value / its scale (scale in parentheses, SI units)')
     ax.set_title('Base parameter estimates')
     ax.grid(alpha=0.3, axis='x')
     ax.legend(fontsize='small', loc='lower right')
@@ -322,7 +328,9 @@ def markdown(ident: Identification, validations: list[BagError] | tuple = (),
              '- rejected messages: '
              + (', '.join(f'{k} {v}' for k, v in ident.rejected.items()) or 'none')]
     for k, v in ident.details.items():
-        if k != 'processing':
+        if k == 'smoother' and isinstance(v, dict):
+            lines.append(f'- smoother: {smoother_words(v)}')
+        elif k != 'processing':
             lines.append(f'- {k.replace("_", " ")}: {_plain(v)}')
     lines += ['', '## Measured and predicted torque', '']
     if training is not None:
@@ -344,10 +352,16 @@ def markdown(ident: Identification, validations: list[BagError] | tuple = (),
                   'torque, stacked over all joints and per joint; against the smoothed torque '
                   'for comparison (smoothing the reference flatters it).', '']
         lines += error_table(errors, robot.joint_names) + ['']
-    noise = np.sqrt(ident.noise_variance)
-    lines += [f'On the {ident.processing} rows fitted (filtered torque):', '']
+    # The sensor's noise: from the training bag's raw minus smoothed torque (validation.py).
+    # Not the fit's noise level (noise_variance: the residual's white-noise equivalent, which
+    # also counts what the fit leaves at the motion's frequencies, scaled up by the smoother).
+    noise = (training.noise_std if training is not None and training.noise_std is not None
+             else np.full(robot.dof, np.nan))
+    lines += [f'On the {ident.processing} rows fitted (filtered torque); torque noise: the '
+              'std of the raw minus the smoothed torque, divided by sqrt(1 - the smoother\'s '
+              'white-noise gain):', '']
     lines += _table(['joint', 'relative error, identified (%)', 'relative error, model (%)',
-                     'residual rms (N m)', 'noise std (N m)'], [
+                     'residual rms (N m)', 'torque noise std (N m)'], [
         [j, _fmt(e, 4), _fmt(m, 4), _fmt(r, 4), _fmt(s, 4)] for j, e, m, r, s in zip(
             robot.joint_names, ident.relative_error(), ident.relative_error(ident.theta_model),
             ident.residual_rms, noise)])
@@ -400,6 +414,17 @@ def markdown(ident: Identification, validations: list[BagError] | tuple = (),
         if name in figures:
             lines += [f'![validation]({name})']
     return '\n'.join(lines) + '\n'
+
+
+def smoother_words(sm: dict) -> str:
+    """The smoother (SmootherChoice.document) in words."""
+    def known(v, scale=1.0):
+        return '?' if v is None or not np.isfinite(v) else f'{scale * v:.4g}'
+    source = {'half_window': 'half window given', 'cutoff': 'cut-off given',
+              'fallback': 'fallback cut-off'}.get(sm.get('source'), sm.get('source'))
+    return (f"cut-off {known(sm.get('cutoff_hz'))} Hz ({source}), half window "
+            f"{sm.get('half_window')} samples at {known(sm.get('rate_hz'))} Hz, delay "
+            f"{known(sm.get('delay_s'), 1e3)} ms, polynomial order {sm.get('order')}")
 
 
 def _plain(v) -> str:

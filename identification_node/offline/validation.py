@@ -14,6 +14,7 @@ noise and so flatters the fit. Units SI; stamps int64 ns.
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 
@@ -27,6 +28,7 @@ from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, ch
                                                 feed_bag, input_topics)
 from identification_node.offline.windows import TimeWindow
 from identification_node.pipeline import IdentificationPipeline
+from identification_node.pipeline.signals import smoothing_noise_gain
 from identification_node.settings import Settings
 
 BATCH = 1000   # messages per processing batch
@@ -86,6 +88,10 @@ class BagError:
     window: TimeWindow | None = None
     series: object | None = None       # identification.TorqueSeries
     rejected: dict = field(default_factory=dict)
+    # per joint std of the torque sensor's noise (N m): of raw minus smoothed torque, whose
+    # white-noise variance is (1 - gain) of the raw one (the smoother's centre weight is its
+    # gain, signals.smoothing_noise_gain); nan where unknown
+    noise_std: np.ndarray | None = None
 
     @property
     def relative_error(self) -> np.ndarray:
@@ -123,6 +129,7 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     stages, rows = pipeline.samples, pipeline.row_builder
     counters, n, b = stages.counters, robot.dof, base.num_base
     raw, smooth = ErrorSums(n, len(names)), ErrorSums(n, len(names))
+    high = np.zeros(n)   # sum of (raw - smoothed torque)^2 per joint
     sampler = SeriesSampler(series_points or SERIES_POINTS)
     tail = [np.zeros(0), np.zeros((0, n))]
     restarts = [0]
@@ -157,6 +164,7 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             t, smoothed, q = r.t, r.tau, r.q
         raw.add(tau, pred)
         smooth.add(smoothed, pred)
+        high[:] += np.einsum('ij,ij->j', tau - smoothed, tau - smoothed)
         stamps_ns = counters.stamps_ns(t)
         sampler.add(stamps_ns=stamps_ns, measured=tau, regressor=Yb, q=q)
         if predictions is not None:
@@ -170,9 +178,12 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         feed_bag(reader, stages, topics, BATCH, step, window)
     check_usable(raw.count, counters.rejected, bag, topics, counts)
     kept = sampler.arrays()
+    gain = (smoothing_noise_gain(rows.half_window, rows.order) if rows.half_window
+            else math.nan)
+    noise_std = np.sqrt(high / max(raw.count, 1) / (1.0 - gain))
     return BagError(str(bag), list(robot.joint_names), raw.count,
                     {k: raw.error(i) for i, k in enumerate(names)},
                     {k: smooth.error(i) for i, k in enumerate(names)}, window,
                     TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
                                  origin, kept['q']),
-                    {k: v for k, v in counters.rejected.items() if v})
+                    {k: v for k, v in counters.rejected.items() if v}, noise_std)
