@@ -97,6 +97,14 @@ class PlausibilityBounds:
         current = np.where(given > 0, given, derived)
         return cls(lower, upper, velocity, np.asarray(acceleration, dtype=float), effort, current)
 
+    def update(self, new: PlausibilityBounds) -> None:
+        """Take ``new``'s bounds in place (this object is shared by the pipeline's stages)."""
+        for name in ('position_lower', 'position_upper', 'velocity', 'acceleration', 'effort',
+                     'current'):
+            setattr(self, name, getattr(new, name))
+        self.__post_init__()
+        self._limits.clear()
+
     def describe(self, joint_names: Sequence[str]) -> dict[str, dict[str, list[float]]]:
         """The bounds per joint, for logs and the README's table."""
         return {j: {'position': [float(self.position_lower[i]), float(self.position_upper[i])],

@@ -192,11 +192,17 @@ class CurrentValidator:
         self.max_names = int(max_names)
         self._channels = {name: (i, k) for name, i, k in converter.current_channel_slots()}
         self.cache = LayoutCache(cache_bytes)
-        # |electrical angle| that positions within bounds can give (rad)
         configs = converter.configs
-        reach = np.maximum(np.abs(bounds.position_lower), np.abs(bounds.position_upper))
-        self._angle_bound = (np.array([abs(c.pole_pairs * c.gear_ratio) for c in configs])
-                             * reach + np.abs([c.angle_offset for c in configs]) + 2 * math.pi)
+        self._turns = np.array([abs(c.pole_pairs * c.gear_ratio) for c in configs])
+        self._offsets = np.abs([c.angle_offset for c in configs]) + 2 * math.pi
+
+    @property
+    def _angle_bound(self) -> np.ndarray:
+        """|electrical angle| that positions within the bounds can give (rad); from the
+        bounds as they are now (the node may widen them at run time)."""
+        b = self.bounds
+        reach = np.maximum(np.abs(b.position_lower), np.abs(b.position_upper))
+        return self._turns * reach + self._offsets
 
     def layout(self, names: tuple) -> tuple | str:
         """For current messages with ``names``: the message columns of the configured channels

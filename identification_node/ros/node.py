@@ -61,7 +61,9 @@ from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
 from identification_node.ros.diagnostics import SMOOTHER_SOURCES, key_values, vector
 from identification_node.ros.link_outputs import LinkOutputs
+from identification_node.ros import runtime_parameters
 from identification_node.ros.payload_outputs import PayloadOutputs
+from identification_node.ros.runtime_parameters import RUNTIME
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
                                                       ServiceThread, Snapshot, failed)
 from identification_node.ros.spin import PeriodicThread, run_node
@@ -90,12 +92,13 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 
 
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
-    """The read-only, typed descriptor of a settings table entry, with its range from
+    """The typed descriptor of a settings table entry (read-only unless runtime_parameters.
+    RUNTIME has it), with its range from
     settings.RANGES. Lists with an empty default, or which may be empty (settings.
     EMPTY_LISTS), stay dynamically typed (Settings checks them): rclpy declares a typed
     parameter without a value uninitialized, which its parameter services then fail to
     report, and types an empty list as bytes."""
-    d = ParameterDescriptor(description=text, read_only=True)
+    d = ParameterDescriptor(description=text, read_only=name not in RUNTIME)
     if isinstance(default, list):
         if default and name not in EMPTY_LISTS:
             d.type = _ARRAY_TYPES[element_type(name, default)].value
@@ -165,6 +168,8 @@ class IdentificationNode(Node):
         self._internal_update = False
         self._declare_estimate_parameters(base.names)
         self.add_on_set_parameters_callback(self._refuse_external_estimate_writes)
+        self.add_on_set_parameters_callback(self._validate_runtime_parameters)
+        self.add_post_set_parameters_callback(self._apply_runtime_parameters)
         self.callback_errors: collections.Counter = collections.Counter()
         # Services on a thread of their own, answered from snapshots (service_requests.py).
         self._requests = RequestQueue()
@@ -321,6 +326,26 @@ class IdentificationNode(Node):
                         successful=False,
                         reason=f'{p.name} is an output of the node; it cannot be set')
         return SetParametersResult(successful=True)
+
+    def _validate_runtime_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """A run-time change of a RUNTIME setting, validated as at start-up."""
+        changes = {p.name: p.value for p in params if p.name in RUNTIME}
+        if changes:
+            try:
+                runtime_parameters.validated(self.settings, changes, self.robot)
+            except IdentificationError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_runtime_parameters(self, params: list[Parameter]) -> None:
+        changes = {p.name: p.value for p in params if p.name in RUNTIME}
+        if changes:
+            with self._lock:
+                self.settings = runtime_parameters.validated(self.settings, changes, self.robot)
+                runtime_parameters.apply(self.pipeline, self.payload.monitor if self.payload
+                                         else None, changes)
+            text = ', '.join(f'{k} = {v}' for k, v in changes.items())
+            self.get_logger().info(f'set {text}')
 
     # -- processing and output --------------------------------------------------------------------
     # The processing thread takes the queued input messages (PolledSubscription) as CDR bytes
