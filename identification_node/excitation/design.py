@@ -13,7 +13,7 @@ collision.CollisionChecker, one more per checked geometry pair on its distances.
 verified on a fine grid after the optimisation (torques on EFFORT_POINTS samples) and, where
 needed, its motion is scaled down towards the centre of the position ranges until every ratio
 is below VERIFY_RATIO; then framed by ramps from and back to rest (frame_excitation,
-trajectories.FramedTrajectory) and its collisions verified densely (clearance_samples).
+trajectories.FramedTrajectory) and its collisions verified densely (framed_clearance).
 
 Initial guess: the paper's least squares on random target velocities (III.A,
 least_squares_guess), or Table I (table1_trajectory, offsets moved to our joint zeros).
@@ -619,20 +619,34 @@ def _start(start: Sequence[float], limits: ExcitationLimits) -> np.ndarray:
     return q
 
 
-def clearance_samples(framed: FramedTrajectory, robot, travel: float = 0.005) -> np.ndarray:
-    """Times (s) at which a framed trajectory's collisions are verified: the ramps and one
-    period (the others repeat it), at most 1 / COLLISION_RATE apart and close enough that no
-    point of the arm (reach: the sum of the joint offsets + 0.5 m) moves more than ``travel``
-    m between them at the peak joint speed."""
+def framed_clearance(framed: FramedTrajectory, robot, checker, travel: float = 0.005,
+                     tick: Callable[[], None] = _no_tick) -> dict:
+    """CollisionChecker.clearance of a framed trajectory: its ramps and one period (the others
+    repeat it) checked at times that advance conservatively. No point of the arm (reach: the
+    sum of the joint offsets + 0.5 m) moves faster than v = reach * peak summed joint speed,
+    so from a time with distance d (the hulls' lower bound), the next is (d - min_distance) / v
+    later: between them no pair comes closer than the minimum distance. The step is at least
+    ``travel`` / v (no point moves more than ``travel`` m between checked times, as on a
+    uniform grid of that step) and at most 1 / COLLISION_RATE."""
     t0, t1 = framed.periodic_window
     period = float(framed.periodic.period)
     probe = np.linspace(0.0, framed.duration, max(2001, int(framed.duration * VERIFY_RATE)))
     speed = float(np.abs(framed.sample(probe)[1]).sum(axis=1).max())
     reach = sum(float(np.linalg.norm(p.translation)) for p in robot.model.jointPlacements) + 0.5
-    step = min(1.0 / COLLISION_RATE, travel / max(reach * speed, 1e-12))
-    spans = [(0.0, t0), (t0, t0 + period), (t1, framed.duration)]
-    return np.concatenate([np.linspace(a, b, int(math.ceil((b - a) / step)) + 1)
-                           for a, b in spans])
+    v = max(reach * speed, 1e-12)
+    shortest, longest = min(travel / v, 1.0 / COLLISION_RATE), 1.0 / COLLISION_RATE
+    bounds = checker.hulls()
+    times = []
+    for a, b in [(0.0, t0), (t0, t0 + period), (t1, framed.duration)]:
+        t = a
+        while True:
+            times.append(t)
+            if t >= b:
+                break
+            d = float(bounds.distances(framed.sample(np.array([t]))[0]).min())
+            t = min(b, t + min(longest, max(shortest, (d - checker.min_distance) / v)))
+            tick()
+    return checker.clearance(framed.sample(np.array(times))[0])
 
 
 def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
@@ -660,7 +674,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     (see _Design). Feasible iterates are verified on fine grids and scaled into the limits
     (shrink_into_limits), framed by ramps from ``start`` (default: the offset q0) into
     ``periods`` periods and back (frame_excitation), and the framed trajectory's collisions
-    checked densely (clearance_samples); the best verified one is kept. Stopping at the
+    checked densely (framed_clearance); the best verified one is kept. Stopping at the
     iteration limit (``maxiter``) or the time limit (``time_limit`` s of optimisation; the
     verification follows) is said in ``message``; stopping on infeasibility is a warning
     (``warnings``); IdentificationError when no feasible point was found. ``base``:
@@ -767,9 +781,9 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
             return None
         clearance = None
         if checker is not None:
-            for q in (design.collision_configs(_to_x(cand)),   # cheap check first
-                      framed.sample(clearance_samples(framed, robot))[0]):
-                clearance = checker.clearance(q)
+            for check in (lambda: checker.clearance(design.collision_configs(_to_x(cand))),
+                          lambda: framed_clearance(framed, robot, checker, tick=watch.tick)):
+                clearance = check()   # the design's samples first: cheap
                 if clearance['distance'] < checker.min_distance:
                     reasons.append(f'collision between {clearance["pair"][0]} and '
                                    f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)')
