@@ -7,6 +7,9 @@ once per sample count and cached in bench/.cache/ (gitignored).
 
 (a) ours: ``identify_bag`` with config/crs_a465.yaml (measured torque, fv and fc identified),
     the estimate read at the end.
+(a') ours on every core (``--workers N``, default the machine's cores; 1: not run): the same
+    settings through offline/parallel.py, the bag's 60 s segments in N processes (fork),
+    their statistics merged (``identify BAG --workers N``).
 (b) naive, as a user would write it: rosbags AnyReader deserializing every message, joints
     reordered by name, qdd = np.gradient(qd, t) over the whole arrays, pinocchio
     computeJointTorqueRegressor per sample into a stacked (6 N, 60) matrix, numpy lstsq.
@@ -20,7 +23,7 @@ should not grow with the bag. BLAS runs single-threaded (OPENBLAS_NUM_THREADS=1,
 tests; set it to override): on 2 shared cores, BLAS threads spin against each other and make
 both pipelines several times slower and erratic.
 
-    .venv/bin/python bench/bench_replay.py [--samples 100000] [--repeat 3]
+    .venv/bin/python bench/bench_replay.py [--samples 100000] [--repeat 3] [--workers N]
 """
 from __future__ import annotations
 
@@ -84,6 +87,19 @@ def run_ours(bag: Path) -> tuple[int, np.ndarray]:
     result = identify_bag(bag, settings, robot)
     estimate = result.pipeline.estimate()
     return result.messages, estimate.values
+
+
+def run_parallel(bag: Path, workers: int) -> tuple[int, np.ndarray]:
+    """ours through identify --workers N's path; (messages, base estimate)."""
+    from identification_node.offline.parallel import parallel_identify
+    from identification_node.settings import Settings, read_parameter_file
+
+    settings = Settings.from_dict(read_parameter_file(CONFIG))
+    robot = settings.load_robot()
+    ident = parallel_identify(bag, settings, robot, workers)
+    if ident is None:
+        raise SystemExit(f'{bag} is too short to cut into segments (two 60 s cells needed)')
+    return ident.messages, ident.theta
 
 
 def run_naive(bag: Path) -> tuple[int, np.ndarray]:
@@ -174,13 +190,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--samples', type=int, default=100_000)
     parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--workers', type=int, default=None,
+                        help="processes of ours on every core (default: the machine's cores)")
     parser.add_argument('--rss', nargs=2, metavar=('PIPELINE', 'BAG'), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.rss:
         return _rss_child(args.rss[0], Path(args.rss[1]))
     bag, half = make_bag(args.samples), make_bag(args.samples // 2)
     run_ours(make_bag(2000))  # imports and caches outside the measurements
-    speed = throughput({name: (fn, bag) for name, fn in PIPELINES.items()}, args.repeat)
+    from identification_node.offline.parallel import default_workers
+    workers = default_workers() if args.workers is None else args.workers
+    runs = {name: (fn, bag) for name, fn in PIPELINES.items()}
+    if workers > 1:
+        runs['ours xN'] = (lambda b: run_parallel(b, workers), bag)
+    speed = throughput(runs, args.repeat)
     rows = {name: (*speed[name], traced_peak(fn, bag), rss_peak(name, bag))
             for name, fn in PIPELINES.items()}
     half_n = run_ours(half)[0]
@@ -193,6 +216,13 @@ def main() -> None:
         print(f'{name:7s}{n:8d}{wall:8.2f}{cpu:7.2f}{n / wall:11.0f}{traced:14.1f} MiB'
               f'{rss:8.1f} MiB')
     ours, naive = rows['ours'], rows['naive']
+    if 'ours xN' in speed:
+        n, wall, cpu = speed['ours xN']
+        naive_rate = naive[0] / naive[1]
+        print(f'ours on {workers} workers (identify --workers {workers}): {n} samples, '
+              f'{wall:.2f} s wall, {n / wall:.0f} samples/s (parent CPU {cpu:.2f} s): '
+              f'{(n / wall) / naive_rate:.2f}x naive, {(n / wall) / (ours[0] / ours[1]):.2f}x '
+              'ours on one core')
     print(f'ours/naive: throughput {(ours[0] / ours[1]) / (naive[0] / naive[1]):.2f}x '
           f'(CPU time {(naive[2] / naive[0]) / (ours[2] / ours[0]):.2f}x); peak memory '
           f'{ours[3] / naive[3]:.3f}x (tracemalloc), {ours[4] / naive[4]:.3f}x (RSS)')
