@@ -308,6 +308,22 @@ def test_hulls_bound_the_meshes_and_clearance_is_the_exact_minimum():
         assert c['pair'] == exact.pairs[i] and c['sample'] == k
 
 
+def test_a_flat_mesh_without_a_hull_stays_a_mesh(tmp_path):
+    mesh = tmp_path / 'pkg' / 'meshes' / 'flat.stl'
+    mesh.parent.mkdir(parents=True)
+    mesh.write_text('solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.05 0 0\n'
+                    'vertex 0 0.05 0\nendloop\nendfacet\nendsolid t\n')   # one triangle
+    urdf = tmp_path / 'flat.urdf'
+    urdf.write_text(Path(PANDA).read_text().replace(
+        '<box size="0.12 0.08 0.08"/>', '<mesh filename="package://pkg/meshes/flat.stl"/>'))
+    exact = CollisionChecker(load_robot(str(urdf)), package_dirs=[tmp_path])
+    hulls = exact.hulls()
+    k = exact.meshes[0]
+    assert type(hulls.geometry.geometryObjects[k].geometry).__name__ == 'BVHModelOBBRSS'
+    q = np.zeros((3, 7))
+    np.testing.assert_allclose(hulls.distances(q), exact.distances(q), atol=1e-9)
+
+
 # -- limits ----------------------------------------------------------------------------------
 def test_assumed_limits_listed_and_overridden(tmp_path):
     robot = load_robot(PANDA)

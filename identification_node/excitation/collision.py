@@ -73,7 +73,7 @@ class CollisionChecker:
         self.meshes = _mesh_objects(geom)
         self.convex = bool(convex)
         if convex:
-            _to_hulls(robot, geom, self.meshes)
+            _to_hulls(geom, self.meshes)
         self._hulls = self if convex or not self.meshes else None
         self._args = (robot, dirs, srdf, self.min_distance, floor, boxes)
         geom.addAllCollisionPairs()   # every pair on different joints
@@ -205,16 +205,16 @@ def _mesh_objects(geom) -> list[int]:
             if isinstance(o.geometry, coal.BVHModelBase)]
 
 
-def _to_hulls(robot, geom, meshes: Sequence[int]) -> None:
-    """Replace the meshes ``meshes`` of ``geom`` by their convex hulls, in place."""
+def _to_hulls(geom, meshes: Sequence[int]) -> None:
+    """Replace the meshes ``meshes`` of ``geom`` by their convex hulls, in place; a mesh whose
+    hull Qhull cannot build (flat or degenerate) stays as it is (exact, only slower)."""
     for k in meshes:
         obj = geom.geometryObjects[k]
         mesh = obj.geometry
         try:
             mesh.buildConvexHull(True, 'Qt')
-        except (ValueError, RuntimeError) as exc:  # degenerate (flat) meshes
-            raise IdentificationError(f'robot {robot.name}: convex hull of {obj.name}: '
-                                      f'{exc}') from None
+        except (ValueError, RuntimeError):
+            continue
         obj.geometry = mesh.convex
 
 
