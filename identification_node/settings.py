@@ -64,8 +64,10 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'update_batch': (50, 'samples gathered per RLS update (predictions use the estimate so far)'),
     'joint_noise_std': ([], 'per joint torque noise std for weighting, N m (empty: equal)'),
     'coulomb_exclusion_speed': (0.1, 'rad/s (m/s); > 0 with fc identified: a joint equation '
-                                'is left out while |qd| < this + |qdd| * smoother half window '
-                                '(batch: within the filter\'s reach of |qd| < this); 0: none'),
+                                'is left out while |qd| < this (the Coulomb column is what the '
+                                'smoother makes of sign(qd); with coulomb_velocity > 0: while '
+                                '|qd| < this + |qdd| * smoother half window; batch: within the '
+                                'filter\'s reach of |qd| < this); 0: none'),
     'converged_ratio': (0.1, 'converged when parameter uncertainty < ratio * residual RMS'),
     'max_condition': (1e8, 'largest information condition number counted as excited'),
     'min_samples': (1000, 'samples needed before convergence is declared'),

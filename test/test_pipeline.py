@@ -520,3 +520,37 @@ def test_automatic_smoother_holds_the_first_seconds_of_motion_then_takes_them_al
                                atol=1e-9 * np.abs(TRUE).max())
     assert len(out_auto.stamps_ns) < len(want['stamps_ns'])
     assert_within_3_sigma(auto.estimate())
+
+
+def test_smoothed_sign_column_identifies_sign_friction_through_reversals():
+    """Sign friction (fc 1, 0.5, 0.2 N m) at 100 Hz, noise-free, no equation left out
+    (coulomb_exclusion_speed 0): the Coulomb column as the smoother makes of sign(qd)
+    recovers fc, where sign(qd) itself (tanh(qd / 1e-9)) is biased by the smoothed torque's
+    reversals; with the default exclusion speed fewer equations are left out than the
+    former rule's |qd| < speed + |qdd| half window."""
+    rate, fc = 100.0, [1.0, 0.5, 0.2]
+    truth = load_robot('mit_dd_arm', extras=['fv', 'fc', 'fo'])
+    phi = truth.phi_model.copy()
+    for j, v in zip(truth.joint_names, fc):
+        phi[truth.param_index(f'{j}.fc')], phi[truth.param_index(f'{j}.fv')] = v, 0.3
+    t = np.arange(int(30 * rate)) / rate
+    sim = simulate_kinematic(truth, phi, FourierTrajectory.random(truth, period=5.0, seed=4), t)
+    ns = T0_NS + np.round(t * 1e9).astype(np.int64)
+
+    def fit(velocity: float, speed: float):
+        robot = load_robot('mit_dd_arm', extras=['fv', 'fc', 'fo'], coulomb_velocity=velocity)
+        p = IdentificationPipeline(robot, PipelineConfig(half_window=8,
+                                                         coulomb_exclusion_speed=speed))
+        p.add_joint_states(JointStateRecord(ns, tuple(robot.joint_names), sim.q_meas,
+                                            sim.qd_meas, sim.tau_meas))
+        p.process(flush=True)
+        est = [p.rls.theta[p.base.names.index(f'{j}.fc')] for j in robot.joint_names]
+        return np.array(est), p.excluded_rows
+
+    smoothed, none_out = fit(0.0, 0.0)
+    assert none_out == 0
+    np.testing.assert_allclose(smoothed, fc, rtol=0.02)
+    plain, _ = fit(1e-9, 0.0)
+    assert np.abs(plain / fc - 1).max() > 0.05
+    (_, fewer), (_, former) = fit(0.0, 0.1), fit(1e-9, 0.1)
+    assert 0 < fewer < former / 2

@@ -341,3 +341,25 @@ def test_period_average_errors():
         period_average(t, np.sin(t), -1.0)
     with pytest.raises(IdentificationError, match='fewer than 2'):
         period_average(np.delete(t, [5, 105]), np.delete(np.sin(t), [5, 105]), 1.0)
+
+
+@pytest.mark.parametrize('order,L', [(3, 5), (3, 40), (2, 12)])
+def test_smoothed_sign_is_what_the_smoother_makes_of_sign_friction(order, L):
+    """The Coulomb column at reversals: the smoother run on sign(v(t)) of a velocity that
+    crosses zero (a cosine, so v is not exactly linear in the window) against
+    signals.smoothed_sign of the smoothed v and a at the centres."""
+    rate = 100.0 if L < 20 else 1000.0
+    t = np.arange(int(6 * rate)) / rate
+    v = 0.8 * np.cos(2 * np.pi * 0.3 * t) + 0.05          # rad/s, 3 reversals
+    a = -0.8 * 2 * np.pi * 0.3 * np.sin(2 * np.pi * 0.3 * t)
+    tc, smoothed, _, _ = FixedLagSmoother(1, half_window=L, order=order).push(
+        t, np.sign(v)[:, None])
+    idx = np.round(tc * rate).astype(int)
+    column = signals.smoothed_sign(v[idx], a[idx], L, order, 1 / rate)
+    crossing = np.abs(np.sign(v[idx]) - smoothed[:, 0]) > 1e-9   # reversal in the window
+    assert crossing.sum() > 3 * L     # the test looks at reversals
+    error = np.abs(column - smoothed[:, 0])
+    # the linearised crossing may fall a sample off where v curves: one sample's weight, twice
+    assert error.max() < 2.5 * np.abs(signals.value_weights(L, order)).max()
+    assert error[crossing].mean() < 0.02
+    assert np.abs(np.sign(v[idx]) - smoothed[:, 0])[crossing].max() > 0.5   # sign(qd) is not

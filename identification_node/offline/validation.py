@@ -127,6 +127,7 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     # the pipeline's input stages and smoother, with the estimate's base columns (no estimation)
     pipeline = IdentificationPipeline(robot, settings.pipeline_config(robot.joint_names), base)
     stages, rows = pipeline.samples, pipeline.row_builder
+    rows.smooth_sign = False     # the raw torque's own sign friction: sign(qd)
     counters, n, b = stages.counters, robot.dof, base.num_base
     raw, smooth = ErrorSums(n, len(names)), ErrorSums(n, len(names))
     high = np.zeros(n)   # sum of (raw - smoothed torque)^2 per joint

@@ -16,7 +16,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.estimate import EstimateReport, OnlineEstimate
-from identification_node.pipeline.rows import RowBuilder
+from identification_node.pipeline.rows import RowBuilder, smooths_sign
 from identification_node.pipeline.time_offset import TimeOffsetCheck
 from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.wire.records import JointStateRecord
@@ -62,7 +62,8 @@ class IdentificationPipeline:
                                       c.max_gap, c.cutoff, c.auto_seconds, weights,
                                       c.coulomb_exclusion_speed)
         self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
-                                        'fc' in robot.extras, self.samples.counters.reject)
+                                        'fc' in robot.extras, self.samples.counters.reject,
+                                        smooths_sign(robot))
         self.gate = self.estimator.gate    # robust.InnovationGate: listeners, events, counts
         # time_offset.TimeOffsetCheck: is the torque late or early against the motion?
         self.time_offset = TimeOffsetCheck(c.offset_warn, c.offset_refuse, c.offset_seconds,

@@ -78,8 +78,11 @@ class OnlineEstimate:
     """RLS and residual statistics of ``num_base`` parameters over ``dof`` joints' rows."""
 
     def __init__(self, num_base: int, dof: int, config: PipelineConfig, coulomb: bool,
-                 reject=lambda reason, count: None):
+                 reject=lambda reason, count: None, smoothed_sign: bool = False):
         self.num_base, self.dof, self.config, self.coulomb = num_base, dof, config, coulomb
+        # the rows' Coulomb column is the smoothed sign (rows.smooths_sign): reversals in the
+        # smoothing window need no exclusion, only slow motion does
+        self.smoothed_sign = bool(smoothed_sign)
         self._reject = reject    # reject(reason, count): where dropped samples are counted
         self.gate = InnovationGate(config.robust)
         self.half_window: int | None = None
@@ -257,8 +260,8 @@ class OnlineEstimate:
         if not self.coulomb or self.config.coulomb_exclusion_speed <= 0:
             return self._weights
         period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
-        slow = near_reversal(qd, qdd, self.config.coulomb_exclusion_speed,
-                             period * float(self.half_window or 0))
+        reach = 0.0 if self.smoothed_sign else period * float(self.half_window or 0)
+        slow = near_reversal(qd, qdd, self.config.coulomb_exclusion_speed, reach)
         self.excluded += np.count_nonzero(slow, axis=0)
         w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
         w[slow] = 0.0

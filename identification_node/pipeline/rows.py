@@ -31,7 +31,8 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.pipeline.samples import Samples
 from identification_node.pipeline.signals import (MIN_HALF_WINDOW, FixedLagSmoother,
-                                                  half_window_for_cutoff, smoother_cutoff)
+                                                  half_window_for_cutoff, smoothed_sign,
+                                                  smoother_cutoff)
 
 AUTO_GRID = 2.0 ** 0.25   # ratio of neighbouring half windows tried by choose_half_window
 AUTO_ROWS = 500           # samples whose rows the choice fits (evenly spread)
@@ -76,8 +77,27 @@ def near_reversal(qd: np.ndarray, qdd: np.ndarray, speed: float, reach: float) -
     """Mask (N, n) of the joint equations whose smoothing window may hold a velocity
     reversal: |qd| < speed + |qdd| reach, for smoothed qd (rad/s), qdd (rad/s^2) and the half
     window ``reach`` (s). There a sign friction torque turns faster than the smoother
-    resolves, so those equations are left out when Coulomb friction is identified."""
+    resolves, so those equations are left out when Coulomb friction is identified; with
+    the smoothed sign in the Coulomb column (smooths_sign) the reach is 0: only the slow
+    motion (stiction, Stribeck) is left out."""
     return np.abs(qd) < speed + np.abs(qdd) * reach
+
+
+def smooths_sign(robot: RobotModel) -> bool:
+    """Whether the streaming rows' Coulomb column is the smoothed sign (smoothed_sign): fc
+    identified with the sign model (coulomb_velocity 0)."""
+    return 'fc' in robot.extras and robot.coulomb_velocity == 0
+
+
+def smooth_coulomb_columns(robot: RobotModel, Y: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+                           half_window: int, order: int, period: float) -> None:
+    """Y (N, n, p) in place: each joint's fc column sign(qd) replaced by what the smoother
+    of ``half_window`` and ``order`` at ``period`` (s) makes of it (signals.smoothed_sign), so
+    that the Coulomb column matches the smoothed torque at reversals too."""
+    if not (period > 0 and math.isfinite(period)):
+        return
+    cols = [robot.param_index(f'{j}.fc') for j in robot.joint_names]
+    Y[:, np.arange(robot.dof), cols] = smoothed_sign(qd, qdd, half_window, order, period)
 
 
 def _rate(stamps: np.ndarray) -> float:
@@ -131,12 +151,17 @@ class WindowSearch:
         v, d, dd = FixedLagSmoother(self.x.shape[1], L // k, self.order).fit_at(
             self.t[::k], self.x[::k], self.centres // k)
         qd, qdd = (v[:, n:2 * n], d[:, n:2 * n]) if self.measured else (d[:, :n], dd[:, :n])
-        Yb = self.base.base_regressor(self.robot.regressor(v[:, :n], qd, qdd))
+        Y = self.robot.regressor(v[:, :n], qd, qdd)
+        smooth = smooths_sign(self.robot)
+        if smooth:
+            smooth_coulomb_columns(self.robot, Y, qd, qdd, L // k, self.order, k * self.period)
+        Yb = self.base.base_regressor(Y)
         y = v[:, -n:]
         if self.root is not None:
             Yb, y = Yb * self.root[None, :, None], y * self.root
         if self.exclusion_speed > 0:
-            used = ~near_reversal(qd, qdd, self.exclusion_speed, L * self.period)
+            used = ~near_reversal(qd, qdd, self.exclusion_speed,
+                                  0.0 if smooth else L * self.period)
             Yb, y = Yb * used[:, :, None], y * used
         A = Yb.reshape(-1, b)
         theta = np.linalg.lstsq(A.T @ A, A.T @ y.reshape(-1), rcond=1e-12)[0]
@@ -246,6 +271,9 @@ class RowBuilder:
         self.order, self.max_gap = int(order), max_gap
         self.cutoff, self.auto_seconds, self.weights = float(cutoff), float(auto_seconds), weights
         self.exclusion_speed = float(exclusion_speed)
+        # the Coulomb column as the smoother makes of sign(qd) (smooths_sign); False: sign(qd)
+        # itself (predictions of the raw torque)
+        self.smooth_sign = True
         self.choice: SmootherChoice | None = (
             SmootherChoice(int(half_window), self.order) if half_window else None)
         self._held: list[Samples] = []     # samples waiting for the choice
@@ -376,6 +404,10 @@ class RowBuilder:
         p, b = self.robot.num_params, self.base.num_base
         Yt = self._buffer('regressor', (len(t), n, p + 1))
         self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p], checked=True)
+        if self.smooth_sign and smooths_sign(self.robot):
+            rate = self.choice.rate if self.choice.rate > 0 else _rate(t)
+            smooth_coulomb_columns(self.robot, Yt[:, :, :p], qd, qdd, self.choice.half_window,
+                                   self.order, 1.0 / rate)
         Yt[:, :, p] = tau
         shape = (len(t), n, b + 1)
         reuse = reuse_at is not None and len(t) >= reuse_at

@@ -81,6 +81,33 @@ def smoothing_noise_gain(half_window: int, order: int) -> float:
     return float(np.linalg.inv(V.T @ V)[0, 0])
 
 
+def value_weights(half_window: int, order: int) -> np.ndarray:
+    """(2L + 1,): weights of the centre value of a local polynomial fit of ``order`` over
+    2 * half_window + 1 uniform samples (FixedLagSmoother's value on a uniform window)."""
+    u = np.arange(-half_window, half_window + 1, dtype=float)
+    V = np.vander(u, order + 1, increasing=True)
+    return np.linalg.solve(V.T @ V, V.T)[0]
+
+
+def smoothed_sign(v: np.ndarray, a: np.ndarray, half_window: int, order: int,
+                  period: float) -> np.ndarray:
+    """What the smoother makes of sign(v(t)) at the window centre, for a velocity crossing
+    zero linearly within the window: sum_i w_i sign(v + a i period) over i = -L..L (value
+    weights w, value_weights), from the smoothed velocity v and acceleration a (same shape,
+    rad/s and rad/s^2) and the sample period (s). Equal to sign(v) where no reversal lies in
+    the window; a Coulomb column of it is what the smoothed torque holds of sign friction."""
+    L = int(half_window)
+    cum = np.concatenate([[0.0], np.cumsum(value_weights(L, int(order)))])   # cum[k]: i < k - L
+    with np.errstate(divide='ignore', invalid='ignore'):
+        x = -v / (a * period)        # the zero crossing, in samples from the centre
+    x = np.where(np.isfinite(x), np.clip(x, -L - 1.0, L + 1.0), L + 1.0)
+    before = np.clip(np.ceil(x) + L, 0, 2 * L + 1).astype(np.int64)      # samples i < x
+    through = np.clip(np.floor(x) + L + 1, 0, 2 * L + 1).astype(np.int64)  # samples i <= x
+    # the other sign lies before the crossing when it is behind (x < 0), after it when ahead
+    other = np.where(x < 0, cum[before], cum[-1] - cum[through])
+    return np.sign(v) * (1.0 - 2.0 * other)
+
+
 @functools.lru_cache(maxsize=4096)
 def _relative_cutoff(half_window: int, order: int) -> float:
     """-3 dB frequency of the value output of a uniform window, in cycles per sample."""
