@@ -65,11 +65,8 @@ def identify(urdf: str, extras: list[str], sim, **settings):
     robot = load_robot(urdf, extras=extras, coulomb_velocity=settings.get('coulomb_velocity', 0))
     p = Settings.from_dict({'robot': urdf, 'extras': extras, **settings}).build(robot)
     ns = 1_700_000_000_000_000_000 + np.round(sim.t * 1e9).astype(np.int64)
-    names = tuple(robot.joint_names)
-    for a in range(0, len(ns), 1000):
-        p.add_joint_states(JointStateRecord(ns[a:a + 1000], names, sim.q_meas[a:a + 1000],
-                                            sim.qd_meas[a:a + 1000], sim.tau_meas[a:a + 1000]))
-        p.process()
+    p.add_joint_states(JointStateRecord(ns, tuple(robot.joint_names), sim.q_meas, sim.qd_meas,
+                                        sim.tau_meas))
     p.process(flush=True)
     return p
 
