@@ -78,11 +78,15 @@ def known_payload_from_bags(bag: str | os.PathLike, loaded_bag: str | os.PathLik
                             payload: PayloadChange, settings: Settings, robot: RobotModel,
                             joint_states: str = JOINT_STATES,
                             motor_currents: str = MOTOR_CURRENTS) -> list[DriveGain]:
-    """Known-payload drive gains of every joint from ``bag`` (no payload) and ``loaded_bag``
-    (the arm carrying ``payload`` throughout), each processed as batch identification's
-    filtered rows (shipped defaults); the payload's torque is its base-parameter increment
-    through the same rows; both bags filtered at the cut-off chosen for ``bag``."""
+    """Known-payload drive gains of the current-driven joints from ``bag`` (no payload) and
+    ``loaded_bag`` (the arm carrying ``payload`` throughout), each processed as batch
+    identification's filtered rows (shipped defaults); the payload's torque is its
+    base-parameter increment through the same rows; both bags filtered at the cut-off chosen
+    for ``bag``."""
     converter = converter_of(settings, robot)
+    if not converter.needs_currents:
+        raise IdentificationError('drive gains need current-driven joints (torque_source '
+                                  'current or three_phase)')
     base = settings.build(robot).base
     attach = attachment(robot, payload.link)
     d_beta = base.to_base(with_payload(robot, attach, np.zeros(robot.num_params),
@@ -97,8 +101,9 @@ def known_payload_from_bags(bag: str | os.PathLike, loaded_bag: str | os.PathLik
             eq = payload_equations(r.regressor, r.tau, r.regressor @ d_beta if loaded else None,
                                    r.mask)
             equations = eq if equations is None else equations + eq
-    return known_payload_gains(robot.joint_names, equations, configured_gains(converter),
-                               payload.mass)
+    gains = known_payload_gains(robot.joint_names, equations, configured_gains(converter),
+                                payload.mass)
+    return [g for g in gains if g.joint in converter.current_joints]
 
 
 def settings_with_gains(settings: Settings, robot: RobotModel,
