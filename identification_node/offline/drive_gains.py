@@ -12,7 +12,7 @@ import yaml
 from identification_node.bags.reader import iter_joint_state_blocks, open_bag
 from identification_node.errors import IdentificationError
 from identification_node.estimation.drive_gains import (DriveGain, known_payload_gains,
-                                                        payload_equations)
+                                                        mark_used, payload_equations)
 from identification_node.model.robot import RobotModel
 from identification_node.model.torque import TorqueConverter
 from identification_node.offline.identification import (BatchOptions, auto_cutoff, batch_rows,
@@ -136,11 +136,7 @@ def identify_drive_gains(bag: str | os.PathLike, settings: Settings, robot: Robo
     if loaded_bag:
         gains += known_payload_from_bags(bag, loaded_bag, read_known_payload(payload),
                                          settings, robot, joint_states, motor_currents)
-    for joint in robot.joint_names:
-        mine = [g for g in gains if g.joint == joint and g.value is not None]
-        if mine:
-            min(mine, key=lambda g: g.stddev / g.value).used = True
-    return gains
+    return mark_used(gains)
 
 
 def used_gains(gains: list[DriveGain]) -> list[DriveGain]:

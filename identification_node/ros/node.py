@@ -60,6 +60,7 @@ from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
 from identification_node.ros.diagnostics import SMOOTHER_SOURCES, key_values, vector
+from identification_node.ros.drive_gains import COMMAND as DRIVE_GAIN_COMMAND
 from identification_node.ros.drive_gains import DriveGainOutputs
 from identification_node.ros.link_outputs import LinkOutputs
 from identification_node.ros import runtime_parameters
@@ -184,14 +185,14 @@ class IdentificationNode(Node):
         self.pipeline.gate.listeners.append(self._on_residual_shift)
         handlers = (self.pipeline.add_joint_state_cdr, self.pipeline.add_currents_cdr)
         self.drive_gains = None
-        if self.settings['drive_gains.back_emf']:
-            self.drive_gains = DriveGainOutputs(self, self.pipeline.converter,
-                                                self.settings['align_tolerance'])
+        if self.settings['drive_gains.back_emf'] or self.settings['drive_gains.known_payload']:
+            self.drive_gains = DriveGainOutputs(self, self.settings, self.pipeline,
+                                                self._service_thread, self._requests)
             handlers = self.drive_gains.tee(*handlers)
         self._inputs = [self._subscribe('joint_states', handlers[0])]
         if self.pipeline.converter.needs_currents:
             self._inputs.append(self._subscribe('motor_currents', handlers[1]))
-        if self.drive_gains is not None:
+        if self.drive_gains is not None and self.drive_gains.voltages is not None:
             self._inputs.append(self.drive_gains.voltages)
         self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
         self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
@@ -372,7 +373,7 @@ class IdentificationNode(Node):
                 out = self.pipeline.process()
                 events = self.payload.add(out) if self.payload is not None else ()
                 if self.drive_gains is not None:
-                    self.drive_gains.process()
+                    self.drive_gains.process(out)
         self._submit(jobs)
         if idle:
             return
@@ -406,6 +407,8 @@ class IdentificationNode(Node):
                 source.reset_lost()
         elif kind == 'freeze':
             self.pipeline.frozen = bool(argument)
+        elif kind == DRIVE_GAIN_COMMAND and self.drive_gains is not None:
+            self.drive_gains.apply(argument)
         elif self.payload is not None:
             self.payload.apply(kind, argument)
 
