@@ -12,9 +12,10 @@
 
 Outputs, at every estimate refresh: the node parameters ``drive_gain.<joint>`` (N m/A at the
 joint, K_T x gear ratio, the determined gain of least relative stddev; -1 while none is;
-read-only) and, in diagnostics, ``drive_gain.<joint>.<method>`` with its stddev, the
-configured kt x gear_ratio and their ratio (``.ratio``), or why it is not determined, and a
-``.warning`` when they differ by more than 3 stddev and 5 %. The node keeps its configured kt.
+read-only) and, in diagnostics, ``drive_gain.<joint>.<method>`` (N m/A, or ``not
+determined``) with ``.stddev``, ``.configured`` (kt x gear_ratio), ``.ratio``, ``.reason``
+when not determined, and a ``.warning`` when they differ by more than 3 stddev and 5 %. The
+node keeps its configured kt.
 """
 from __future__ import annotations
 
@@ -127,13 +128,13 @@ class DriveGainOutputs:
             out['drive_gains.error'] = self.error
         for g in self._gains:
             key = f'{PREFIX}{g.joint}.{g.method}'
+            out[key] = g.value           # None: 'not determined' (ros/diagnostics.py)
+            out[key + '.stddev'] = g.stddev
+            out[key + '.configured'] = g.configured
+            out[key + '.ratio'] = g.ratio
             if g.value is None:
-                out[key] = f'not determined: {g.reason}'
-                continue
-            out[key] = f'{g.value:.6g} +- {g.stddev:.2g}'
-            out[key + '.configured'] = f'{g.configured:.6g}'
-            out[key + '.ratio'] = f'{g.ratio:.5f}'
-            if g.warning:
+                out[key + '.reason'] = g.reason
+            elif g.warning:
                 out[key + '.warning'] = g.warning
         return out
 
