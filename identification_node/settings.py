@@ -98,6 +98,10 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
                                        'message-lost event (several publishers); off: it can '
                                        'deadlock rmw_fastrtps under bursts'),
     'payload.enabled': (False, 'identify a payload and detect its changes (pick, place)'),
+    'drive_gains.back_emf': (False, 'identify the drive gains (N m/A at the joint) from '
+                             'motor_voltages by the back-EMF (current-driven joints)'),
+    'drive_gains.known_payload': (False, 'identify the drive gains from segments with a known '
+                                  'payload (service ~/drive_gains/known_payload)'),
     'payload.link': ('', 'link or fixed frame carrying the payload (empty: the last '
                      'identified link)'),
     'payload.arm': ('', "the arm's parameters the payload is fitted against: an estimate.yaml "

@@ -236,4 +236,4 @@ def test_back_emf_refuses_a_still_joint_and_bad_voltages(arm_bags, capsys, tmp_p
     # voltages on the currents' topic under other channel names: refused, named
     assert main(['identify', str(bags['free']), '--config', str(config), '--back-emf',
                  '--voltages-topic', '/joint_states']) == 2
-    assert 'motor voltages (/joint_states) has channels' in capsys.readouterr().err
+    assert 'motor voltages have channels' in capsys.readouterr().err

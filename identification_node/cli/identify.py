@@ -13,7 +13,8 @@ bag (offline/windows.py), ``--predictions OUT`` writes measured and predicted to
 same as one object, ``--save DIR`` writes estimate.yaml and identified.urdf as the node's
 ``~/save`` does. The estimate is the physically consistent one (consistency.py) unless
 ``--no-physical-consistency`` (config ``physical_consistency: false``); the unconstrained one
-is reported alongside.
+is reported alongside. ``--back-emf`` and ``--known-payload-bag``/``--known-payload`` first
+identify the drive gains (offline/drive_gains.py) and identify with them: ``drive_gains``.
 """
 from __future__ import annotations
 

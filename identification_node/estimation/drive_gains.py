@@ -195,6 +195,20 @@ def known_payload_gains(joints: list[str], equations: NormalEquations,
     return out
 
 
+def mark_used(gains: list[DriveGain]) -> list[DriveGain]:
+    """``gains`` with, per joint, the determined gain of least relative stddev marked
+    ``used`` (the others not)."""
+    best: dict[str, DriveGain] = {}
+    for g in gains:
+        g.used = False
+        if g.value is not None and (g.joint not in best or g.stddev / g.value
+                                    < best[g.joint].stddev / best[g.joint].value):
+            best[g.joint] = g
+    for g in best.values():
+        g.used = True
+    return gains
+
+
 def gains_text(gains: list[DriveGain]) -> list[str]:
     """The drive gains as text lines."""
     lines = ['', 'drive gains (N m/A at the joint = K_T x gear ratio):']

@@ -60,6 +60,8 @@ from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
 from identification_node.ros.diagnostics import SMOOTHER_SOURCES, key_values, vector
+from identification_node.ros.drive_gains import COMMAND as DRIVE_GAIN_COMMAND
+from identification_node.ros.drive_gains import DriveGainOutputs
 from identification_node.ros.link_outputs import LinkOutputs
 from identification_node.ros import runtime_parameters
 from identification_node.ros.payload_outputs import PayloadOutputs
@@ -181,9 +183,17 @@ class IdentificationNode(Node):
 
         self.watchdog_timeout = self.settings['watchdog_timeout']
         self.pipeline.gate.listeners.append(self._on_residual_shift)
-        self._inputs = [self._subscribe('joint_states', self.pipeline.add_joint_state_cdr)]
+        handlers = (self.pipeline.add_joint_state_cdr, self.pipeline.add_currents_cdr)
+        self.drive_gains = None
+        if self.settings['drive_gains.back_emf'] or self.settings['drive_gains.known_payload']:
+            self.drive_gains = DriveGainOutputs(self, self.settings, self.pipeline,
+                                                self._service_thread, self._requests)
+            handlers = self.drive_gains.tee(*handlers)
+        self._inputs = [self._subscribe('joint_states', handlers[0])]
         if self.pipeline.converter.needs_currents:
-            self._inputs.append(self._subscribe('motor_currents', self.pipeline.add_currents_cdr))
+            self._inputs.append(self._subscribe('motor_currents', handlers[1]))
+        if self.drive_gains is not None and self.drive_gains.voltages is not None:
+            self._inputs.append(self.drive_gains.voltages)
         self._pub_predicted = self.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)
         self._pub_measured = self.create_publisher(JointState, '~/measured_effort', OUTPUT_QOS)
         self._pub_params = self.create_publisher(Float64MultiArray, '~/base_parameters', 10)
@@ -362,6 +372,8 @@ class IdentificationNode(Node):
                 chosen = self.pipeline.smoother is not None
                 out = self.pipeline.process()
                 events = self.payload.add(out) if self.payload is not None else ()
+                if self.drive_gains is not None:
+                    self.drive_gains.process(out)
         self._submit(jobs)
         if idle:
             return
@@ -395,6 +407,8 @@ class IdentificationNode(Node):
                 source.reset_lost()
         elif kind == 'freeze':
             self.pipeline.frozen = bool(argument)
+        elif kind == DRIVE_GAIN_COMMAND and self.drive_gains is not None:
+            self.drive_gains.apply(argument)
         elif self.payload is not None:
             self.payload.apply(kind, argument)
 
@@ -544,6 +558,9 @@ class IdentificationNode(Node):
                    for n, s in zip(est.names, stddev)]
         params += [Parameter(UNCONSTRAINED_PREFIX + n, value=float(v))
                    for n, v in zip(est.names, est.values)]
+        if self.drive_gains is not None:
+            with self._lock:
+                params += self.drive_gains.parameters()
         with self._publish_lock:
             self._pub_params.publish(msg)
             self._internal_update = True
@@ -644,6 +661,9 @@ class IdentificationNode(Node):
             status.level = max(status.level, (DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[
                 offset.level - 1])
             status.message += f'; torque {offset.offset:+.3f} s off the motion'
+        if self.drive_gains is not None:
+            with self._lock:
+                values.update(self.drive_gains.diagnostics())
         status.values = key_values(values)
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = now.to_msg()

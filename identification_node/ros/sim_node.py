@@ -9,6 +9,9 @@ the description or from ``true_parameters_file``), with sensor noise. It publish
 - ``motor_currents`` when ``publish_currents`` (channels ``<joint>/ia|ib|ic`` or ``<joint>/i``
   of the joints whose ``torque_source`` is three_phase or current, amperes in effort, the
   electrical angle (rad) in position when ``publish_electrical_angle``),
+- ``motor_voltages`` when ``publish_voltages`` (the same channels, volts in effort: the
+  drives' law of model/drive.py with ``drive.resistance``, ``drive.inductance`` and the true
+  kt = kt x (1 + ``drive.kt_error``), which the currents also obey),
 - ``/clock`` with the sample time when ``publish_clock``,
 - ``robot_description`` (std_msgs/String, transient local).
 
@@ -46,6 +49,7 @@ from std_msgs.msg import String
 from identification_node.errors import IdentificationError
 from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectories import Trajectory, load_trajectory
+from identification_node.model.drive import DriveModel
 from identification_node.model.robot import RobotModel
 from identification_node.model.simulation import ArmSimulator, SensorNoise, SimResult
 from identification_node.model.torque import TorqueConverter
@@ -76,6 +80,12 @@ SIM_PARAMETERS.update({
     'publish_effort': (True, 'fill JointState.effort with the joint torques'),
     'publish_currents': (False, 'publish motor_currents (needs current or three_phase joints)'),
     'publish_electrical_angle': (False, 'electrical angles in motor_currents.position'),
+    'publish_voltages': (False, 'publish motor_voltages (volts in effort, the channels of '
+                         'motor_currents; model/drive.py)'),
+    'noise.voltage_std': (0.0, 'V of Gaussian noise on every voltage channel'),
+    'drive.kt_error': ([0.0], 'per joint: true kt = configured kt x (1 + value)'),
+    'drive.resistance': ([0.5], 'per joint motor resistance per phase, ohm'),
+    'drive.inductance': ([1e-3], 'per joint motor inductance per phase, H'),
     'true_parameters_file': ('', 'YAML of standard parameter name -> true value (default: '
                              'the robot description)'),
     'payload_events': ('', 'payloads attached at given sample times: YAML file or inline list '
@@ -134,6 +144,7 @@ class SimSetup:
     noise: SensorNoise
     phi_true: np.ndarray
     changes: list = field(default_factory=list)   # (sample time s, true phi) payload events
+    drives: DriveModel | None = None               # converter: the drives' true kt
 
     @classmethod
     def from_parameters(cls, given: Mapping[str, Any]) -> SimSetup:
@@ -165,8 +176,19 @@ class SimSetup:
                 raise _bad(f'noise.{key}', v[f'noise.{key}'], '>= 0')
         settings = Settings.from_dict({k: v[k] for k in ROBOT_KEYS + PER_JOINT if k in given})
         robot = settings.load_robot()
-        converter = TorqueConverter(robot.joint_names,
-                                    settings.torque_configs(robot.joint_names))
+        configured = TorqueConverter(robot.joint_names,
+                                     settings.torque_configs(robot.joint_names))
+        try:
+            drives = DriveModel.per_joint(robot.dof, v['drive.resistance'],
+                                          v['drive.inductance'], v['drive.kt_error'])
+        except IdentificationError as exc:
+            raise IdentificationError(f'parameters drive.*: {exc}') from None
+        converter = drives.true_converter(configured)   # the currents the true drives need
+        if v['noise.voltage_std'] < 0:
+            raise _bad('noise.voltage_std', v['noise.voltage_std'], '>= 0')
+        if v['publish_voltages'] and not converter.needs_currents:
+            raise _bad('publish_voltages', True, 'false unless some joint has torque_source '
+                       'current or three_phase')
         if v['publish_currents'] and not converter.needs_currents:
             raise _bad('publish_currents', True, 'false unless some joint has torque_source '
                        'current or three_phase')
@@ -184,7 +206,7 @@ class SimSetup:
                 v['payload_events'])) if v['payload_events'].strip() else []
         except IdentificationError as exc:
             raise IdentificationError(f'parameter payload_events: {exc}') from None
-        return cls(v, robot, trajectory, converter, noise, phi, changes)
+        return cls(v, robot, trajectory, converter, noise, phi, changes, drives)
 
     @property
     def num_samples(self) -> int | None:
@@ -251,9 +273,14 @@ class SimulatedArmNode(Node):
         self._pub_js = self.create_publisher(JointState, 'joint_states', SENSOR_QOS)
         self._pub_cur = (self.create_publisher(JointState, 'motor_currents', SENSOR_QOS)
                          if v['publish_currents'] else None)
+        self._pub_volt = (self.create_publisher(JointState, 'motor_voltages', SENSOR_QOS)
+                          if v['publish_voltages'] else None)
+        self._volt_rng = np.random.default_rng([v['seed'], 1])
+        self._last = None   # (t, q, qd, tau) of the last sample: di/dt across batches
         self._pub_clock = (self.create_publisher(Clock, '/clock', SENSOR_QOS)
                            if v['publish_clock'] else None)
-        self._sample_pubs = [p for p in (self._pub_js, self._pub_cur) if p is not None]
+        self._sample_pubs = [p for p in (self._pub_js, self._pub_cur, self._pub_volt)
+                             if p is not None]
         self._pub_urdf = self.create_publisher(String, 'robot_description', LATCHED_QOS)
         self._pub_urdf.publish(String(data=self.setup.robot.description))
         self.stats = RealTimeStats()
@@ -360,8 +387,25 @@ class SimulatedArmNode(Node):
             angle = b.theta_e[keep][:, joint] if v['publish_electrical_angle'] else None
             publish_joint_states(self._pub_cur, stamps, [s[0] for s in self._slots],
                                  position=angle, effort=cur)
+        if self._pub_volt is not None:
+            self._publish_voltages(b, keep, stamps)
         if self._pub_clock is not None:
             self._pub_clock.publish(Clock(clock=time_msg(int(stamps[-1]))))
+
+    def _publish_voltages(self, b: SimResult, keep: np.ndarray, stamps: np.ndarray) -> None:
+        """The drives' terminal voltages of batch ``b`` (its previous sample prepended, so
+        di/dt is continuous across batches)."""
+        arrays = (b.t, b.q, b.qd, b.tau)
+        if self._last is not None:
+            arrays = tuple(np.concatenate([p, a]) for p, a in zip(self._last, arrays))
+        self._last = tuple(a[-1:] for a in (b.t, b.q, b.qd, b.tau))
+        volts = self.setup.drives.voltages(self.setup.converter, *arrays,
+                                           self.setup.values['noise.voltage_std'],
+                                           self._volt_rng)[-len(b):]
+        joint = [i for _, i, _ in self._slots]
+        channel = [k for _, _, k in self._slots]
+        publish_joint_states(self._pub_volt, stamps, [s[0] for s in self._slots],
+                             effort=volts[keep][:, joint, channel])
 
 
 def main(args: list[str] | None = None) -> int:
