@@ -418,3 +418,44 @@ def test_identify_json_and_save(method, tmp_path):
                               '--no-physical-consistency').stdout)
     assert off['consistency_solver']['status'] == 'disabled'
     assert off['estimate'] == off['unconstrained_estimate'] == pytest.approx(unc.tolist())
+
+
+def test_identify_refuses_to_save_an_inconsistent_estimate(tmp_path):
+    """The CRS bag's unconstrained estimate breaks a triangle inequality: --save refuses it
+    (exit 1, one error line, nothing written) unless --save-inconsistent."""
+    bag = str(ROOT / 'bags' / 'crs_a465_fourier')
+    args = [sys.executable, '-m', 'identification_node', 'identify', bag,
+            '--no-physical-consistency', '--save', str(tmp_path / 'a')]
+    run = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 1, run.stderr
+    assert 'error: not saved: the estimate is not physically consistent' in run.stdout
+    assert 'triangle' in run.stdout and not (tmp_path / 'a').exists()
+    run = subprocess.run(args[:-1] + [str(tmp_path / 'b'), '--save-inconsistent'],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / 'b' / 'identified.urdf').is_file()
+    assert 'NOT physically consistent' in (tmp_path / 'b' / 'identified.urdf').read_text()
+
+
+def test_identify_says_loudly_when_every_method_fails(tmp_path, monkeypatch, capsys):
+    """No consistent estimate at all (every solver and the projection failed): an error line
+    in the text and in the JSON's ``errors``, and --save refuses."""
+    from identification_node.cli import main
+    from identification_node.estimation.consistency import ConsistentEstimate
+
+    def failed(self, equations, weights=1.0):
+        b = self.base.num_base
+        return ConsistentEstimate('infeasible_result: not finite', None, None,
+                                  np.ones(b), 0.1, [], '', ['CLARABEL: solver_error: x',
+                                                            'SCS: infeasible'])
+    monkeypatch.setattr(ConsistentSolver, 'solve', failed)
+    bag = str(ROOT / 'bags' / 'crs_a465_fourier')
+    assert main(['identify', bag]) == 0
+    text = capsys.readouterr().out
+    assert 'error: the physically consistent solve failed (CLARABEL: solver_error: x; SCS: ' \
+        'infeasible)' in text
+    assert main(['identify', bag, '--json', '--save', str(tmp_path)]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert not doc['physically_consistent'] and len(doc['errors']) == 2
+    assert doc['consistency_solver']['method'] == '' and doc['saved'] == []
+    assert not any(tmp_path.iterdir())
