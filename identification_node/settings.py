@@ -119,8 +119,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
                            'in chi-square units of the data term'),
     'consistency.confidence': (0.99, 'chi-square level of the data\'s confidence region inside '
                                'which the prior (closest to the description) chooses'),
-    'consistency.mass_ratio': (0.0, 'each link\'s mass within [1/r, r] times the description\'s '
-                               '(0: no bound)'),
+    'consistency.mass_ratio': (3.0, 'each link\'s mass within [1/r, r] times the description\'s '
+                               '(0: no bound); a bound in use is reported'),
     'consistency.total_mass': ([], 'kg, [lo, hi] of the identified links\' total mass (empty: '
                                'none)'),
     'save_inconsistent': (False, '~/save writes identified.urdf even when the estimate is not '

@@ -459,3 +459,21 @@ def test_identify_says_loudly_when_every_method_fails(tmp_path, monkeypatch, cap
     assert not doc['physically_consistent'] and len(doc['errors']) == 2
     assert doc['consistency_solver']['method'] == '' and doc['saved'] == []
     assert not any(tmp_path.iterdir())
+
+
+def test_mass_ratio_bound_holds_and_is_reported(six):
+    """A link 5 times heavier than its description: the default mass_ratio (3) holds it at 3
+    times the description's mass and says so; without the bound the data pull it above."""
+    robot, base = six
+    phi = truth(robot, seed=21)
+    phi[10:20] = robot.phi_model[10:20] * 5.0          # link 2: a scaled body stays physical
+    Yb, tau = data(robot, base, phi, 10.0, 0.8, 0.05, seed=22)
+    ne = NormalEquations.from_rows(Yb, tau)
+    bounded = ConsistentSolver.for_robot(robot, base).solve(ne, 400.0)
+    assert bounded.ok and bounded.phi[10] == pytest.approx(3 * robot.phi_model[10], rel=1e-4)
+    assert any(n.startswith(f'{robot.link_names[1]}: mass') and 'upper bound' in n
+               for n in bounded.notes)
+    free = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(mass_ratio=0.0)).solve(
+        ne, 400.0)
+    assert free.phi[10] > 3.5 * robot.phi_model[10]   # what the data ask for
+    assert not any('bound' in n for n in free.notes) and free.excess < 1e-3

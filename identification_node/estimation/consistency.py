@@ -56,6 +56,7 @@ from identification_node.model.identifiability import BaseParameters
 
 DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
 DEFAULT_CONFIDENCE = 0.99  # chi-square level of the data's confidence region
+DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
 DEFAULT_MARGIN = 1e-6      # eps: J - eps 1 >= 0 (kg, kg m^2), lowered for tiny priors
 DEFAULT_TIME_LIMIT = 5.0   # s per solve
@@ -146,7 +147,7 @@ class ConsistencyOptions:
     mass_max: Sequence[float] = ()
     com_box: Sequence[float] = ()    # 6 per identified link: lo xyz, hi xyz (m), or empty
     confidence: float = DEFAULT_CONFIDENCE
-    mass_ratio: float = 0.0
+    mass_ratio: float = DEFAULT_MASS_RATIO
     total_mass: Sequence[float] = ()
 
     def validate(self, num_links: int | None = None) -> None:
@@ -251,8 +252,8 @@ class ConsistentSolver:
             S[body.start:body.start + 10] = np.eye(10)
             phi = phi + S @ total
             lo, hi = body.mass if body.mass is not None else (0.0, np.inf)
-            if ratio:
-                whole = phi_prior[body.start]
+            whole = phi_prior[body.start]
+            if ratio and whole > 0:
                 lo, hi = max(lo, whole / ratio), min(hi, whole * ratio)
             self._mass_bounds.append((lo, hi))
             if lo > 0:
@@ -436,7 +437,8 @@ class ConsistentSolver:
             m = phi[body.start]
             for bound, what in ((lo, 'lower'), (hi, 'upper')):
                 if bound > 0 and np.isfinite(bound) and abs(m - bound) <= rtol * bound:
-                    out.append(f'{body.name}: mass {m:.4g} kg at its {what} bound')
+                    out.append(f'{body.name}: mass {m:.4g} kg at its {what} bound (the '
+                               'data ask for more; consistency.mass_ratio, mass_min/max)')
         if len(self.options.total_mass):
             total = sum(phi[body.start] for body in self.bodies)
             for bound, what in zip(self.options.total_mass, ('lower', 'upper')):
