@@ -6,9 +6,10 @@ then a prior 30 % off), with joint friction: viscous fv, Coulomb fc and a Stribe
 (fs - fc) exp(-(qd / vs)^2) sign(qd) that the model has no column for, fc a few percent of the
 joint's rigid-body RMS torque. The arm follows a random Fourier excitation (training) and one
 of another seed (held out), measured with an 18-bit encoder, 0.01 rad/s velocity noise and
-torque noise of 1 % of the mean RMS torque; both are written as rosbag2 bags (the package's
-BagWriter) with /robot_description. ``identify_case`` runs ``identify BAG --validate HELDOUT
---json`` in this process, exactly as a user would with the defaults, and scores it.
+torque noise of 1 % of the mean RMS torque; both are written as rosbag2 bags
+(recordings.joint_state_bag) with /robot_description. ``identify_case`` runs
+``identify BAG --validate HELDOUT --json`` in this process, exactly as a user would with the
+defaults, and scores it. ``clean``: the URDF's own parameters, no friction, no noise.
 """
 from __future__ import annotations
 
@@ -23,20 +24,19 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
+sys.path.insert(0, str(ROOT / 'bench'))
 from arms import ARMS, arm_urdf  # noqa: E402
 
-from identification_node.bags.writer import BagWriter  # noqa: E402
 from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
 from identification_node.model.identifiability import BaseParameters  # noqa: E402
 from identification_node.model.robot import load_robot  # noqa: E402
 from identification_node.model.simulation import SensorNoise, simulate_kinematic  # noqa: E402
-from identification_node.wire.cdr import JOINT_STATE  # noqa: E402
+from recordings import joint_state_bag  # noqa: E402
 
 RATES = (100.0, 250.0, 500.0, 1000.0, 2000.0)
 EXTRAS = ['fv', 'fc', 'fo']           # the defaults' columns
 PERTURBATION = 0.3                   # truth = URDF body x (1 +- 0.3)
 STRIBECK_VELOCITY = 0.05             # rad/s
-T0_NS = 1_700_000_000_000_000_000
 
 
 @dataclass(frozen=True)
@@ -45,10 +45,11 @@ class Case:
     rate: float
     duration: float = 60.0
     seed: int = 0
+    clean: bool = False    # the URDF's own parameters, no friction, no noise (issue 27's UR5)
 
     @property
     def name(self) -> str:
-        return f'{self.arm}_{int(self.rate)}hz_s{self.seed}'
+        return f"{self.arm}_{int(self.rate)}hz_s{self.seed}{'_clean' if self.clean else ''}"
 
 
 def case_robot(arm: str):
@@ -66,39 +67,34 @@ def truth(robot, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return phi, factors
 
 
-def _write(path: Path, robot, sim) -> None:
-    ns = T0_NS + np.round(sim.t * 1e9).astype(np.int64)
-    with BagWriter(path, 'mcap', overwrite=True) as bag:
-        bag.add_topic('/joint_states', JOINT_STATE)
-        bag.write_string('/robot_description', int(ns[0]), robot.description)
-        for k, stamp in enumerate(ns.tolist()):
-            bag.write_joint_state('/joint_states', stamp, stamp * 1e-9, robot.joint_names,
-                                  sim.q_meas[k], sim.qd_meas[k], sim.tau_meas[k])
-
-
 def make_case(case: Case, directory: Path) -> dict:
     """Simulate ``case`` into directory/<name>/{train,heldout}; return its truth: phi,
     base parameters, link masses and the URDF's."""
     robot = case_robot(case.arm)
     base = BaseParameters.from_robot(robot)
     phi, factors = truth(robot, case.seed)
+    if case.clean:
+        phi, factors = robot.phi_model.copy(), np.ones(robot.dof)
     t = np.arange(int(round(case.duration * case.rate))) / case.rate
     motions = [FourierTrajectory.random(robot, seed=case.seed + k) for k in (0, 1)]
     rigid = simulate_kinematic(robot, phi, motions[0], t[::max(1, len(t) // 2000)])
     rms = np.sqrt(np.mean(rigid.tau ** 2, axis=0))
     fc, fv, fs = 0.03 * rms, 0.03 * rms, 0.045 * rms     # N m, N m s/rad, N m
+    if case.clean:
+        fc = fv = fs = np.zeros(robot.dof)
     for j, joint in enumerate(robot.joint_names):
         phi[robot.param_index(f'{joint}.fc')] = fc[j]
         phi[robot.param_index(f'{joint}.fv')] = fv[j]
-    noise = SensorNoise(encoder_counts=2 ** 18, velocity_std=0.01,
-                        torque_std=0.01 * float(np.mean(rms)))
+    noise = SensorNoise() if case.clean else SensorNoise(
+        encoder_counts=2 ** 18, velocity_std=0.01, torque_std=0.01 * float(np.mean(rms)))
     out = Path(directory) / case.name
     for k, (label, motion) in enumerate(zip(('train', 'heldout'), motions)):
         sim = simulate_kinematic(robot, phi, motion, t, noise, seed=case.seed + 10 * k)
         bump = (fs - fc) * np.exp(-(sim.qd / STRIBECK_VELOCITY) ** 2) * np.sign(sim.qd)
         sim.tau = sim.tau + bump
         sim.tau_meas = sim.tau_meas + bump
-        _write(out / label, robot, sim)
+        joint_state_bag(out / label, sim.t, robot.joint_names, sim.q_meas, sim.qd_meas,
+                        sim.tau_meas, robot.description)
     return {'phi': phi, 'beta': base.to_base(phi), 'masses': phi[0:robot.n_inertial:10],
             'urdf_masses': robot.phi_model[0:robot.n_inertial:10], 'factors': factors,
             'dir': out}
