@@ -37,6 +37,7 @@ RATES = (100.0, 250.0, 500.0, 1000.0, 2000.0)
 EXTRAS = ['fv', 'fc', 'fo']           # the defaults' columns
 PERTURBATION = 0.3                   # truth = URDF body x (1 +- 0.3)
 STRIBECK_VELOCITY = 0.05             # rad/s
+MASS_SLACK = 0.01                    # relative: 'between the URDF and the truth' to 1 %
 
 
 @dataclass(frozen=True)
@@ -133,9 +134,10 @@ def score(doc: dict, truth_: dict | None = None) -> dict:
         true = truth_['masses']
         lo, hi = np.minimum(true, urdf), np.maximum(true, urdf)
         row['truth_ratio'] = masses / true
-        row['masses_ok'] = bool(np.all((np.abs(masses / true - 1) <= 0.3 + 1e-3)
-                                       | ((masses >= lo * (1 - 1e-3))
-                                          & (masses <= hi * (1 + 1e-3)))))
+        slack = MASS_SLACK
+        row['masses_ok'] = bool(np.all((np.abs(masses / true - 1) <= 0.3 + slack)
+                                       | ((masses >= lo * (1 - slack))
+                                          & (masses <= hi * (1 + slack)))))
         est = np.array([np.nan if b['estimate'] is None else b['estimate']
                         for b in doc['base_parameters']])
         sd = np.array([np.nan if b['stddev'] is None else b['stddev']
