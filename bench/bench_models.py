@@ -63,7 +63,11 @@ def recordings(args) -> int:
           'masses kg')
     with tempfile.TemporaryDirectory() as tmp:
         for name in RECORDINGS:
-            r = identify_recording(name, Path(tmp))
+            try:
+                r = identify_recording(name, Path(tmp))
+            except RuntimeError as exc:   # identify's own error line is above
+                print(f'{name} | not identified: {exc}', flush=True)
+                continue
             print(f"{name} | {'yes' if r['consistent'] else 'NO'} | {r['path']} | "
                   f"{r['heldout']:.2f} ({r['heldout_unconstrained']:.2f}) | "
                   f"{r['heldout_ratio']:.3f} | {_masses(r['urdf_ratio'])} | "
