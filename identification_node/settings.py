@@ -120,8 +120,17 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'payload.tolerance.inertia': (0.002, 'kg m^2; inertia stddev above this: not excited'),
     'physical_consistency': (True, 'publish and save the physically consistent estimate '
                              '(constrained least squares); false: the unconstrained one only'),
-    'consistency.weight': (1e-3, 'weight of the log-det regulariser toward the description\'s '
-                           'inertials, in chi-square units of the data term'),
+    'consistency.weight': (1e-3, 'weight of the log-det prior toward the description\'s '
+                           'inertials where no consistent body lies in the confidence region, '
+                           'in chi-square units of the data term'),
+    'consistency.confidence': (0.99, 'chi-square level of the data\'s confidence region inside '
+                               'which the prior (closest to the description) chooses'),
+    'consistency.mass_ratio': (3.0, 'each link\'s mass within [1/r, r] times the description\'s '
+                               '(0: no bound); a bound in use is reported'),
+    'consistency.total_mass': ([], 'kg, [lo, hi] of the identified links\' total mass (empty: '
+                               'none)'),
+    'save_inconsistent': (False, '~/save writes identified.urdf even when the estimate is not '
+                          'physically consistent'),
     'consistency.margin': (1e-6, 'pseudo-inertia margin: J - margin * 1 >= 0 (kg, kg m^2)'),
     'consistency.solver': ('CLARABEL', 'cvxpy solver: CLARABEL or SCS'),
     'consistency.time_limit': (5.0, 's per constrained solve; on time-out the unconstrained '
@@ -135,7 +144,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
 }
 # List parameters of floats whose default is empty (their element type cannot be read off).
 FLOAT_LISTS = ('joint_noise_std', 'plausibility.current_limit', 'consistency.mass_min',
-               'consistency.mass_max', 'consistency.com_box')
+               'consistency.mass_max', 'consistency.com_box', 'consistency.total_mass')
 # List parameters with a default for which [] is a value too (ROS types [] as bytes).
 EMPTY_LISTS = ('extras',)
 
@@ -252,7 +261,9 @@ class Settings:
             weight=v['consistency.weight'], margin=v['consistency.margin'],
             solver=v['consistency.solver'].upper(), time_limit=v['consistency.time_limit'],
             geometry_box=v['consistency.geometry_box'], mass_min=tuple(v['consistency.mass_min']),
-            mass_max=tuple(v['consistency.mass_max']), com_box=tuple(v['consistency.com_box']))
+            mass_max=tuple(v['consistency.mass_max']), com_box=tuple(v['consistency.com_box']),
+            confidence=v['consistency.confidence'], mass_ratio=v['consistency.mass_ratio'],
+            total_mass=tuple(v['consistency.total_mass']))
         options.validate()
         return options
 

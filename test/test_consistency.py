@@ -97,7 +97,12 @@ def test_pseudo_inertia_is_positive_definite_exactly_for_physical_bodies():
     assert np.linalg.eigvalsh(pseudo_inertia(bad))[0] < 0
 
 
-def test_well_excited_consistent_equals_unconstrained_within_stddev(panda):
+def test_well_excited_consistent_lies_in_the_confidence_region(panda):
+    """Well excited: the consistent estimate is inside the data's 99 % region about the
+    unconstrained WLS (chi-square of the difference <= the quantile), so it fits the data as
+    well; it is as close to the truth as the region allows."""
+    from scipy.stats import chi2
+
     robot, base = panda
     phi = truth(robot)
     sigma = 0.05
@@ -106,13 +111,14 @@ def test_well_excited_consistent_equals_unconstrained_within_stddev(panda):
     theta, stddev = wls(ne, sigma ** -2)
     solver = ConsistentSolver.for_robot(robot, base)
     result = solver.solve(ne, sigma ** -2)
-    assert result.status == 'optimal'
+    assert result.status == 'optimal' and result.method == 'CLARABEL' and not result.attempts
     np.testing.assert_allclose(result.stddev, stddev, rtol=1e-6)
-    # the two agree within their stddev (the light wrist links' constraints may be active:
-    # the noisy unconstrained estimate lies just outside what physical bodies can give)
-    assert np.max(np.abs(result.theta - theta) / stddev) < 1.0
+    G = ne.combined(sigma ** -2)[0]
+    d = result.theta - theta
+    assert d @ G @ d <= chi2.ppf(0.99, base.num_base) * (1 + 1e-5), d @ G @ d
+    assert result.excess < 1e-3
     z = (result.theta - base.to_base(phi)) / stddev
-    assert np.max(np.abs(z)) < 4.5, np.abs(z).max()
+    assert np.sqrt(np.mean(z ** 2)) < 3.0, np.sqrt(np.mean(z ** 2))
     assert consistency_problems(robot, result.phi) == []
     np.testing.assert_allclose(base.to_base(result.phi), result.theta)
 
@@ -282,7 +288,9 @@ def test_hard_priors_give_a_feasible_result_and_a_message():
         assert np.linalg.eigvalsh(np.triu(Mq) + np.triu(Mq, 1).T)[0] > 0
 
 
-def test_solver_failure_and_time_out_are_reported_never_nan(panda, monkeypatch):
+def test_solver_failure_falls_back_and_never_gives_nan(panda, monkeypatch):
+    """Both conic solvers timing out or failing: the unconstrained estimate projected onto
+    physical bodies, with the path and the failures stated; nothing at all: no estimate."""
     import cvxpy as cp
 
     robot, base = panda
@@ -290,8 +298,11 @@ def test_solver_failure_and_time_out_are_reported_never_nan(panda, monkeypatch):
     ne = NormalEquations.from_rows(Yb, tau)
     slow = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(time_limit=1e-4))
     result = slow.solve(ne, 100.0)
-    assert not result.ok and result.phi is None and result.theta is None
-    assert result.status == 'time_limit'
+    assert result.ok and result.status == 'projected' and result.method == 'projection'
+    assert [a.split(':')[0] for a in result.attempts] == ['CLARABEL', 'SCS']
+    assert 'time_limit' in result.attempts[0]
+    assert any('no conic solver succeeded' in n for n in result.notes)
+    assert consistency_problems(robot, result.phi) == []
     assert np.all(np.isfinite(result.stddev))
     solver = ConsistentSolver.for_robot(robot, base)
 
@@ -299,9 +310,37 @@ def test_solver_failure_and_time_out_are_reported_never_nan(panda, monkeypatch):
         raise cp.error.SolverError('numerical trouble')
     monkeypatch.setattr(solver.problem, 'solve', fail)
     result = solver.solve(ne, 100.0)
-    assert not result.ok and result.status.startswith('solver_error')
+    assert result.ok and result.method == 'projection'
+    assert all('solver_error' in a for a in result.attempts)
+    nan = np.full(base.num_params, np.nan)
+    monkeypatch.setattr(solver.base, 'closest_standard', lambda *a: nan)
+    result = solver.solve(ne, 100.0)
+    assert not result.ok and result.phi is None and result.theta is None
+    assert result.status.startswith('infeasible_result') and result.method == ''
     with pytest.raises(IdentificationError, match='base parameters'):
         solver.solve(NormalEquations.zeros(3, robot.dof))
+
+
+def test_solution_within_tolerance_is_projected(panda, monkeypatch):
+    """A solver's answer with a pseudo-inertia eigenvalue just below zero (within its
+    tolerance) is projected onto the margin, re-checked and accepted, with a note."""
+    robot, base = panda
+    Yb, tau = data(robot, base, truth(robot), 5.0, 0.6, 0.1, seed=15)
+    ne = NormalEquations.from_rows(Yb, tau)
+    solver = ConsistentSolver.for_robot(robot, base)
+    good = solver.solve(ne, 100.0)
+    J = pseudo_inertia(good.phi[10:20])
+    ev, V = np.linalg.eigh(J)
+    ev[0] = -4e-7
+    bad = good.phi.copy()
+    bad[10:20] = from_pseudo_inertia((V * ev) @ V.T)
+    assert consistency_problems(robot, bad)
+    monkeypatch.setattr(solver, '_conic', lambda *a: ('optimal', bad.copy()))
+    result = solver.solve(ne, 100.0)
+    assert result.status == 'optimal' and consistency_problems(robot, result.phi) == []
+    assert np.linalg.eigvalsh(pseudo_inertia(result.phi[10:20]))[0] >= solver.eps[1] * 0.999
+    assert np.max(np.abs(result.phi - bad)) < 1e-5
+    assert any('projection' in n for n in result.notes)
 
 
 def test_solver_process_equals_in_process_and_survives_its_child(panda):
@@ -379,3 +418,63 @@ def test_identify_json_and_save(method, tmp_path):
                               '--no-physical-consistency').stdout)
     assert off['consistency_solver']['status'] == 'disabled'
     assert off['estimate'] == off['unconstrained_estimate'] == pytest.approx(unc.tolist())
+
+
+def test_identify_refuses_to_save_an_inconsistent_estimate(tmp_path):
+    """The CRS bag's unconstrained estimate breaks a triangle inequality: --save refuses it
+    (exit 1, an error line, no file written) unless --save-inconsistent."""
+    bag = str(ROOT / 'bags' / 'crs_a465_fourier')
+    args = [sys.executable, '-m', 'identification_node', 'identify', bag,
+            '--no-physical-consistency', '--save', str(tmp_path / 'a')]
+    run = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 1, run.stderr
+    assert 'error: not saved: the estimate is not physically consistent' in run.stdout
+    assert 'triangle' in run.stdout
+    assert not (tmp_path / 'a').exists() or not any((tmp_path / 'a').iterdir())
+    run = subprocess.run(args[:-1] + [str(tmp_path / 'b'), '--save-inconsistent'],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / 'b' / 'identified.urdf').is_file()
+    assert 'NOT physically consistent' in (tmp_path / 'b' / 'identified.urdf').read_text()
+
+
+def test_identify_says_loudly_when_every_method_fails(tmp_path, monkeypatch, capsys):
+    """No consistent estimate at all (every solver and the projection failed): an error line
+    in the text and in the JSON's ``errors``, and --save refuses."""
+    from identification_node.cli import main
+    from identification_node.estimation.consistency import ConsistentEstimate
+
+    def failed(self, equations, weights=1.0):
+        b = self.base.num_base
+        return ConsistentEstimate('infeasible_result: not finite', None, None,
+                                  np.ones(b), 0.1, [], '', ['CLARABEL: solver_error: x',
+                                                            'SCS: infeasible'])
+    monkeypatch.setattr(ConsistentSolver, 'solve', failed)
+    bag = str(ROOT / 'bags' / 'crs_a465_fourier')
+    assert main(['identify', bag]) == 0
+    text = capsys.readouterr().out
+    assert 'error: the physically consistent solve failed (CLARABEL: solver_error: x; SCS: ' \
+        'infeasible)' in text
+    assert main(['identify', bag, '--json', '--save', str(tmp_path)]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert not doc['physically_consistent'] and len(doc['errors']) == 2
+    assert doc['consistency_solver']['method'] == '' and doc['saved'] == []
+    assert not any(tmp_path.iterdir())
+
+
+def test_mass_ratio_bound_holds_and_is_reported(six):
+    """A link 5 times heavier than its description: the default mass_ratio (3) holds it at 3
+    times the description's mass and says so; without the bound the data pull it above."""
+    robot, base = six
+    phi = truth(robot, seed=21)
+    phi[10:20] = robot.phi_model[10:20] * 5.0          # link 2: a scaled body stays physical
+    Yb, tau = data(robot, base, phi, 10.0, 0.8, 0.05, seed=22)
+    ne = NormalEquations.from_rows(Yb, tau)
+    bounded = ConsistentSolver.for_robot(robot, base).solve(ne, 400.0)
+    assert bounded.ok and bounded.phi[10] == pytest.approx(3 * robot.phi_model[10], rel=1e-4)
+    assert any(n.startswith(f'{robot.link_names[1]}: mass') and 'upper bound' in n
+               for n in bounded.notes)
+    free = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(mass_ratio=0.0)).solve(
+        ne, 400.0)
+    assert free.phi[10] > 3.5 * robot.phi_model[10]   # what the data ask for
+    assert not any('bound' in n for n in free.notes) and free.excess < 1e-3

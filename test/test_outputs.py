@@ -152,7 +152,11 @@ def test_parameter_file_layouts(tmp_path):
 def test_save_results_writes_yaml_and_urdf(tmp_path):
     settings = Settings.from_dict({'robot': 'mit_dd_arm'})
     pipeline = settings.build()
-    paths = save_results(pipeline, tmp_path / 'out')
+    # before any data the unconstrained estimate (zero base) has no physical bodies: refused
+    with pytest.raises(IdentificationError, match='not physically consistent'):
+        save_results(pipeline, tmp_path / 'out')
+    assert not (tmp_path / 'out').exists()
+    paths = save_results(pipeline, tmp_path / 'out', inconsistent=True)
     assert sorted(p.name for p in paths) == ['estimate.yaml', 'identified.urdf']
     doc = yaml.safe_load(paths[0].read_text())
     assert doc['robot'] == 'mit_dd_arm' and doc['num_samples'] == 0

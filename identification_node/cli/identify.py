@@ -107,6 +107,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='rls: stream the bag\'s 60 s segments in N processes and merge '
                         'their statistics (offline/parallel.py; 0: one per core; default 1). '
                         'Not with --report, --payload, --start/--end')
+    parser.add_argument('--save-inconsistent', action='store_true',
+                        help='--save writes an estimate that is not physically consistent too '
+                        '(refused by default)')
     parser.add_argument('--no-physical-consistency', action='store_true',
                         help='the unconstrained least-squares estimate only (config: '
                         'physical_consistency: false)')
@@ -169,6 +172,7 @@ def result_document(result, validations=(), training=None) -> dict:
         'excluded_equations': ident.details.get('excluded_per_joint', {}),
         'warnings': list(ident.warnings),
         'physically_consistent': not problems, 'consistency_problems': problems,
+        'errors': consistency_errors(params['consistency_solver'], problems),
         'model_consistency_problems': consistency_problems(robot, robot.phi_model),
         'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
                          'stddev': np.asarray(c.stddev).tolist()} for c in ident.history],
@@ -178,6 +182,16 @@ def result_document(result, validations=(), training=None) -> dict:
     if validations:
         doc['validation'] = [v.document() for v in validations]
     return plain(doc)
+
+
+def consistency_errors(solver: dict, problems: list[str]) -> list[str]:
+    """The errors of a solve (results.solver_document) whose estimate is not physically
+    consistent although asked to be: none when it is, or when consistency is disabled."""
+    if solver['status'] == 'disabled' or not problems:
+        return []
+    tried = '; '.join(solver['attempts']) or solver['status']
+    return [f'the physically consistent solve failed ({tried}): the estimate given is the '
+            'unconstrained one, NOT physically consistent: ' + '; '.join(problems[:3])]
 
 
 def saved_document(ident) -> dict:
@@ -232,12 +246,17 @@ def format_report(doc: dict) -> str:
         lines.append('')
     solver = doc['consistency_solver']
     lines.append(f"physically consistent solve: {solver['status']}" + (
+        f" by {solver['method']}" if solver.get('method') else '') + (
         f" ({solver['solve_time']:.3f} s)" if solver['solve_time'] is not None else '')
-        + ('' if solver['status'] in ('optimal', 'disabled') else
-           ': the unconstrained estimate is given'))
+        + ''.join(f'; {a} failed' for a in solver.get('attempts', [])))
     for n in solver['notes']:
         lines += textwrap.wrap(f'note: {n}', TEXT_WIDTH, initial_indent='  ',
                                subsequent_indent='    ')
+    lines += [f'error: {e}' for e in doc.get('errors', [])]
+    lines += textwrap.wrap('link masses, kg (ratio to the URDF): ' + ', '.join(
+        f"{k} {v['mass']:.4g}"
+        + ('' if v.get('mass_ratio') is None else f" ({v['mass_ratio']:.2f})")
+        for k, v in doc['links'].items()), TEXT_WIDTH, subsequent_indent='  ')
     lines += ['']
     for what, e in ([('training bag', doc['training_error'])] if 'training_error' in doc
                     else []) + [(f"validation bag {v['bag']}", v)
@@ -541,7 +560,12 @@ def run(args: argparse.Namespace) -> int:
         saved = saved_document(ident)
         if gains is not None:
             saved['drive_gains'] = doc['drive_gains']
-        doc['saved'] = [str(p) for p in write_results(args.save, saved, robot)]
+        try:
+            doc['saved'] = [str(p) for p in write_results(
+                args.save, saved, robot, inconsistent=args.save_inconsistent)]
+        except IdentificationError as exc:   # the report is printed, then the exit status 1
+            doc['errors'].append(str(exc))
+            doc['saved'] = []
     if args.report:
         from identification_node.offline.report import write_report
         report = write_report(args.report, ident, validations, training)
@@ -560,7 +584,9 @@ def run(args: argparse.Namespace) -> int:
             from identification_node.estimation.drive_gains import gains_text
             print('\n'.join(gains_text(gains)))
         print(format_outputs(doc))
-    return 0
+    for error in doc['errors'] if args.json else ():   # the text report has them
+        print(f'error: {error}', file=sys.stderr)
+    return 1 if args.save and not doc['saved'] else 0
 
 
 def format_outputs(doc: dict) -> str:

@@ -1,31 +1,42 @@
-"""Physically consistent estimates: constrained weighted least squares on the normal equations.
+"""Physically consistent estimates: the data's confidence region, then the prior inside it.
 
-The data determine the base parameters beta = K phi (identifiability); the solve looks for the
-full standard parameters phi (robot.py's order) minimising
+The data determine the base parameters beta = K phi (identifiability): the unconstrained
+weighted least squares gives their centre c and information G (chi-square units when the
+weights w_j are the inverse noise variances). The solve looks for the full standard parameters
+phi (robot.py's order) minimising
 
-    sum_j w_j ||tau_j - Y_j K phi||^2                                  (the data, as the WLS)
-    + gamma sum_i d(J_i || J0_i) + gamma sum_k ((x_k - x0_k) / s_k)^2  (toward the prior)
+    sum_i d(J_i || J0_i) + sum_k ((x_k - x0_k) / s_k)^2 + t / gamma    (the prior; the excess)
+    subject to  (K phi - c)' G_f (K phi - c) <= q + t,  t >= 0,
 
-subject to, per body i (an identified link with what is merged into it), its own pseudo-inertia
+and, per body i (an identified link with what is merged into it), its own pseudo-inertia
 J_i - eps_i 1 >= 0 (Wensing, Kim and Slotine 2017: mass > 0, inertia about the centre of mass
-positive definite, triangle inequalities), optional mass bounds and a box for its centre of
-mass, and fv, fc, Ia >= 0 for the per-joint columns x. The pseudo-inertia of a block
-[m, mx, my, mz, Ixx, Ixy, Ixz, Iyy, Iyz, Izz] (inertia I about the frame origin) is
+positive definite, triangle inequalities), optional mass bounds (absolute, a ratio to the
+description's, the total) and a box for its centre of mass, and fv, fc, Ia >= 0 for the
+per-joint columns x. The pseudo-inertia of a block [m, mx, my, mz, Ixx, Ixy, Ixz, Iyy, Iyz,
+Izz] (inertia I about the frame origin) is
 
     J = [[Sigma, h], [h', m]],  Sigma = tr(I)/2 1 - I,  h = (mx, my, mz).
 
 d is the log-det (Bregman) divergence of Lee, Wensing and Park 2020,
-d(J || J0) = -log det(J0^-1 J) + tr(J0^-1 J) - 4, toward the description's own inertials: it
-fixes the combinations the data leave free. The data term is in chi-square units when w_j are
-the inverse noise variances (then sum_j w_j Y_j'Y_j is the inverse covariance of the estimate),
-so gamma = 1e-3 moves an identified combination by about a thousandth of its standard deviation
-per unit of divergence. A body's own part excludes constant bodies merged into it (``fixed``,
-e.g. fingers of locked joints, which keep their own inertials in the exported URDF).
+d(J || J0) = -log det(J0^-1 J) + tr(J0^-1 J) - 4, toward the description's own inertials. q is
+the chi-square quantile of the stated ``confidence`` level with as many degrees of freedom as
+the data determine: among the parameters the data cannot tell apart from their best fit, the
+one closest to the description. That prior does not fade as the recording grows: the region
+shrinks, and the prior still chooses inside it. When no consistent body lies in the region (a
+model error, a biased sensor) the excess t is paid at 1/gamma per unit of chi-square: then the
+solve is the weighted least squares with a prior of weight gamma. G_f is G with each
+direction's variance floored at ``STDDEV_FLOOR`` of its parameters' typical size (from the
+prior): noise-free data would ask the solver for a resolution below its tolerance. A body's own
+part excludes constant bodies merged into it (``fixed``, e.g. fingers of locked joints, which
+keep their own inertials in the exported URDF).
 
-Solved by cvxpy (Clarabel, or SCS) on a parametrised problem built once: re-solving with new
-normal equations (the node, at every refresh) skips the canonicalisation, and SCS also starts
-from the previous solution. A failure or time-out is reported in the result's ``status``; the
-caller keeps the unconstrained estimate.
+Solved by cvxpy on a parametrised problem built once (re-solving with new normal equations,
+the node at every refresh, skips the canonicalisation): the configured solver, then the other
+conic one (Clarabel, SCS) when it fails. A solution within the solver's tolerance is projected
+onto the feasible set (eigenvalues raised to the margin, then re-checked). When both fail, the
+unconstrained estimate projected onto physical bodies is given, marked ``method``
+'projection'. The result says which path was taken; ``ok`` false only when nothing gave a
+consistent estimate (the caller then keeps the unconstrained one and says so as an error).
 """
 from __future__ import annotations
 
@@ -43,12 +54,16 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 
-DEFAULT_WEIGHT = 1e-3      # gamma: regulariser weight, in chi-square units of the data term
+DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
+DEFAULT_CONFIDENCE = 0.99  # chi-square level of the data's confidence region
+DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
+STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
 DEFAULT_MARGIN = 1e-6      # eps: J - eps 1 >= 0 (kg, kg m^2), lowered for tiny priors
 DEFAULT_TIME_LIMIT = 5.0   # s per solve
 EXTRA_SCALE = 1e-2         # s_k floor of the per-joint columns' regulariser (SI)
 NONNEGATIVE = ('fv', 'fc', 'Ia')
 SOLVERS = ('CLARABEL', 'SCS')
+PROJECTION = 'projection'   # method of the last resort
 NICE = 19                  # the node's solver process: below its processing thread
 
 # phi block (10,) = _FROM_J @ vec(J) (J symmetric 4x4, row-major flattening)
@@ -93,19 +108,25 @@ class Body:
 
 @dataclass
 class ConsistentEstimate:
-    """Outcome of a solve: ``phi`` the standard parameters (the combinations the data leave
-    free, fixed by the weak regulariser alone, to about sqrt(gap / gamma) ~ 1e-3 relative:
-    they change no torque), ``theta`` = K phi the base estimate
-    and ``stddev`` its standard deviations from the data's information (the unconstrained
-    ones; inf where undetermined); None for phi and theta when the solve failed. ``status``:
-    'optimal', or why it failed ('time_limit', 'infeasible', 'solver_error: ...');
-    ``solve_time`` s; ``notes``: adjustments made (repaired priors, widened boxes)."""
+    """Outcome of a solve: ``phi`` the standard parameters, ``theta`` = K phi the base
+    estimate and ``stddev`` its standard deviations from the data's information (the
+    unconstrained ones; inf where undetermined); None for phi and theta when nothing gave a
+    consistent estimate. ``status``: 'optimal' (a conic solver's, projected within its
+    tolerance), 'projected' (both solvers failed: the unconstrained estimate projected onto
+    physical bodies), or why it failed ('time_limit', 'infeasible', 'solver_error: ...');
+    ``method`` the path that gave phi (a solver's name, 'projection', '' when none);
+    ``attempts`` the failed attempts before it ('SOLVER: status'); ``solve_time`` s;
+    ``notes``: adjustments made (repaired priors, projections, active bounds);
+    ``excess`` the chi-square beyond the confidence region the constraints cost (0 inside)."""
     status: str
     phi: np.ndarray | None
     theta: np.ndarray | None
     stddev: np.ndarray
     solve_time: float
     notes: list[str] = field(default_factory=list)
+    method: str = ''
+    attempts: list[str] = field(default_factory=list)
+    excess: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -114,7 +135,9 @@ class ConsistentEstimate:
 
 @dataclass(frozen=True)
 class ConsistencyOptions:
-    """Settings of the solve (config: ``physical_consistency.*``)."""
+    """Settings of the solve (config: ``physical_consistency.*``). ``mass_ratio`` r > 1: each
+    body's mass within [m0 / r, r m0] of the description's m0 (0: no bound); ``total_mass``
+    (lo, hi) kg of the identified bodies together, or empty."""
     weight: float = DEFAULT_WEIGHT
     margin: float = DEFAULT_MARGIN
     solver: str = 'CLARABEL'
@@ -123,12 +146,20 @@ class ConsistencyOptions:
     mass_min: Sequence[float] = ()   # per identified link (kg), or empty
     mass_max: Sequence[float] = ()
     com_box: Sequence[float] = ()    # 6 per identified link: lo xyz, hi xyz (m), or empty
+    confidence: float = DEFAULT_CONFIDENCE
+    mass_ratio: float = DEFAULT_MASS_RATIO
+    total_mass: Sequence[float] = ()
 
     def validate(self, num_links: int | None = None) -> None:
         """IdentificationError naming the first bad setting (``consistency.<name>``)."""
         checks = [('weight', self.weight > 0, '> 0'), ('margin', self.margin > 0, '> 0'),
                   ('time_limit', self.time_limit > 0, '> 0'),
-                  ('solver', self.solver in SOLVERS, f'one of {SOLVERS}')]
+                  ('solver', self.solver in SOLVERS, f'one of {SOLVERS}'),
+                  ('confidence', 0 < self.confidence < 1, 'in (0, 1)'),
+                  ('mass_ratio', self.mass_ratio == 0 or self.mass_ratio > 1, '0 or > 1'),
+                  ('total_mass', len(self.total_mass) == 0 or (
+                      len(self.total_mass) == 2 and 0 <= self.total_mass[0]
+                      < self.total_mass[1]), 'empty or [lo, hi] with 0 <= lo < hi')]
         if num_links is not None:
             n = num_links
             checks += [
@@ -182,21 +213,21 @@ class ConsistentSolver:
         kinds = [base.param_names[k].rsplit('.', 1)[-1] for k in self._extra]
         self._nonneg = self._extra[[k in NONNEGATIVE for k in kinds]] if kinds else self._extra
         eps_opt, gamma = self.options.margin, self.options.weight
+        ratio = self.options.mass_ratio
 
         # Scaled variables, so that the solver sees numbers of order one: per body Jt with
         # J = D Jt D (D from the prior's mass and size: J >= 0 iff Jt >= 0), the per-joint
-        # columns x = x0 + s xt, and the base parameters beta = c + S u about the data's own
-        # solution c in units S of their stddev (K phi = beta is an equality constraint).
+        # columns x = x0 + s xt; the region in whitened coordinates M (K phi) - m (parameters).
         self._J = [cp.Variable((4, 4), symmetric=True, name=f'J_{b_.name}') for b_ in bodies]
         ne = len(self._extra)
         self._x = cp.Variable(ne, name='extras') if ne else None
-        self._u = cp.Variable(b, name='base')
-        self._R = cp.Parameter((b, b), name='data_factor')
-        self._z = cp.Parameter(b, name='data_target')
-        self._S = cp.Parameter(b, nonneg=True, name='base_scale')
-        self._c = cp.Parameter(b, name='base_centre')
+        self._t = cp.Variable(nonneg=True, name='excess')
+        self._M = cp.Parameter((b, b), name='whitening')
+        self._m = cp.Parameter(b, name='whitened_centre')
+        self._q = cp.Parameter(nonneg=True, name='region')
         constraints, regulariser = [], 0
         phi = np.zeros(p)
+        self.eps, self._mass_bounds, masses = [], [], []
         for body, Jt in zip(self.bodies, self._J):
             own_prior = phi_prior[body.start:body.start + 10] - body.fixed
             J0 = pseudo_inertia(own_prior)
@@ -208,6 +239,7 @@ class ConsistentSolver:
                 self.notes.append(f'{body.name}: the prior is not physically consistent '
                                   f'(pseudo-inertia eigenvalues {np.array2string(ev, precision=3)}'
                                   '); regularised toward its nearest consistent one')
+            self.eps.append(eps)
             m0 = J0[3, 3]
             size = np.sqrt(max(np.linalg.eigvalsh(J0[:3, :3])[-1], 1e-12 * m0) / m0)
             D = np.sqrt(m0) * np.diag([size, size, size, 1.0])
@@ -215,17 +247,25 @@ class ConsistentSolver:
             constraints.append(Jt >> eps * Dinv2)
             regulariser += -cp.log_det(Jt) + cp.trace((D @ np.linalg.inv(J0) @ D) @ Jt)
             total = _FROM_J @ cp.vec(D @ Jt @ D, order='C') + body.fixed
+            masses.append(total[0])
             S = np.zeros((p, 10))
             S[body.start:body.start + 10] = np.eye(10)
             phi = phi + S @ total
-            if body.mass is not None:
-                lo, hi = body.mass
+            lo, hi = body.mass if body.mass is not None else (0.0, np.inf)
+            whole = phi_prior[body.start]
+            if ratio and whole > 0:
+                lo, hi = max(lo, whole / ratio), min(hi, whole * ratio)
+            self._mass_bounds.append((lo, hi))
+            if lo > 0:
                 constraints.append(total[0] >= lo)
-                if np.isfinite(hi):
-                    constraints.append(total[0] <= hi)
+            if np.isfinite(hi):
+                constraints.append(total[0] <= hi)
             if body.com_box is not None:
                 lo, hi = body.com_box
                 constraints += [total[1:4] >= total[0] * lo, total[1:4] <= total[0] * hi]
+        if len(self.options.total_mass) and masses:
+            lo, hi = self.options.total_mass
+            constraints += [sum(masses) >= lo, sum(masses) <= hi]
         if self._x is not None:
             x0 = phi_prior[self._extra]
             scale = np.maximum(np.abs(x0), EXTRA_SCALE)
@@ -238,11 +278,13 @@ class ConsistentSolver:
             S[self._extra, np.arange(ne)] = 1.0
             phi = phi + S @ x
         self._phi = phi
-        constraints.append(base.K @ phi == self._c + cp.multiply(self._S, self._u))
-        objective = cp.sum_squares(self._R @ self._u - self._z) + gamma * regulariser
-        self.problem = cp.Problem(cp.Minimize(objective), constraints)
-        self._beta_prior = base.to_base(phi_prior)
-        self._solved = False
+        constraints.append(cp.sum_squares(self._M @ (base.K @ phi) - self._m)
+                           <= self._q + self._t)
+        self.problem = cp.Problem(cp.Minimize(regulariser + self._t / gamma), constraints)
+        self._phi_prior = phi_prior
+        # a base parameter's typical size: its terms' prior magnitudes (the floor's unit)
+        self._typical = np.abs(base.K) @ np.maximum(np.abs(phi_prior), EXTRA_SCALE)
+        self._solved = set()
 
     @classmethod
     def for_robot(cls, robot, base: BaseParameters,
@@ -260,6 +302,10 @@ class ConsistentSolver:
         """(R (b, b), z (b,), covariance (b, b)) with sum_j w_j ||tau_j - Y_j beta||^2 =
         ||R beta - z||^2 + const, from the information's eigenvectors; the covariance is its
         pseudo-inverse, inf on the diagonal where the data determine nothing."""
+        R, z, cov, _ = self._factor(equations, weights)
+        return R, z, cov
+
+    def _factor(self, equations: NormalEquations, weights: np.ndarray | float):
         if equations.num_params != self.base.num_base:
             raise IdentificationError(
                 f'normal equations of {equations.num_params} parameters, expected '
@@ -280,52 +326,125 @@ class ConsistentSolver:
         undetermined = np.abs(V[:, ~keep]).max(axis=1, initial=0.0) > 1e-9
         var[undetermined] = np.inf
         np.fill_diagonal(cov, var)
-        return R, z, cov
+        return R, z, cov, (s, V, keep)
+
+    def region(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
+               ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """(M (b, b), c (b,), q, covariance (b, b)): the data's confidence region
+        ||M (beta - c)||^2 <= q about the unconstrained solution c, each direction's variance
+        floored at (STDDEV_FLOOR x its typical size)^2 (rows of M are 0 where undetermined);
+        q the chi-square quantile of ``confidence`` at the determined directions' count."""
+        from scipy.stats import chi2
+
+        R, z, cov, (s, V, keep) = self._factor(equations, weights)
+        centre = np.linalg.lstsq(R, z, rcond=None)[0]
+        floor = STDDEV_FLOOR * (np.abs(V.T) @ self._typical)
+        sd = np.sqrt(1.0 / np.where(keep, s, 1.0) + floor ** 2)
+        M = np.where(keep[:, None], V.T / sd[:, None], 0.0)
+        q = float(chi2.ppf(self.options.confidence, max(int(keep.sum()), 1)))
+        return M, centre, q, cov
 
     def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
               ) -> ConsistentEstimate:
         """The consistent estimate for ``equations`` (base-parameter order) with per-joint
         ``weights`` (inverse noise variances: the unconstrained WLS's objective)."""
+        start = time.perf_counter()
+        M, centre, q, cov = self.region(equations, weights)
+        stddev = np.sqrt(np.diag(cov))
+        self._M.value, self._m.value, self._q.value = M, M @ centre, q
+        first = self.options.solver
+        attempts, phi, method = [], None, ''
+        for solver in [first] + [s for s in SOLVERS if s != first]:
+            status, phi = self._conic(solver, start)
+            if phi is not None:
+                method = solver
+                break
+            attempts.append(f'{solver}: {status}')
+        notes = list(self.notes)
+        excess = 0.0
+        if phi is None:   # the last resort: the unconstrained estimate, made physical
+            phi, method = self.base.closest_standard(centre, self._phi_prior), PROJECTION
+        else:
+            excess = float(max(np.sum((M @ (self.base.to_base(phi) - centre)) ** 2) - q, 0.0))
+        finite = bool(np.isfinite(phi).all())
+        phi, moved = self._projected(phi) if finite else (phi, [])
+        problems = self.violations(phi) if finite else ['not finite']
+        if problems:
+            status, phi = 'infeasible_result: ' + '; '.join(problems[:3]), None
+            method = ''
+        else:
+            status = 'projected' if method == PROJECTION else 'optimal'
+            notes += moved + self.active_bounds(phi)
+            if method == PROJECTION:
+                notes.append('no conic solver succeeded (' + '; '.join(attempts) + '): the '
+                             'unconstrained estimate projected onto physical bodies is given')
+            if excess > 1e-3 * q:
+                notes.append('the consistent bodies lie outside the data\'s '
+                             f'{100 * self.options.confidence:g} % confidence region by '
+                             f'chi-square {excess:.3g}')
+        return ConsistentEstimate(status, phi, None if phi is None else self.base.to_base(phi),
+                                  stddev, time.perf_counter() - start, notes, method, attempts,
+                                  excess)
+
+    def _conic(self, solver: str, start: float) -> tuple[str, np.ndarray | None]:
+        """(status, phi or None) of one conic solver on the current parameters."""
         import cvxpy as cp
 
-        start = time.perf_counter()
-        R, z, cov = self.data_factor(equations, weights)
-        stddev = np.sqrt(np.diag(cov))
-        centre = np.linalg.lstsq(R, z, rcond=None)[0]
-        scale = np.where(np.isfinite(stddev) & (stddev > 0), stddev,
-                         np.maximum(np.abs(self._beta_prior), EXTRA_SCALE))
-        # ||R beta - z|| = ||R S u - (z - R c)||
-        self._R.value = R * scale
-        self._z.value = z - R @ centre
-        self._S.value = scale
-        self._c.value = centre
-        opts = {'solver': self.options.solver, 'warm_start': self._solved}
-        if self.options.solver == 'CLARABEL':
+        opts = {'solver': solver, 'warm_start': solver in self._solved}
+        if solver == 'CLARABEL':
             opts['time_limit'] = self.options.time_limit
-        else:   # first order, ~1e-5 accurate: its answers may miss the margin (violations)
+        else:   # first order, ~1e-5 accurate: its answers are projected (violations)
             opts['time_limit_secs'] = self.options.time_limit
+            opts['eps_abs'] = opts['eps_rel'] = 1e-6
+        begin = time.perf_counter()
         try:
             self.problem.solve(**opts)
             status = self.problem.status
         except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
             status = f'solver_error: {exc}'
-        elapsed = time.perf_counter() - start
-        if status == cp.USER_LIMIT:   # the solver stopped early: time or iterations
-            status = ('time_limit' if elapsed >= 0.5 * self.options.time_limit
-                      else 'iteration_limit')
-        phi = self._phi.value if status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) else None
-        if phi is not None:
-            phi = np.asarray(phi, dtype=float).reshape(-1)
-            # fv, fc, Ia >= 0 hold to the solver's tolerance (-1e-12): exactly, after this
-            phi[self._nonneg] = np.maximum(phi[self._nonneg], 0.0)
-            problems = self.violations(phi)
-            if not np.isfinite(phi).all() or problems:
-                status, phi = 'infeasible_result: ' + '; '.join(problems[:3]), None
-            else:
-                status = 'optimal'
-                self._solved = True
-        return ConsistentEstimate(status, phi, None if phi is None else self.base.to_base(phi),
-                                  stddev, elapsed, list(self.notes))
+        late = time.perf_counter() - begin >= 0.5 * self.options.time_limit
+        if status == cp.USER_LIMIT or (status == cp.OPTIMAL_INACCURATE and late):
+            status = 'time_limit' if late else 'iteration_limit'   # it stopped early
+        if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or self._phi.value is None:
+            return status, None
+        phi = np.asarray(self._phi.value, dtype=float).reshape(-1)
+        if not np.isfinite(phi).all():
+            return 'solver_error: not finite', None
+        self._solved.add(solver)
+        return status, phi
+
+    def _projected(self, phi: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """``phi`` with each body's own pseudo-inertia eigenvalues raised to its margin and the
+        non-negative columns clipped at 0; notes on what moved beyond rounding."""
+        phi = np.array(phi, dtype=float)
+        notes = []
+        for body, eps in zip(self.bodies, self.eps):
+            sl = slice(body.start, body.start + 10)
+            J = pseudo_inertia(phi[sl] - body.fixed)
+            ev = np.linalg.eigvalsh(J)
+            if ev[0] < eps:
+                phi[sl] = from_pseudo_inertia(_repaired(J, eps)) + body.fixed
+                if ev[0] < -1e-9 * max(1.0, ev[-1]):
+                    notes.append(f'{body.name}: pseudo-inertia eigenvalue {ev[0]:.3g} raised to '
+                                 f'the margin {eps:.3g} (projection)')
+        phi[self._nonneg] = np.maximum(phi[self._nonneg], 0.0)
+        return phi, notes
+
+    def active_bounds(self, phi: np.ndarray, rtol: float = 1e-4) -> list[str]:
+        """Notes naming the mass bounds ``phi`` is at (within ``rtol``)."""
+        out = []
+        for body, (lo, hi) in zip(self.bodies, self._mass_bounds):
+            m = phi[body.start]
+            for bound, what in ((lo, 'lower'), (hi, 'upper')):
+                if bound > 0 and np.isfinite(bound) and abs(m - bound) <= rtol * bound:
+                    out.append(f'{body.name}: mass {m:.4g} kg at its {what} bound (the '
+                               'data ask for more; consistency.mass_ratio, mass_min/max)')
+        if len(self.options.total_mass):
+            total = sum(phi[body.start] for body in self.bodies)
+            for bound, what in zip(self.options.total_mass, ('lower', 'upper')):
+                if abs(total - bound) <= rtol * max(bound, 1e-9):
+                    out.append(f'total mass {total:.4g} kg at its {what} bound')
+        return out
 
     def violations(self, phi: np.ndarray, tol: float = 1e-9) -> list[str]:
         """What in ``phi`` breaks the hard constraints beyond ``tol`` (empty when feasible):

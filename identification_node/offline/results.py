@@ -7,6 +7,7 @@ from typing import Mapping
 
 import numpy as np
 
+from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistentEstimate
 from identification_node.fileio import atomic_write_text, atomic_write_yaml
 from identification_node.model.identifiability import BaseParameters
@@ -61,7 +62,9 @@ def parameters_document(robot: RobotModel, base: BaseParameters, theta: np.ndarr
     links = {}
     for i, link in enumerate(robot.link_names):
         m, c, Ic = link_inertia(phi[10 * i:10 * i + 10])
-        links[link] = {'mass': m, 'com': c.tolist(), 'inertia': Ic.tolist()}
+        m0 = float(robot.phi_model[10 * i])
+        links[link] = {'mass': m, 'com': c.tolist(), 'inertia': Ic.tolist(), 'urdf_mass': m0,
+                       'mass_ratio': m / m0 if m0 > 0 else None}
     return {
         'robot': robot.name,
         'joints': list(robot.joint_names),
@@ -79,28 +82,41 @@ def parameters_document(robot: RobotModel, base: BaseParameters, theta: np.ndarr
 
 
 def solver_document(consistent: ConsistentEstimate | None) -> dict:
-    """Status of the constrained solve: status, solve time (s), notes."""
+    """Status of the constrained solve: status, solve time (s), notes, the path that gave
+    the estimate (``method``: a solver, 'projection', '' when none), the failed ``attempts``
+    before it, and the chi-square ``excess`` beyond the data's confidence region."""
     if consistent is None:
-        return {'status': 'disabled', 'solve_time': None, 'notes': []}
+        return {'status': 'disabled', 'solve_time': None, 'notes': [], 'method': '',
+                'attempts': [], 'excess': 0.0}
     return {'status': consistent.status, 'solve_time': consistent.solve_time,
-            'notes': list(consistent.notes)}
+            'notes': list(consistent.notes), 'method': consistent.method,
+            'attempts': list(consistent.attempts), 'excess': consistent.excess}
 
 
 def save_results(pipeline: IdentificationPipeline, directory: str | os.PathLike,
-                 payload=None, consistent: ConsistentEstimate | None = None) -> list[Path]:
+                 payload=None, consistent: ConsistentEstimate | None = None,
+                 inconsistent: bool = False) -> list[Path]:
     """Write estimate.yaml and identified.urdf into ``directory`` atomically; return the paths.
     ``payload`` (payload.PayloadEstimate): carried as ``payload`` in estimate.yaml and as a
-    fixed link in the URDF; ``consistent``: the constrained solve's outcome."""
+    fixed link in the URDF; ``consistent``: the constrained solve's outcome; ``inconsistent``:
+    write a physically inconsistent estimate too (write_results)."""
     doc = estimate_document(pipeline, consistent)
     if payload is not None:
         doc['payload'] = plain(payload.document())
-    return write_results(directory, doc, pipeline.robot, payload)
+    return write_results(directory, doc, pipeline.robot, payload, inconsistent)
 
 
 def write_results(directory: str | os.PathLike, doc: dict, robot: RobotModel,
-                  payload=None) -> list[Path]:
+                  payload=None, inconsistent: bool = False) -> list[Path]:
     """estimate.yaml (``doc``) and, for a URDF robot, identified.urdf with ``doc``'s standard
-    parameters, written atomically into ``directory``; returns the paths."""
+    parameters, written atomically into ``directory``; returns the paths. An estimate that is
+    not physically consistent is refused (IdentificationError, nothing written) unless
+    ``inconsistent``: a simulator or controller would load bodies no arm has."""
+    if robot.kind == 'urdf' and not doc['physically_consistent'] and not inconsistent:
+        raise IdentificationError(
+            'not saved: the estimate is not physically consistent ('
+            + '; '.join(doc['consistency_problems'][:3]) + '); identify --save-inconsistent '
+            '(node: save_inconsistent) writes it anyway')
     directory = Path(directory)
     paths = [atomic_write_yaml(directory / ESTIMATE_FILE, doc)]
     if robot.kind == 'urdf':

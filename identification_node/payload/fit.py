@@ -217,7 +217,7 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     base = BaseParameters(_NAMES, np.arange(10), np.eye(10))
     status = ''
     for solver in SOLVERS:
-        options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver)
+        options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0)
         result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
         if result.ok:
             return result.phi

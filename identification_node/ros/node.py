@@ -515,10 +515,13 @@ class IdentificationNode(Node):
                 doc['payload'] = plain(job.payload.document())
             try:
                 paths = write_results(self.settings.output_directory, doc, self.robot,
-                                      job.payload)
+                                      job.payload, self.settings['save_inconsistent'])
                 outcome.saved = [str(p) for p in paths]
             except OSError as exc:
                 outcome.save_error = f'cannot save: {exc}'
+            except IdentificationError as exc:   # an inconsistent estimate, not asked for
+                self.get_logger().error(str(exc))
+                outcome.save_error = str(exc)
         return outcome
 
     def _solver_instance(self) -> SolverProcess:
@@ -638,9 +641,11 @@ class IdentificationNode(Node):
                                         'not solved yet' if result is None else result.status)
         if result is not None:
             values['consistency_solve_time_ms'] = 1e3 * result.solve_time
+            values['consistency_method'] = result.method or 'none'
             if not result.ok:
-                status.level = DiagnosticStatus.WARN
-                status.message += '; consistent solve failed: unconstrained estimate published'
+                status.level = DiagnosticStatus.ERROR
+                status.message += ('; consistent solve failed: unconstrained estimate '
+                                   'published, NOT physically consistent')
             if result.notes:
                 values['consistency_notes'] = '; '.join(result.notes)
         values.update({f'lost_messages.{s.topic}': s.lost for s in self._inputs})
