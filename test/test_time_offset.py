@@ -59,6 +59,9 @@ def test_currents_stamped_late_or_early_are_refused_with_the_offset(tmp_path, ca
     result = identify_bag(bag, settings, settings.load_robot()).pipeline.time_offset.result
     assert result.level == 2 and abs(result.offset - seconds) < 0.002
     assert result.ratio > 5
+    # batch identification checks the same on its filtered rows
+    code, out = identify(capsys, bag, '--method', 'batch')
+    assert code == 2 and 'not identified' in out.err and f's {found[2]}' in out.err, out.err
 
 
 @pytest.mark.slow
