@@ -25,6 +25,7 @@ from rosbags.typesys.store import Typestore
 
 from identification_node.bags.mcap_check import add_chunk_crcs
 from identification_node.bags.reader import STORAGES
+from identification_node.error_lines import os_error_line
 from identification_node.errors import IdentificationError
 from identification_node.wire.cdr import (CLOCK, DIAGNOSTIC_ARRAY, FLOAT64_MULTI_ARRAY,
                                           JOINT_STATE, JOINT_TRAJECTORY, STRING,
@@ -163,7 +164,11 @@ class BagWriter:
         time_ns = int(time_ns)
         if time_ns < 0:
             raise IdentificationError(f'negative log time {time_ns} ns on topic {topic!r}')
-        writer.write(conn, time_ns, cdr)
+        try:
+            writer.write(conn, time_ns, cdr)
+        except OSError as err:   # a full disk while writing names no file: name the bag
+            raise IdentificationError(f'cannot write bag {str(self.path)!r}: '
+                                      f'{os_error_line(err)}') from None
         self.message_count += 1
 
     def write(self, topic: str, time_ns: int, msg: Any) -> None:
@@ -214,7 +219,8 @@ class BagWriter:
                 raise
             if isinstance(err, Exception):
                 raise IdentificationError(
-                    f'cannot finish bag {str(self.path)!r}: {err}') from None
+                    f'cannot finish bag {str(self.path)!r}: '
+                    f'{os_error_line(err) if isinstance(err, OSError) else err}') from None
             raise
 
     def _commit(self) -> None:
