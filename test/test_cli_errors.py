@@ -220,3 +220,30 @@ def test_the_bag_writer_itself_refuses_to_replace_other_things(tmp_path):
     link.symlink_to(folder)
     assert not_a_bag(link) == 'a symbolic link'
     assert not_a_bag(tmp_path / 'absent') is None and not_a_bag(BAG) is None
+
+
+def _unshare_available() -> bool:
+    import shutil
+    import subprocess
+    return shutil.which('unshare') is not None and subprocess.run(
+        ['unshare', '-rm', 'true'], capture_output=True).returncode == 0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not _unshare_available(), reason='no user namespaces (unshare -rm)')
+@pytest.mark.parametrize('options, words', [
+    ('ro', 'the file system is read-only'), ('size=16k', 'no space left on the device')])
+def test_real_read_only_and_full_file_systems(tmp_path, options, words):
+    """The kernel's own EROFS and ENOSPC: a tmpfs mounted read-only or 16 KiB small in a
+    private mount namespace (no root needed)."""
+    import subprocess
+    import sys
+    mount = tmp_path / 'mnt'
+    mount.mkdir()
+    script = (f'mount -t tmpfs -o {options} tmpfs {mount} && exec {sys.executable} -m '
+              f'identification_node simulate --robot mit_dd_arm --duration 2 --out {mount}/bag')
+    out = subprocess.run(['unshare', '-rm', 'sh', '-c', script], capture_output=True,
+                         text=True, timeout=120)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and 'Traceback' not in out.stderr, out.stderr
+    assert words in lines[0].lower() and str(mount) in lines[0], lines[0]
