@@ -691,7 +691,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
                 acc.add(part)
                 sampler.add(stamps_ns=part.stamps_ns, measured=part.tau,
                             regressor=part.regressor)
-                offsets.add(part.stamps_ns * 1e-9, part.regressor, part.tau)
+                offsets.add(part.stamps_ns * 1e-9, part.regressor, part.tau,
+                            None if part.features is None else part.features[..., :3])
                 if done % every == 0 and done < info['rows'] and done * n >= 4 * b:
                     _checkpoint(history, acc, int(part.index[-1]), part.stamps_ns[-1])
     else:

@@ -120,10 +120,18 @@ class TimeOffsetCheck:
     def active(self) -> bool:
         return self.warn > 0 and self.result is None
 
-    def add(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray) -> None:
-        """Used samples at t (M,) s: base regressor rows (M, n, b) and torque (M, n)."""
+    def add(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray,
+            terms: np.ndarray | None = None) -> None:
+        """Used samples at t (M,) s: base regressor rows (M, n, b) and torque (M, n);
+        ``terms`` (M, n, k): per-joint terms fitted beside the rows, each in its own joint's
+        equation (1, sign(qd), qd: an offset or friction the model lacks would otherwise be
+        partly fitted by a shift of the torque)."""
         if not self.active or len(t) < 2:
             return
+        if terms is not None:
+            M, n, k = terms.shape
+            own = terms[:, :, None, :] * np.eye(n)[None, :, :, None]   # (M, n, n, k)
+            rows = np.concatenate([rows, own.reshape(M, n, n * k)], axis=2)
         if not self._step:   # decimation step from the stream's own rate
             dt = float(np.median(np.diff(t)))
             if not dt > 0:
