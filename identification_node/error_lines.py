@@ -28,15 +28,19 @@ _OS_TEXT = {
 }
 
 
+def os_error_text(exc: OSError) -> str:
+    """What is wrong, for an OSError (without the path)."""
+    path = exc.filename
+    if exc.errno == errno.EEXIST and path is not None:
+        return ('exists and is not a directory' if os.path.lexists(path)
+                and not os.path.isdir(path) else 'exists already')
+    return _OS_TEXT.get(exc.errno) or exc.strerror or str(exc) or type(exc).__name__
+
+
 def os_error_line(exc: OSError) -> str:
     """``path: what is wrong`` for an OSError (the path, when it names one)."""
     path = exc.filename
-    code = exc.errno
-    if code == errno.EEXIST and path is not None:
-        text = ('exists and is not a directory' if os.path.lexists(path)
-                and not os.path.isdir(path) else 'exists already')
-    else:
-        text = _OS_TEXT.get(code) or exc.strerror or str(exc) or type(exc).__name__
+    text = os_error_text(exc)
     if path is None:
         return text[0].upper() + text[1:]
     where = f'{os.fsdecode(path)!r}'

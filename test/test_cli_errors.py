@@ -27,7 +27,7 @@ def one_line(capsys, argv, *words):
     assert len(err.splitlines()) == 1 and 'Traceback' not in err, err
     assert err.startswith('error: ') and 'failed:' not in err, err
     for word in words:
-        assert str(word) in err, err
+        assert str(word).lower() in err.lower(), err
     return err
 
 
@@ -51,6 +51,24 @@ def test_a_full_disk_is_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
     one_line(capsys, ['simulate', '--robot', 'mit_dd_arm', '--duration', '0.05', '--out', out],
              'no space left on the device', out / 'true_parameters.yaml')
     assert not any(p.name.endswith('.tmp') for p in out.iterdir())   # nothing half-written
+
+
+def test_a_full_disk_while_writing_a_bag_names_the_bag(tmp_path, capsys, monkeypatch):
+    """The kernel's ENOSPC from /dev/full under the bag's storage file."""
+    import builtins
+    real = builtins.open
+
+    def full_storage(file, mode='r', *a, **k):
+        if set('wx') & set(str(mode)) and str(file).endswith('.mcap'):
+            return real('/dev/full', str(mode).replace('x', 'w'), *a, **k)
+        return real(file, mode, *a, **k)
+    monkeypatch.setattr(builtins, 'open', full_storage)
+    monkeypatch.setattr(Path, 'open', lambda self, mode='r', *a, **k: full_storage(
+        self, mode, *a, **k))
+    out = tmp_path / 'sim'
+    one_line(capsys, ['simulate', '--robot', 'mit_dd_arm', '--duration', '0.5', '--out', out],
+             'bag', str(out), 'no space left on the device')
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name != 'sim']
 
 
 @pytest.mark.parametrize('code, words', [
@@ -202,3 +220,30 @@ def test_the_bag_writer_itself_refuses_to_replace_other_things(tmp_path):
     link.symlink_to(folder)
     assert not_a_bag(link) == 'a symbolic link'
     assert not_a_bag(tmp_path / 'absent') is None and not_a_bag(BAG) is None
+
+
+def _unshare_available() -> bool:
+    import shutil
+    import subprocess
+    return shutil.which('unshare') is not None and subprocess.run(
+        ['unshare', '-rm', 'true'], capture_output=True).returncode == 0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not _unshare_available(), reason='no user namespaces (unshare -rm)')
+@pytest.mark.parametrize('options, words', [
+    ('ro', 'the file system is read-only'), ('size=16k', 'no space left on the device')])
+def test_real_read_only_and_full_file_systems(tmp_path, options, words):
+    """The kernel's own EROFS and ENOSPC: a tmpfs mounted read-only or 16 KiB small in a
+    private mount namespace (no root needed)."""
+    import subprocess
+    import sys
+    mount = tmp_path / 'mnt'
+    mount.mkdir()
+    script = (f'mount -t tmpfs -o {options} tmpfs {mount} && exec {sys.executable} -m '
+              f'identification_node simulate --robot mit_dd_arm --duration 2 --out {mount}/bag')
+    out = subprocess.run(['unshare', '-rm', 'sh', '-c', script], capture_output=True,
+                         text=True, timeout=120)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and 'Traceback' not in out.stderr, out.stderr
+    assert words in lines[0].lower() and str(mount) in lines[0], lines[0]

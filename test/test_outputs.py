@@ -144,7 +144,7 @@ def test_parameter_file_layouts(tmp_path):
     assert read_parameter_file(ros) == read_parameter_file(plain) == {'smoother.order': 2}
     bad = tmp_path / 'bad.yaml'
     bad.write_text('[1, 2')
-    with pytest.raises(IdentificationError, match='cannot read parameter file'):
+    with pytest.raises(IdentificationError, match='parameter file .* is not valid YAML'):
         read_parameter_file(bad)
 
 

@@ -52,13 +52,16 @@ def test_currents_stamped_late_or_early_are_refused_with_the_offset(tmp_path, ca
     assert code == 2 and len(lines) == 1 and 'Traceback' not in out.err, out.err
     found = re.search(r'the torque is ([0-9.]+) s (late|early)', lines[0])
     assert found and found[2] == ('late' if seconds > 0 else 'early'), lines[0]
-    assert abs(float(found[1]) - abs(seconds)) < 0.002, lines[0]
+    assert abs(float(found[1]) - abs(seconds)) < 0.005, lines[0]
     assert 'not identified' in lines[0] and str(bag) in lines[0]
-    # the shared pipeline stage (the node's too) holds the estimate, within 2 ms
+    # the shared pipeline stage (the node's too) holds the estimate, within 5 ms (4 ms rows)
     settings = Settings.from_dict(read_parameter_file(CONFIG))
     result = identify_bag(bag, settings, settings.load_robot()).pipeline.time_offset.result
-    assert result.level == 2 and abs(result.offset - seconds) < 0.002
+    assert result.level == 2 and abs(result.offset - seconds) < 0.005
     assert result.ratio > 5
+    # batch identification checks the same on its filtered rows
+    code, out = identify(capsys, bag, '--method', 'batch')
+    assert code == 2 and 'not identified' in out.err and f's {found[2]}' in out.err, out.err
 
 
 @pytest.mark.slow
@@ -66,14 +69,14 @@ def test_a_small_offset_is_a_warning_and_the_clean_bag_is_silent(tmp_path, capsy
     code, out = identify(capsys, BAG)
     doc = json.loads(out.out)
     assert code == 0 and doc['processing']['time_offset']['level'] == 'ok'
-    assert abs(doc['processing']['time_offset']['offset_s']) < 0.002
+    assert abs(doc['processing']['time_offset']['offset_s']) < 0.005
     assert not any('against the joint states' in w for w in doc['warnings'])
     bag = shift_topic(BAG, tmp_path / 'late', '/motor_currents', 0.05)
     code, out = identify(capsys, bag)
     doc = json.loads(out.out)
     assert code == 0 and doc['processing']['time_offset']['level'] == 'warning'
-    assert abs(doc['processing']['time_offset']['offset_s'] - 0.05) < 0.002
-    assert any(re.search(r'the torque is 0\.0(49|50|51) s late', w) for w in doc['warnings'])
+    assert abs(doc['processing']['time_offset']['offset_s'] - 0.05) < 0.005
+    assert any(re.search(r'the torque is 0\.0(4[5-9]|5[0-5]) s late', w) for w in doc['warnings'])
     # the check can be switched off
     off = tmp_path / 'off.yaml'
     off.write_text(CONFIG.read_text().replace('warn: 0.02 ', 'warn: 0.0  '))
@@ -102,7 +105,7 @@ def test_effort_lagging_its_own_positions_is_found(tmp_path, capsys):
                                   r.position, r.velocity, effort[k - lag])
     code = main(['identify', str(tmp_path / 'lagging'), '--robot', 'mit_dd_arm'])
     err = capsys.readouterr().err
-    assert code == 2 and re.search(r'the torque is 0\.(199|200|201) s late', err), err
+    assert code == 2 and re.search(r'the torque is 0\.(19[5-9]|20[0-5]) s late', err), err
 
 
 def test_estimate_offset_against_a_known_shift():
@@ -122,3 +125,15 @@ def test_estimate_offset_against_a_known_shift():
         assert abs(found.offset - shift * dt) < 0.5 * dt, (shift, found)
         assert found.level == (0 if shift == 0 else 1 if abs(shift * dt) <= 0.2 else 2)
     assert estimate_offset(Y[:100], tau_true[:100], dt, 1.0) is None   # too short to search
+
+
+@pytest.mark.slow
+def test_missing_friction_is_not_taken_for_an_offset(capsys):
+    """The CRS bag has viscous and Coulomb friction; identified without them (--extras none)
+    a shift of the torque would partly fit them: the check fits them beside the rows."""
+    code = main(['identify', str(ROOT / 'bags' / 'crs_a465_fourier'), '--config',
+                 str(ROOT / 'config' / 'crs_a465.yaml'), '--extras', 'none', '--json'])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    offset = json.loads(out.out)['processing']['time_offset']
+    assert offset['level'] == 'ok' and abs(offset['offset_s']) < 0.005, offset

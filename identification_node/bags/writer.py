@@ -25,6 +25,7 @@ from rosbags.typesys.store import Typestore
 
 from identification_node.bags.mcap_check import add_chunk_crcs
 from identification_node.bags.reader import STORAGES
+from identification_node.error_lines import os_error_text
 from identification_node.errors import IdentificationError
 from identification_node.wire.cdr import (CLOCK, DIAGNOSTIC_ARRAY, FLOAT64_MULTI_ARRAY,
                                           JOINT_STATE, JOINT_TRAJECTORY, STRING,
@@ -117,7 +118,8 @@ class BagWriter:
             self._tmp = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.', suffix='.partial',
                                               dir=self.path.parent))
         except OSError as err:
-            raise IdentificationError(f'cannot create bag {str(self.path)!r}: {err}') from None
+            raise IdentificationError(f'cannot create bag {str(self.path)!r}: '
+                                      f'{os_error_text(err)}') from None
         try:
             plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
             self._writer = Writer(self._tmp / self.path.name, version=_BAG_VERSION,
@@ -125,7 +127,9 @@ class BagWriter:
             self._writer.open()
         except Exception as err:
             self.abort()
-            raise IdentificationError(f'cannot create bag {str(self.path)!r}: {err}') from None
+            raise IdentificationError(f'cannot create bag {str(self.path)!r}: '
+                                      f'{os_error_text(err) if isinstance(err, OSError) else err}'
+                                      ) from None
 
     def add_topic(self, topic: str, msgtype: str, latched: bool = False) -> None:
         """Declare a topic (latched -> transient_local durability, e.g. /robot_description)."""
@@ -163,7 +167,11 @@ class BagWriter:
         time_ns = int(time_ns)
         if time_ns < 0:
             raise IdentificationError(f'negative log time {time_ns} ns on topic {topic!r}')
-        writer.write(conn, time_ns, cdr)
+        try:
+            writer.write(conn, time_ns, cdr)
+        except OSError as err:   # a full disk while writing names no file: name the bag
+            raise IdentificationError(f'cannot write bag {str(self.path)!r}: '
+                                      f'{os_error_text(err)}') from None
         self.message_count += 1
 
     def write(self, topic: str, time_ns: int, msg: Any) -> None:
@@ -214,7 +222,8 @@ class BagWriter:
                 raise
             if isinstance(err, Exception):
                 raise IdentificationError(
-                    f'cannot finish bag {str(self.path)!r}: {err}') from None
+                    f'cannot finish bag {str(self.path)!r}: '
+                    f'{os_error_text(err) if isinstance(err, OSError) else err}') from None
             raise
 
     def _commit(self) -> None:

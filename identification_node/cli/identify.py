@@ -530,7 +530,7 @@ def run(args: argparse.Namespace) -> int:
     elif ident is None:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
-    offset = None if pipeline is None else pipeline.time_offset.result
+    offset = ident.time_offset   # the torque against the motion (pipeline/time_offset.py)
     if offset is not None and offset.level == 2:
         raise IdentificationError(f'bag {args.bag}: {offset.describe()}; not identified '
                                   '(time_offset.warn: 0 in --config skips the check)')

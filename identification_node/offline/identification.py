@@ -60,6 +60,7 @@ from identification_node.offline.windows import TimeWindow
 from identification_node.pipeline import (IdentificationPipeline, PipelineConfig, PipelineOutput,
                                           TorqueSamples, converged)
 from identification_node.pipeline.rows import AUTO_WAIT, choose_smoother
+from identification_node.pipeline.time_offset import TimeOffset, TimeOffsetCheck
 from identification_node.pipeline.signals import (central_derivatives, half_window_for_cutoff,
                                                   period_average,
                                                   zero_phase_lowpass)
@@ -473,6 +474,8 @@ class Identification:
     # per joint, the N m of a unit residual of ``residuals``' rows (weighted rows: their
     # joint_noise_std)
     residual_scale: np.ndarray | float = 1.0
+    # the torque's offset against the motion (pipeline/time_offset.py), None: not estimated
+    time_offset: TimeOffset | None = None
 
     @property
     def estimate(self) -> np.ndarray:
@@ -675,6 +678,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
     acc = _Accumulator(b, n)
     sampler = SeriesSampler(series_points)
     history: list[Checkpoint] = []
+    offsets = TimeOffsetCheck(*(settings[f'time_offset.{k}']
+                                for k in ('warn', 'refuse', 'seconds', 'search')))
     if options.period is None:
         every = max(1, info['rows'] // max(checkpoints, 1))
         done = 0
@@ -686,6 +691,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
                 acc.add(part)
                 sampler.add(stamps_ns=part.stamps_ns, measured=part.tau,
                             regressor=part.regressor)
+                offsets.add(part.stamps_ns * 1e-9, part.regressor, part.tau,
+                            None if part.features is None else part.features[..., :3])
                 if done % every == 0 and done < info['rows'] and done * n >= 4 * b:
                     _checkpoint(history, acc, int(part.index[-1]), part.stamps_ns[-1])
     else:
@@ -695,6 +702,9 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
         history = _periodic_history(samples.streams[0], robot, base, options, info,
                                     _reversal_speed(settings, robot), checkpoints)
     fit = acc.solve()
+    offsets.finish()   # periodic averaging: one period, no offset estimated
+    offset = offsets.result
+    info['time_offset'] = None if offset is None else offset.document()
     info['raw_samples'] = samples.num_samples
     info['excluded_equations'] = int(info['rows'] * n - acc.counts.sum())
     info['excluded_per_joint'] = dict(zip(robot.joint_names, (
@@ -721,10 +731,11 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
         history, TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
                               samples.first_ns), info,
         fit_equations=acc.fit.normal_equations(), fit_weights=fit.weights,
-        warnings=exclusion_warnings(robot.joint_names, info['rows'] - acc.counts,
-                                    info['rows'], settings['coulomb_exclusion_speed'])
+        warnings=([offset.describe()] if offset is not None and offset.level else [])
+        + exclusion_warnings(robot.joint_names, info['rows'] - acc.counts,
+                             info['rows'], settings['coulomb_exclusion_speed'])
         + missing_term_warnings(acc.terms, fit.theta, acc.fit.rss(fit.theta),
-                                robot.joint_names, robot.extras))
+                                robot.joint_names, robot.extras), time_offset=offset)
 
 
 def _checkpoint(history: list, acc: _Accumulator, samples: int, stamp_ns: int) -> None:
@@ -821,7 +832,7 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
         warnings=([offset.describe()] if offset is not None and offset.level else [])
         + exclusion_warnings(p.robot.joint_names, p.excluded_equations, p.used,
                              p.config.coulomb_exclusion_speed)
-        + p.model_term_warnings(), residual_scale=p.estimator.joint_scale)
+        + p.model_term_warnings(), residual_scale=p.estimator.joint_scale, time_offset=offset)
 
 
 def exclusion_warnings(joints: list[str], excluded: np.ndarray, total: int, speed: float,

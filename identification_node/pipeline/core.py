@@ -9,6 +9,7 @@ from typing import Mapping
 import numpy as np
 
 from identification_node.errors import IdentificationError
+from identification_node.estimation.model_terms import features as model_features
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.prior import safe_prior
@@ -204,7 +205,8 @@ class IdentificationPipeline:
             if len(r.t) == 0:
                 return PipelineOutput.empty(self.robot.dof)
         stamps_ns = self.samples.counters.stamps_ns(r.t)
-        self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau)
+        self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau,
+                             model_features(r.q, r.qd)[..., :3])
         if not self.frozen:
             est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns, q=r.q)
             self.used += len(r.t)

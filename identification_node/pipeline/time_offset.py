@@ -10,7 +10,7 @@ holds for an effort carried in the joint states themselves). Model-free: the par
 refitted at each shift, so it does not trust the description's inertials.
 
 The streaming pipeline buffers the rows of the first ``seconds`` of used samples of a stream
-(decimated to about RATE Hz) and estimates once, searching at most a quarter of what it
+(decimated to about RATE Hz) and estimates once, searching at most an eighth of what it
 has. An offset beyond ``warn`` seconds whose shift explains the torque better (residual RMS
 at zero shift more than SIGNIFICANCE times the best one) is warned of, one beyond ``refuse``
 seconds refused (identify exits 2; the node reports an error). The sums over shifts are
@@ -120,10 +120,18 @@ class TimeOffsetCheck:
     def active(self) -> bool:
         return self.warn > 0 and self.result is None
 
-    def add(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray) -> None:
-        """Used samples at t (M,) s: base regressor rows (M, n, b) and torque (M, n)."""
+    def add(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray,
+            terms: np.ndarray | None = None) -> None:
+        """Used samples at t (M,) s: base regressor rows (M, n, b) and torque (M, n);
+        ``terms`` (M, n, k): per-joint terms fitted beside the rows, each in its own joint's
+        equation (1, sign(qd), qd: an offset or friction the model lacks would otherwise be
+        partly fitted by a shift of the torque)."""
         if not self.active or len(t) < 2:
             return
+        if terms is not None:
+            M, n, k = terms.shape
+            own = terms[:, :, None, :] * np.eye(n)[None, :, :, None]   # (M, n, n, k)
+            rows = np.concatenate([rows, own.reshape(M, n, n * k)], axis=2)
         if not self._step:   # decimation step from the stream's own rate
             dt = float(np.median(np.diff(t)))
             if not dt > 0:
@@ -140,7 +148,7 @@ class TimeOffsetCheck:
 
     def finish(self) -> None:
         """Estimate from what is buffered: its longest evenly sampled run, searched within
-        +-search s or a quarter of the run."""
+        +-search s or an eighth of the run (the fit keeps 3/4 of it)."""
         if not self.active or not self._t:
             return
         t = np.concatenate(self._t)
@@ -151,5 +159,5 @@ class TimeOffsetCheck:
         span = (cuts[k + 1] - cuts[k]) * dt
         self.result = estimate_offset(np.concatenate(self._rows)[run],
                                       np.concatenate(self._tau)[run], dt,
-                                      min(self.search, span / 4.5), self.warn, self.refuse)
+                                      min(self.search, span / 8), self.warn, self.refuse)
         self._t, self._rows, self._tau = [], [], []

@@ -264,7 +264,8 @@ def run_node(factory: Callable[[], Any], name: str, args: list[str] | None = Non
         try:
             node = factory()
         except Exception as exc:   # noqa: BLE001 - one line, never a traceback
-            print(f'{name}: error: {_one_line(exc)}', file=sys.stderr)
+            from identification_node.error_lines import error_line
+            print(f'{name}: error: {error_line(exc) or _one_line(exc)}', file=sys.stderr)
             rclpy.try_shutdown()
             return 2
         warn_unknown_parameters(node, given_parameter_names(args, node))
