@@ -878,7 +878,8 @@ def test_solver_time_out_publishes_the_unconstrained_estimate(ros, diag):
             tuple(robot.joint_names), q, qd, tau))
         node.pipeline.process(flush=True)
     params = Collector(ros, Float64MultiArray, '/timeout/base_parameters')
-    est = get_estimate(ros, '/timeout')
+    # answered from the newest snapshot: the one after the samples comes with the next refresh
+    est = wait_for(lambda: (e := get_estimate(ros, '/timeout'))['num_samples'] and e, 10)
     assert est['consistency_status'] == 'time_limit'
     assert est['num_samples'] > 3000
     assert est['values'] == est['unconstrained_values']

@@ -17,9 +17,12 @@ subscribers):
 
 exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` / ``estimate_unconstrained.<name>``
 parameters (read-only from outside) and the services ``~/reset``, ``~/freeze``, ``~/save``,
-``~/get_estimate``. The constrained solve (consistency.py) runs at every estimate refresh in a
-child process (SolverProcess), on a snapshot of the pipeline's information taken under the
-processing lock and released before the solve. With
+``~/get_estimate``, served by a thread of their own (service_requests.py): commands are applied
+in order by the processing thread and answered once the estimate after them is published;
+``~/get_estimate`` answers from the newest published estimate (refreshed at
+``publish.estimate_rate`` and after every command). The constrained solve (consistency.py)
+runs at every estimate refresh in a child process (SolverProcess), on a snapshot of the
+pipeline's information taken on the processing thread. With
 ``payload.enabled`` (ros/payload_outputs.py): ``~/payload`` (InertiaStamped, transient
 local), ``~/payload_changed`` (Header: the change's stamp, frame_id the payload link), the
 services ``~/payload/reset`` and ``~/payload/set``, and the payload in diagnostics, in
@@ -266,9 +269,8 @@ class IdentificationNode(Node):
 
     # -- robustness -------------------------------------------------------------------------------
     def _guarded(self, callback: Callable) -> Callable:
-        """``callback`` (a timer's or a service's) that never raises: a failure is counted
-        (diagnostics ``callback_errors``) and logged in one line; a service answers
-        success false with the reason."""
+        """``callback`` (a timer's) that never raises: a failure is counted (diagnostics
+        ``callback_errors``) and logged in one line."""
         name = callback.__name__.lstrip('_')
 
         @functools.wraps(callback)
@@ -279,9 +281,6 @@ class IdentificationNode(Node):
                 self.callback_errors[name] += 1
                 text = f'{name} failed: {type(exc).__name__}: {exc}'
                 self.get_logger().error(text, throttle_duration_sec=5.0)
-                if len(args) == 2 and hasattr(args[1], 'success'):   # a service's response
-                    args[1].success, args[1].message = False, text
-                    return args[1]
                 return None
         return guarded
 
