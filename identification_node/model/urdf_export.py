@@ -29,6 +29,26 @@ def link_inertia(phi10: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return m, c, Io - m * (c @ c * np.eye(3) - np.outer(c, c))
 
 
+def inertia_problems(Ic: np.ndarray, rtol: float = 1e-9) -> list[str]:
+    """Why the inertia ``Ic`` (3, 3) about a body's centre of mass is not physically
+    consistent (empty when it is): finite, positive definite, principal moments obeying the
+    triangle inequality."""
+    try:
+        ev = np.linalg.eigvalsh(Ic)
+    except (np.linalg.LinAlgError, ValueError):   # overflow on absurd values
+        return ['inertia about the centre of mass is not finite']
+    if not np.isfinite(ev).all():
+        return ['inertia about the centre of mass is not finite']
+    tol = rtol * max(1.0, float(np.abs(ev).max()))
+    if ev[0] <= tol:
+        return ['inertia about the centre of mass is not positive definite '
+                f'(principal moments {np.array2string(ev, precision=4)})']
+    if 2 * ev.max() > ev.sum() + tol:
+        return [f'principal moments {np.array2string(ev, precision=4)} violate the triangle '
+                'inequality']
+    return []
+
+
 def link_problem(link: str, phi10: np.ndarray, rtol: float = 1e-9) -> str:
     """Why one link block [m, mx, my, mz, Ixx, ...] is not physically consistent (mass > 0,
     inertia about the centre of mass positive definite and obeying the triangle inequality);
@@ -39,18 +59,8 @@ def link_problem(link: str, phi10: np.ndarray, rtol: float = 1e-9) -> str:
         m, _, Ic = link_inertia(phi10)
     if not m > 0:
         return f'{link}: mass {m:.6g} kg is not positive'
-    try:
-        ev = np.linalg.eigvalsh(Ic)
-    except (np.linalg.LinAlgError, ValueError):   # overflow on absurd values
-        return f'{link}: inertia about the centre of mass is not finite'
-    tol = rtol * max(1.0, float(np.abs(ev).max()))
-    if ev[0] <= tol:
-        return (f'{link}: inertia about the centre of mass is not positive definite '
-                f'(principal moments {np.array2string(ev, precision=4)})')
-    if 2 * ev.max() > ev.sum() + tol:
-        return (f'{link}: principal moments {np.array2string(ev, precision=4)} '
-                'violate the triangle inequality')
-    return ''
+    problems = inertia_problems(Ic, rtol)
+    return f'{link}: {problems[0]}' if problems else ''
 
 
 def consistency_problems(robot: RobotModel, phi: np.ndarray, rtol: float = 1e-9) -> list[str]:

@@ -15,14 +15,16 @@
   the arm's running estimate taken now).
 - ``~/payload/set`` (rcl_interfaces/SetParameters): a known payload, as parameters ``mass``
   (double), ``com`` (double array, 3) and ``inertia`` (double array ixx ixy ixz iyy iyz izz);
-  watched from then on, not refitted until a change is detected.
+  watched from then on, not refitted until a change is detected. Refused with the reason
+  unless it could be a URDF <inertial> (payload/validation.py: mass positive, finite, at most
+  ``plausibility.margin`` times the arm's own mass; inertia positive definite, triangle
+  inequality, or all 0: a point mass).
 """
 from __future__ import annotations
 
 import math
 from typing import Callable
 
-import numpy as np
 from geometry_msgs.msg import InertiaStamped
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParameters
@@ -33,9 +35,9 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from identification_node.errors import IdentificationError
-from identification_node.payload.fit import (PayloadEstimate, payload_parameters,
-                                             prepare_consistency)
+from identification_node.payload.fit import PayloadEstimate, prepare_consistency
 from identification_node.payload.monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
+from identification_node.payload.validation import checked_payload, max_payload_mass
 from identification_node.ros.diagnostics import NOT_EXCITED, vector
 from identification_node.ros.service_requests import (Outcome, RequestQueue, ServiceThread,
                                                       failed)
@@ -94,6 +96,7 @@ class PayloadOutputs:
         prepare_consistency()   # cvxpy's import: seconds, not in a run
         self.pipeline = pipeline
         self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
+        self.max_mass = max_payload_mass(pipeline.robot, settings['plausibility.margin'])
         self.link = self.monitor.attach.link
         self.version = 0
         self.last_change: PayloadEvent | None = None
@@ -175,9 +178,8 @@ class PayloadOutputs:
             if unknown or 'mass' not in given:
                 raise IdentificationError(f'give mass (and com, inertia) only; got '
                                           f'{sorted(given)}')
-            phi = payload_parameters(float(given['mass']),
-                                     np.asarray(given.get('com', [0.0] * 3), dtype=float),
-                                     np.asarray(given.get('inertia', [0.0] * 6), dtype=float))
+            phi = checked_payload(given['mass'], given.get('com', [0.0] * 3),
+                                  given.get('inertia', [0.0] * 6), self.max_mass)
         except (IdentificationError, TypeError, ValueError) as exc:
             reply(failed(res, str(exc)))
             return
