@@ -94,6 +94,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'layout_cache_bytes': (4 << 20, 'bytes of message layouts (name lists) kept decoded'),
     'watchdog_timeout': (10.0, 's without the executor or processing making progress after '
                          'which the node logs it and exits (status 3) for a supervisor; 0: off'),
+    'input_queue_bytes': (64 << 20, 'bytes of input messages held per topic until processed; '
+                          'beyond, the oldest are dropped (diagnostics dropped_messages.*)'),
     'lost_messages.middleware_event': (False, "count lost messages also by the middleware's "
                                        'message-lost event (several publishers); off: it can '
                                        'deadlock rmw_fastrtps under bursts'),
@@ -166,6 +168,7 @@ RANGES: dict[str, tuple[float, float]] = {
     'coulomb_exclusion_speed': (0.0, math.inf),
     'min_samples': (0, 10**12),
     'publish.effort_rate': (0.0, math.inf),
+    'input_queue_bytes': (1, 1 << 62),
 }
 PER_JOINT = ('torque_source', 'kt', 'gear_ratio', 'pole_pairs', 'angle_offset', 'phase_order')
 # PipelineConfig fields whose parameter has another name.

@@ -3,6 +3,9 @@ JointState input taken from a subscription's queue in batches; the acknowledgeme
 publishers about to go."""
 from __future__ import annotations
 
+import collections
+import math
+import threading
 import time
 from functools import partial
 from typing import Any, Callable, Iterable, Sequence
@@ -87,12 +90,24 @@ class PolledSubscription:
     deadlock (the node hangs, signals included). The sequence-number gaps need no middleware
     call; the price is that losses while a topic has several publishers go uncounted. With
     the event on, its handlers wake the executor on every message (see PolledGroup).
+
+    ``receive`` (any thread, e.g. one of its own while ``poll``'s thread is busy) moves the
+    middleware's messages into this subscription's own queue, bounded by ``max_bytes``: the
+    oldest beyond it are dropped, counted in ``dropped`` (the middleware's queue is bounded
+    in count only: large messages sent faster than taken would fill memory).
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str,
                  handle: Callable[[list[bytes]], None], qos: Any,
-                 message_lost_event: bool = False, **kwargs: Any) -> None:
+                 message_lost_event: bool = False, max_bytes: float = math.inf,
+                 **kwargs: Any) -> None:
         self.handle, self.node, self.topic = handle, node, topic
+        self.max_bytes = max_bytes
+        self.dropped = 0                # messages taken but dropped beyond max_bytes
+        self.peak_bytes = 0             # the most this queue held (bytes)
+        self._queue: collections.deque[bytes] = collections.deque()
+        self._queued_bytes = 0
+        self._queue_lock = threading.Lock()
         self.sequence_numbers: bool | None = None    # known from the first message taken
         self._last_seq: int | None = None
         self._gaps = self._reported = 0     # written by poll's / the executor's thread
@@ -119,18 +134,40 @@ class PolledSubscription:
         return self._gaps + self._reported
 
     def reset_lost(self) -> None:
-        self._gaps = self._reported = 0
+        self._gaps = self._reported = self.dropped = 0
+
+    def receive(self) -> int:
+        """Move every message the middleware holds into this subscription's queue (the oldest
+        beyond ``max_bytes`` dropped); returns how many were taken."""
+        sub, numbers, queue = self.subscription, [], self._queue
+        dropped = 0
+        with self._queue_lock, sub.handle:
+            take = sub.handle.take_message
+            while (taken := take(sub.msg_type, True)) is not None:
+                queue.append(taken[0])
+                numbers.append(taken[1]['publication_sequence_number'])
+                self._queued_bytes += len(taken[0])
+                while self._queued_bytes > self.max_bytes:
+                    self._queued_bytes -= len(queue.popleft())
+                    dropped += 1
+                self.peak_bytes = max(self.peak_bytes, self._queued_bytes)
+            if numbers:
+                self._count_gaps(numbers)
+            self.dropped += dropped
+        if dropped:
+            self.node.get_logger().warning(
+                f'{self.dropped} messages on {self.subscription.topic_name} dropped: more '
+                f'than input_queue_bytes ({self.max_bytes:.0f}) waiting for processing',
+                throttle_duration_sec=5.0)
+        return len(numbers)
 
     def poll(self) -> int:
         """Hand every queued message to ``handle``; returns how many there were."""
-        sub, messages, numbers = self.subscription, [], []
-        with sub.handle:
-            take = sub.handle.take_message
-            while (taken := take(sub.msg_type, True)) is not None:
-                messages.append(taken[0])
-                numbers.append(taken[1]['publication_sequence_number'])
+        self.receive()
+        with self._queue_lock:
+            messages, self._queue = list(self._queue), collections.deque()
+            self._queued_bytes = 0
         if messages:
-            self._count_gaps(numbers)
             self.handle(messages)
         return len(messages)
 

@@ -244,6 +244,11 @@ class IdentificationNode(Node):
         self._processing = PeriodicThread(s['process_period'], self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
+        # The middleware's queues emptied even while a processing run takes long (their
+        # bound is a count; the node's own is in bytes: input_queue_bytes).
+        self._receiving = PeriodicThread(s['process_period'], self._receive,
+                                         'identification_receive', self._on_processing_error,
+                                         alive=self.context.ok)
         # Wall clock: with use_sim_time and no /clock the node's timers stand still.
         self._ros_now = (-1, 0)     # (last ROS time seen, checks it stood still)
         self._clock_check = PeriodicThread(1.0, self._check_clock, 'identification_clock',
@@ -265,6 +270,7 @@ class IdentificationNode(Node):
         return PolledSubscription(
             self, JointState, topic, handle, copy.copy(INPUT_QOS),
             message_lost_event=self.settings['lost_messages.middleware_event'],
+            max_bytes=self.settings['input_queue_bytes'],
             qos_overriding_options=overrides)
 
     # -- robustness -------------------------------------------------------------------------------
@@ -432,6 +438,10 @@ class IdentificationNode(Node):
                 else:
                     self._jobs.append(job)
             self._job_ready.notify()
+
+    def _receive(self) -> None:
+        for source in self._inputs:
+            source.receive()
 
     def _on_processing_error(self, exc: BaseException) -> None:
         self.callback_errors['processing'] += 1
@@ -648,6 +658,7 @@ class IdentificationNode(Node):
             if result.notes:
                 values['consistency_notes'] = '; '.join(result.notes)
         values.update({f'lost_messages.{s.topic}': s.lost for s in self._inputs})
+        values.update({f'dropped_messages.{s.topic}': s.dropped for s in self._inputs})
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
         values.update(vector('residual_rms', self.robot.joint_names, est.residual_rms))
         values.update({f'excluded_equations.{j}': int(k)
@@ -711,6 +722,7 @@ class IdentificationNode(Node):
     def destroy_node(self) -> None:
         self._service_thread.stop()
         self._clock_check.stop()
+        self._receiving.stop()
         self._processing.stop()
         with self._job_ready:
             self._worker_running = False
