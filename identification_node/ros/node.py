@@ -69,6 +69,7 @@ from identification_node.ros.link_outputs import LinkOutputs
 from identification_node.ros import runtime_parameters
 from identification_node.ros.payload_outputs import PayloadOutputs
 from identification_node.ros.runtime_parameters import RUNTIME
+from identification_node.ros.qos_watch import QosWatch
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
                                                       ServiceThread, Snapshot, failed)
 from identification_node.ros.spin import PeriodicThread, run_node
@@ -203,6 +204,9 @@ class IdentificationNode(Node):
         self._pub_urdf = self.create_publisher(String, '~/robot_description', LATCHED_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.links = LinkOutputs(self, self.robot)
+        self._qos_watch = QosWatch(self)   # checked with the clock, every second
+        self._qos_watch.watch(*(i.subscription for i in self._inputs), self._pub_predicted,
+                              self._pub_measured, self._pub_params, self._pub_urdf)
         self._service_thread.add(Trigger, '~/reset', self._srv_reset)
         self._service_thread.add(SetBool, '~/freeze', self._srv_freeze)
         self._service_thread.add(Trigger, '~/save', self._srv_save)
@@ -251,7 +255,7 @@ class IdentificationNode(Node):
                                          alive=self.context.ok)
         # Wall clock: with use_sim_time and no /clock the node's timers stand still.
         self._ros_now = (-1, 0)     # (last ROS time seen, checks it stood still)
-        self._clock_check = PeriodicThread(1.0, self._check_clock, 'identification_clock',
+        self._clock_check = PeriodicThread(1.0, self._periodic_checks, 'identification_clock',
                                            self._on_processing_error, alive=self.context.ok)
         self._service_thread.start()
         for note in self.pipeline.prior_notes:
@@ -305,6 +309,10 @@ class IdentificationNode(Node):
             f'residual shift: {100 * event.fraction:.0f} % of the last {event.window} samples '
             'beyond the robust gate of the estimate (a payload change?); gating stopped, the '
             'estimate follows the new data')
+
+    def _periodic_checks(self) -> None:
+        self._qos_watch.check()
+        self._check_clock()
 
     def _check_clock(self) -> None:
         """Warn when use_sim_time is on but ROS time stands still (no /clock): the estimate
@@ -659,6 +667,7 @@ class IdentificationNode(Node):
                 values['consistency_notes'] = '; '.join(result.notes)
         values.update({f'lost_messages.{s.topic}': s.lost for s in self._inputs})
         values.update({f'dropped_messages.{s.topic}': s.dropped for s in self._inputs})
+        values['qos_incompatible'] = self._qos_watch.incompatible
         values.update({f'rejected.{k}': v for k, v in rejected.items()})
         values.update(vector('residual_rms', self.robot.joint_names, est.residual_rms))
         values.update({f'excluded_equations.{j}': int(k)
