@@ -188,6 +188,41 @@ def test_currents_with_no_joint_state_and_joint_states_with_no_current():
     assert np.all(np.isfinite(p.estimate().values))
 
 
+@pytest.mark.parametrize('live', [False, True])
+def test_late_currents_of_a_live_stream_are_waited_for(live):
+    """Live topics are not delivered in step: 300 ms of joint states in one processing run,
+    their currents in the next. By stamps alone the joint states more than hold_time (0.1 s)
+    older than the newest are given up ('no_current'); with the node's clock (live) they wait
+    hold_time of it too, and all are matched. Currents that never come are still given up
+    once the clock passed hold_time."""
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    sim = simulate(duration=1.0, noise=SensorNoise(current_std=0.01), converter=converter)
+    js, cur = joint_records(sim, effort=False), current_records(sim, converter)
+    p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE), BASE)
+    now = [0.0]
+    if live:
+        p.live_clock(lambda: now[0])
+    for r in js[:300]:
+        p.add_joint_state(r)
+    p.process()
+    now[0] += 0.05                               # the next run, 50 ms later
+    for r in cur[:300]:
+        p.add_currents(r)
+    p.process()
+    assert p.rejected['no_current'] == (0 if live else 200)
+    # joint states whose currents never come: given up once hold_time of the clock passed
+    # (all but the newest hold_time of stamps, and the first within align_tolerance)
+    before = p.rejected['no_current']
+    for r in js[300:600]:
+        p.add_joint_state(r)
+    p.process()
+    if live:
+        assert p.rejected['no_current'] == before
+    now[0] += 0.2
+    p.process()
+    assert 190 <= p.rejected['no_current'] - before <= 200
+
+
 def test_current_messages_validated_and_mapped_by_channel_name():
     """Channels in any order with an unknown one among them, the electrical angle in position:
     the currents and angles land in their (joint, phase) slots; bad messages are counted by

@@ -3,13 +3,17 @@ nearest in header stamp, and the joint torque of every sample.
 
 A joint state is matched to the nearest current within ``align_tolerance``; it waits until a
 current stamped at or after it is in (then its nearest is known), or ``hold_time`` at most,
-and is counted 'no_current' when none is near. Currents no joint state took are counted
+and is counted 'no_current' when none is near. With a ``clock`` (a live stream: the node's
+monotonic time), a joint state also waits ``hold_time`` of that clock from when it was first
+processed: two topics are not delivered in step on a busy machine, and stamps alone would
+give up joint states whose currents are merely late. Currents no joint state took are counted
 'unmatched_current'. With every joint's torque measured there is nothing to wait for: the
 torque is the effort (checked finite on the way in).
 """
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 
@@ -29,15 +33,19 @@ class CurrentAlignment:
         self.bounds = bounds   # torques from currents beyond them: 'implausible'
         self.align_tolerance, self.hold_time = float(align_tolerance), float(hold_time)
         self._all_measured = len(converter.measured_joints) == dof
+        self.clock: Callable[[], float] | None = None    # see the module doc
         self.reset()
 
     def reset(self) -> None:
         self.pending = Samples.empty(self.dof)
+        self._seen = np.empty(0)      # clock time each pending joint state was first processed
         self.currents = Samples.empty(self.dof, with_currents=True)
         self._newest_js = -math.inf
 
     def add_joint_states(self, s: Samples) -> None:
         self.pending = self.pending.concat(s)
+        if self.clock is not None and len(s):
+            self._seen = np.concatenate([self._seen, np.full(len(s), self.clock())])
 
     def add_currents(self, s: Samples) -> None:
         if len(s):
@@ -48,7 +56,7 @@ class CurrentAlignment:
         currents stamped within ``restart_jump`` of the old stream's newest stamp; older
         ones already belong to the new stream (they may come in the same batch)."""
         dropped = len(self.pending)
-        self.pending = Samples.empty(self.dof)
+        self.pending, self._seen = Samples.empty(self.dof), np.empty(0)
         self.currents = self.currents.select(self.currents.stamps < old_newest - restart_jump)
         self._newest_js = -math.inf
         return dropped
@@ -61,7 +69,7 @@ class CurrentAlignment:
             return s
         self._newest_js = max(self._newest_js, float(s.stamps[-1]))
         if not self.converter.needs_currents:
-            self.pending = Samples.empty(self.dof)
+            self.pending, self._seen = Samples.empty(self.dof), np.empty(0)
             return self._with_torque(s, None, None)
         cur = self.currents
         newest_cur = cur.stamps[-1] if len(cur) else -math.inf
@@ -70,8 +78,10 @@ class CurrentAlignment:
         else:
             # Currents come in stamp order: once one at or after t is in, the nearest to t is
             # among those in (the newest before t, the first after), so t is decided.
-            decided = ((s.stamps <= newest_cur)
-                       | (s.stamps <= self._newest_js - self.hold_time))
+            held = s.stamps <= self._newest_js - self.hold_time
+            if self.clock is not None and len(self._seen) == len(s):
+                held &= self._seen <= self.clock() - self.hold_time
+            decided = (s.stamps <= newest_cur) | held
         # decided is a prefix: stamps are increasing.
         k = int(np.count_nonzero(decided))
         if k == 0:
@@ -80,6 +90,7 @@ class CurrentAlignment:
             ready, self.pending = s, Samples.empty(self.dof)
         else:
             ready, self.pending = s.head(k), s.tail(k)
+        self._seen = self._seen[k:]
         match = self._nearest(cur.stamps, ready.stamps)
         ok = match >= 0
         self.counters.reject('no_current', np.count_nonzero(~ok))

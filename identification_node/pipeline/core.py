@@ -158,6 +158,11 @@ class IdentificationPipeline:
         choice = self.row_builder.choice
         return math.nan if choice is None else float(choice.half_window)
 
+    def live_clock(self, clock) -> None:
+        """A live stream: joint states wait for their currents ``hold_time`` of ``clock``
+        (a monotonic time in s) as well as of stamps (align.py)."""
+        self.samples.alignment.clock = clock
+
     # -- processing -----------------------------------------------------------------------------
     def process(self, flush: bool = False) -> PipelineOutput:
         """Work through everything queued. ``flush`` decides joint states still waiting for

@@ -169,6 +169,7 @@ class IdentificationNode(Node):
         super().__init__(node_name, **kwargs)
         self.settings = Settings.from_dict(declare_settings(self, PARAMETERS))
         self.pipeline = self.settings.build()
+        self.pipeline.live_clock(time.monotonic)   # topics are not delivered in step
         self.robot = self.pipeline.robot
         base = self.pipeline.base
         self._internal_update = False
