@@ -22,6 +22,7 @@ from ros_helpers import PYTHON, ROOT, RosHarness, domain_id, wait_for
 BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          reliability=ReliabilityPolicy.BEST_EFFORT)
 BURST = 20_000
+HANG = 30.0       # s: no sign of life for this long is a hang (these tests measure nothing)
 
 
 @pytest.fixture(scope='module')
@@ -44,6 +45,14 @@ def node_process(ros, tmp_path, name, **params):
     return proc
 
 
+def ended(proc):
+    """The exit status of ``proc`` once it ended; HANG s without: a hang (AssertionError)."""
+    try:
+        return proc.wait(HANG)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f'still running {HANG} s after the signal') from None
+
+
 def bursts(count, size=BURST, seed=0):
     """``count`` bursts of ``size`` CDR joint states, stamps increasing throughout."""
     rng = np.random.default_rng(seed)
@@ -62,8 +71,10 @@ def answers(ros, name, timeout):
 def test_bursts_do_not_hang_the_node_and_sigint_still_works(ros, tmp_path):
     """20 bursts of 20,000 messages, each within about 0.5 s: after each the node answers a
     service within 5 s (the message-lost event, which deadlocked rmw_fastrtps under such
-    bursts, is not registered); then SIGINT ends it within 2 s."""
+    bursts, is not registered); then SIGINT ends it cleanly."""
     proc = node_process(ros, tmp_path, 'burst')
+    # the first answer comes with the first estimate, after the solver's start-up (seconds)
+    assert answers(ros, 'burst', 60.0) is not None
     pub = ros.client.create_publisher(JointState, '/burst/js', BEST_EFFORT)
     assert wait_for(lambda: pub.get_subscription_count(), 10)
     for k, messages in enumerate(bursts(20)):
@@ -71,14 +82,18 @@ def test_bursts_do_not_hang_the_node_and_sigint_still_works(ros, tmp_path):
             pub.publish(raw)
         assert answers(ros, 'burst', 5.0) is not None, f'no answer after burst {k}'
         assert proc.poll() is None, proc.stderr.read()
-    assert answers(ros, 'burst', 5.0)['num_samples'] > BURST    # it did take them in
+    # it did take them in (the answers come from the newest published estimate)
+    assert wait_for(lambda: (answers(ros, 'burst', 5.0) or {}).get('num_samples', 0) > BURST,
+                    HANG)
     proc.send_signal(signal.SIGINT)
-    assert proc.wait(2) == 0, proc.stderr.read()
+    assert ended(proc) == 0, proc.stderr.read()
     ros.client.destroy_publisher(pub)
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_during_a_burst_ends_the_node_within_2_s(ros, tmp_path, sig):
+def test_a_signal_during_a_burst_ends_the_node(ros, tmp_path, sig):
+    """Cleanly (0), or by the watchdog's forced exit (1, said in the log) if the shutdown
+    outlasts its grace: a busy machine may stretch it (the grace itself is tested below)."""
     name = f'mid_{sig.name.lower()}'
     proc = node_process(ros, tmp_path, name)
     pub = ros.client.create_publisher(JointState, f'/{name}/js', BEST_EFFORT)
@@ -88,7 +103,9 @@ def test_a_signal_during_a_burst_ends_the_node_within_2_s(ros, tmp_path, sig):
         pub.publish(raw)
         if k == len(messages) // 2:
             proc.send_signal(sig)
-    assert proc.wait(2) in (0, 1), proc.stderr.read()
+    code = ended(proc)
+    log = proc.stderr.read()
+    assert code == 0 or (code == 1 and 'shutdown did not finish within' in log), (code, log)
     ros.client.destroy_publisher(pub)
 
 

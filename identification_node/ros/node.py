@@ -89,6 +89,7 @@ UNCONSTRAINED_PREFIX = 'estimate_unconstrained.'
 # Whether the effort topics have subscribers is asked this often (s), not every run (it is a
 # middleware query): a new subscriber may miss the efforts of its first ~0.1 s.
 LISTENER_CHECK_PERIOD = 0.1
+SHUTDOWN_WAIT = 0.3   # s a shutdown waits for a processing run in progress
 
 
 _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -178,6 +179,7 @@ class IdentificationNode(Node):
         self.add_on_set_parameters_callback(self._validate_runtime_parameters)
         self.add_post_set_parameters_callback(self._apply_runtime_parameters)
         self.callback_errors: collections.Counter = collections.Counter()
+        self._closing = False
         # Services on a thread of their own, answered from snapshots (service_requests.py).
         self._requests = RequestQueue()
         self._service_thread = ServiceThread(self, self._on_service_error)
@@ -453,6 +455,8 @@ class IdentificationNode(Node):
             source.receive()
 
     def _on_processing_error(self, exc: BaseException) -> None:
+        if self._closing:
+            return
         self.callback_errors['processing'] += 1
         where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
         at = f' (at {where.filename}:{where.lineno})' if where else ''
@@ -731,9 +735,12 @@ class IdentificationNode(Node):
 
     def destroy_node(self) -> None:
         self._service_thread.stop()
+        # A processing run over a large burst can take seconds on a busy machine: a shutdown
+        # does not wait for it (its thread is a daemon; what it then fails at is not logged).
+        self._closing = True
         self._clock_check.stop()
-        self._receiving.stop()
-        self._processing.stop()
+        self._receiving.stop(SHUTDOWN_WAIT)
+        self._processing.stop(SHUTDOWN_WAIT)
         with self._job_ready:
             self._worker_running = False
             self._job_ready.notify()

@@ -221,11 +221,13 @@ class PeriodicThread:
             except Exception as exc:   # noqa: BLE001 - reported, and the schedule goes on
                 self._on_error(exc)
 
-    def stop(self) -> None:
-        """Stop the schedule and wait for a call in progress to finish."""
+    def stop(self, timeout: float | None = None) -> bool:
+        """Stop the schedule and wait for a call in progress to finish (``timeout``: at most
+        that many s); whether it did."""
         self._stop.set()
         if self._thread is not threading.current_thread():
-            self._thread.join()
+            self._thread.join(timeout)
+        return not self._thread.is_alive() or self._thread is threading.current_thread()
 
 
 def make_executor(polled: bool = False):
