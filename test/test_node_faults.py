@@ -39,7 +39,7 @@ def node_process(ros, tmp_path, name, **params):
     proc = ros.start('node', params, tmp_path, name, extra=('-r', f'__node:={name}',
                                                             '-r', f'joint_states:=/{name}/js'))
     client = ros.client.create_client(Trigger, f'/{name}/get_estimate')
-    up = client.wait_for_service(timeout_sec=30)
+    up = client.wait_for_service(timeout_sec=120)   # start-up: imports, seconds when busy
     ros.client.destroy_client(client)
     assert up, proc.stderr.read() if proc.poll() is not None else f'{name} did not start'
     return proc
@@ -70,7 +70,7 @@ def answers(ros, name, timeout):
 
 def test_bursts_do_not_hang_the_node_and_sigint_still_works(ros, tmp_path):
     """20 bursts of 20,000 messages, each within about 0.5 s: after each the node answers a
-    service within 5 s (the message-lost event, which deadlocked rmw_fastrtps under such
+    service (the message-lost event, which deadlocked rmw_fastrtps under such
     bursts, is not registered); then SIGINT ends it cleanly."""
     proc = node_process(ros, tmp_path, 'burst')
     # the first answer comes with the first estimate, after the solver's start-up (seconds)
@@ -80,10 +80,10 @@ def test_bursts_do_not_hang_the_node_and_sigint_still_works(ros, tmp_path):
     for k, messages in enumerate(bursts(20)):
         for raw in messages:
             pub.publish(raw)
-        assert answers(ros, 'burst', 5.0) is not None, f'no answer after burst {k}'
+        assert answers(ros, 'burst', HANG) is not None, f'no answer after burst {k}'
         assert proc.poll() is None, proc.stderr.read()
     # it did take them in (the answers come from the newest published estimate)
-    assert wait_for(lambda: (answers(ros, 'burst', 5.0) or {}).get('num_samples', 0) > BURST,
+    assert wait_for(lambda: (answers(ros, 'burst', HANG) or {}).get('num_samples', 0) > BURST,
                     HANG)
     proc.send_signal(signal.SIGINT)
     assert ended(proc) == 0, proc.stderr.read()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -33,6 +34,9 @@ SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          reliability=ReliabilityPolicy.RELIABLE)
 POLL_ACTIVE = 0.002     # s between polls while requests come
 POLL_IDLE = 0.02        # s between polls once none came for a while
+# rmw_fastrtps refuses a response while the caller's reply reader is not matched yet (a new
+# client's first call, discovery slow on a busy machine): it is sent again for this long.
+RESEND_FOR = 10.0
 Reply = Callable[[Any], None]
 
 
@@ -50,7 +54,7 @@ class ServiceThread:
         self.node, self._on_error, self._name = node, on_error, name
         self._group = PolledGroup()
         self._services: list[tuple[Any, Callable[[Any, Reply], None], str]] = []
-        self._outbox: list[tuple[Any, Any, Any]] = []   # (service, response, header)
+        self._outbox: list[tuple] = []    # (service, response, header, first try)
         self._outbox_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -82,7 +86,7 @@ class ServiceThread:
                 return
             done.append(True)
             with self._outbox_lock:
-                self._outbox.append((srv, response, header))
+                self._outbox.append((srv, response, header, None))
             self._wake.set()
         return reply
 
@@ -121,13 +125,21 @@ class ServiceThread:
     def _send(self) -> int:
         with self._outbox_lock:
             out, self._outbox = self._outbox, []
-        for srv, response, header in out:
+        again = []
+        now = time.monotonic()
+        for srv, response, header, first in out:
             try:
                 srv.send_response(response, header)
                 self.answered += 1
-            except Exception as exc:   # noqa: BLE001 - a vanished client or a shutdown
-                self._on_error('send_response', exc)
-        return len(out)
+            except Exception as exc:   # noqa: BLE001 - not matched yet, vanished, shut down
+                if first is None or now - first < RESEND_FOR:
+                    again.append((srv, response, header, now if first is None else first))
+                else:
+                    self._on_error('send_response', exc)
+        if again:
+            with self._outbox_lock:
+                self._outbox[:0] = again
+        return len(out) - len(again)
 
 
 def failed(response: Any, text: str) -> Any:
