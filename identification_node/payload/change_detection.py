@@ -57,7 +57,8 @@ class Detection:
 
 class WindowedGLR:
     """The moving-window GLR of the module docstring. ``noise_scale``: long-run over sample
-    variance of the residuals (1 / the smoother's noise gain). ``push`` samples in time order;
+    variance of the residuals (1 / the smoother's noise gain for smoothed white noise; a
+    value per joint may be set). ``push`` samples in time order;
     after a detection it stays silent until ``reset``."""
 
     def __init__(self, window: float = DEFAULT_WINDOW, threshold: float = DEFAULT_THRESHOLD,
@@ -78,7 +79,8 @@ class WindowedGLR:
                 raise IdentificationError(f'change detection {name} = {value!r} is out of range')
         self.window, self.threshold = float(window), float(threshold)
         self.min_change, self.max_gap, self.min_fill = float(min_change), float(max_gap), min_fill
-        self.min_z, self.noise_scale = float(min_z), float(noise_scale)
+        self.min_z = float(min_z)
+        self.noise_scale: float | np.ndarray = float(noise_scale)   # or per joint (n,)
         self.confirm, self.recent = float(confirm), float(recent)
         self.statistic = 0.0      # the latest T, for diagnostics
         self.gaps = 0
