@@ -354,7 +354,8 @@ class PayloadMonitor:
                 event.mass_change, event.mass_change_std = est.mass - before.mass, sd
         events.append(event)
         self._state = 'watching'
-        self._next_refresh = float(t[j]) + self.config.refresh
+        self._refresh_step = self.config.fit_time
+        self._next_refresh = float(t[j]) + self._refresh_step
         return j
 
     def _watching(self, t, Yp, r, i: int, events: list) -> int:
@@ -375,7 +376,10 @@ class PayloadMonitor:
             return stop
         self._flush(float(t[-1]) - self.config.window, inclusive=True)
         if float(t[-1]) >= self._next_refresh and not self._given:
-            self._next_refresh = float(t[-1]) + self.config.refresh
+            # refits come at doubling intervals up to ``refresh``: a first fit from a short
+            # motion may leave directions unexcited that the next seconds determine
+            self._refresh_step = min(2.0 * self._refresh_step, self.config.refresh)
+            self._next_refresh = float(t[-1]) + self._refresh_step
             events.append(PayloadEvent('refresh', self.segments[-1].stamp,
                                        self.segments[-1].detected, self._fit()))
         return len(t)
