@@ -1,16 +1,24 @@
-"""Payload change detection: delay versus payload mass, and false alarms.
+"""Payload detection with the shipped defaults: the matrix, the threshold in kg, false alarms.
 
-    .venv/bin/python bench/bench_payload.py [--minutes 30] [--seeds 3]
+    .venv/bin/python bench/bench_payload.py [--arms ur5 panda kinova fixture]
+        [--rates 250 500 1000 2000] [--minutes 30] [--skip-matrix] [--skip-threshold]
 
-1. Delay: the 7-DOF Panda-like arm (test/fixtures/panda_like.urdf) at 1 kHz, torque noise
-   0.05 N m and a 20-bit encoder, under computed-torque control of a Fourier trajectory,
-   picks a payload (mass m, centre of mass at a random offset up to 0.1 m) at 3 s and places
-   it at 6 s; the node's pipeline and PayloadMonitor (shipped defaults) stream the samples.
-   Per mass: detections of the pick and the place, and their delays (detection stamp minus
-   the true change time; the smoother's 10 ms included).
-2. False alarms: the same arm without any change for --minutes of simulated time (perfect
-   tracking of the trajectory, same noise), and the bundled bags; changes declared.
-3. Cost: the monitor's time per sample against the pipeline's, in the same run.
+Every run: the arm (example-robot-data's UR5, Panda with its 7 arm joints, Kinova, or the
+project's 7-DOF fixture), with or without joint friction, is identified first by the node's
+pipeline with default settings (30 s without payload; what --arm passes), then the default
+payload monitor watches a different motion (test/payload_scenarios.py) at the given rate and
+torque noise (18-bit encoders, measured velocities 0.01 rad/s).
+
+1. Matrix: per arm, rate and noise/friction case, the four sequences (pick 1 kg; pick 3 kg
+   and place; pick 1 kg, place, pick 0.25 kg; pick 2 kg, place, pick 0.5 kg; centres of mass
+   up to 0.1 m off the flange): changes detected, the largest detection delay, the largest
+   mass error (percent) and centre-of-mass error (mm) of the fitted segments, and changes
+   declared that did not happen.
+2. Threshold: per rate (UR5, friction, 0.1 N m) the smallest mass of [0.05, 0.3] kg whose
+   pick is detected in every one of 3 seeds (payload.min_change, 0.2 kg, bounds it below).
+3. False alarms: --minutes of motion without a change (UR5, friction, 0.2 N m, 1 kHz) and
+   the bundled bags (their own robots, defaults); the monitor's cost per sample against the
+   pipeline's, in the same run.
 """
 from __future__ import annotations
 
@@ -22,135 +30,133 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(ROOT / 'test')]
 
-from identification_node.excitation.trajectories import load_trajectory  # noqa: E402
-from identification_node.model.robot import load_robot  # noqa: E402
-from identification_node.model.simulation import (ArmSimulator, SensorNoise,  # noqa: E402
-                                                  simulate_kinematic)
+import payload_scenarios as ps  # noqa: E402
 from identification_node.offline.identification import identify_bag  # noqa: E402
-from identification_node.payload.fit import PayloadChange, attachment  # noqa: E402
-from identification_node.payload.fit import true_parameter_changes  # noqa: E402
-from identification_node.payload.monitor import PayloadMonitor  # noqa: E402
+from identification_node.payload.fit import PayloadChange  # noqa: E402
 from identification_node.payload.monitor import monitor_from_settings  # noqa: E402
-from identification_node.pipeline import IdentificationPipeline  # noqa: E402
 from identification_node.settings import Settings, read_parameter_file  # noqa: E402
-from identification_node.wire.records import JointStateRecord  # noqa: E402
+from test_payload_matrix import SEQUENCES  # noqa: E402
 
-URDF = str(ROOT / 'test/fixtures/panda_like.urdf')
-NOISE = SensorNoise(torque_std=0.05, encoder_counts=2 ** 20)
-MASSES = (0.1, 0.15, 0.2, 0.25, 0.5, 1.0, 2.0, 3.0)
-PICK, PLACE = 3.0, 6.0
+CASES = ((0.05, True), (0.2, True), (0.1, False))   # torque noise N m, joint friction
 BAGS = (('mit_paper_moves', 'identification.yaml'), ('mit_exciting', 'identification.yaml'),
         ('mit_paper_moves_sqlite3', 'identification.yaml'),
         ('crs_a465_fourier', 'crs_a465.yaml'))
 
 
-class Runner:
-    """The pipeline and monitor over samples, timing each."""
-
-    def __init__(self, robot):
-        self.robot = robot
-        self.pipe = IdentificationPipeline(robot)
-        self.mon = PayloadMonitor(robot, attachment(robot), robot.phi_model)
-        self.events: list = []
-        self.pipe_time = self.mon_time = 0.0
-        self.samples = 0
-
-    def feed(self, t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> None:
-        ns = np.round(t * 1e9).astype(np.int64)
-        names = tuple(self.robot.joint_names)
-        for a in range(0, len(ns), 1000):
-            s = slice(a, a + 1000)
-            t0 = time.perf_counter()
-            self.pipe.add_joint_states(JointStateRecord(ns[s], names, q[s],
-                                                        np.zeros((len(ns[s]), 0)), tau[s]))
-            out = self.pipe.process()
-            t1 = time.perf_counter()
-            self.events += self.mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
-            self.mon_time += time.perf_counter() - t1
-            self.pipe_time += t1 - t0
-            self.samples += len(out.stamps_ns)
-
-    def changes(self) -> list:
-        return [e for e in self.events if e.kind == 'change']
+def run_sequence(arm, phi_arm, rate, noise, changes, seed):
+    """(detection delays or None per change, mass errors %, com errors mm, false alarms)."""
+    mon = ps.monitor(arm, phi_arm)
+    sim = ps.simulate(arm, rate, changes[-1].time + 5.0, noise, seed, changes)
+    events = ps.watch(mon, sim)
+    segments = mon.finish()
+    detected = [ps.seconds(e.detected) for e in events if e.kind == 'change']
+    delays, used = [], set()
+    for c in changes:
+        hit = [k for k, d in enumerate(detected) if c.time <= d <= c.time + 2.0
+               and k not in used]
+        delays.append(detected[hit[0]] - c.time if hit else None)
+        used.update(hit[:1])
+    mass, com = [], []
+    if len(segments) == len(changes) + 1:
+        for seg, c in zip(segments[1:], changes):
+            p = seg.payload
+            mass.append(100 * abs(p.mass - c.mass) / c.mass if c.mass else 0.0)
+            if c.mass:
+                com.append(1e3 * np.abs(p.com - c.com).max())
+    return delays, mass, com, len(detected) - len(used)
 
 
-def delays(robot, seeds: int) -> None:
-    print('1. detection delay (pick at 3 s, place at 6 s; shipped defaults)')
-    print(f"{'mass kg':>8} {'picks':>6} {'places':>7} {'pick delay ms (median, max)':>29} "
-          f"{'place delay ms':>15} {'others':>7}")
-    traj = load_trajectory('fourier', robot)
-    phi = robot.phi_model
-    for mass in MASSES:
-        found, d_pick, d_place, others = [0, 0], [], [], 0
-        for seed in range(seeds):
-            rng = np.random.default_rng(100 + seed)
-            com = rng.uniform(-0.1, 0.1, 3) * [0.5, 0.5, 1.0]
-            events = [PayloadChange(PICK, None, mass, tuple(com)),
-                      PayloadChange(PLACE, None, 0.0)]
-            sim = ArmSimulator(robot, phi).run(traj, 8.0, NOISE, seed,
-                                               changes=true_parameter_changes(robot, phi, events))
-            run = Runner(robot)
-            run.feed(sim.t, sim.q_meas, sim.tau_meas)
-            seen = [False, False]
-            for e in run.changes():
-                k = 0 if PICK <= e.detected < PLACE else 1 if e.detected >= PLACE else None
-                if k is None or seen[k]:
-                    others += 1
-                    continue
-                seen[k] = True
-                found[k] += 1
-                (d_pick if k == 0 else d_place).append(e.detected - (PICK, PLACE)[k])
-        print(f'{mass:8.2f} {found[0]:>3}/{seeds:<2} {found[1]:>4}/{seeds:<2} '
-              f'{_ms(d_pick):>29} {_ms(d_place):>15} {others:>7}')
+def matrix(arms, rates) -> None:
+    print('1. matrix (shipped defaults; arm identified first): per cell all four sequences')
+    print(f"{'arm':>8} {'rate':>5} {'noise':>5} {'fric':>4} {'detected':>9} "
+          f"{'max delay s':>11} {'mass err %':>10} {'com err mm':>10} {'false':>5}")
+    for name in arms:
+        for rate in rates:
+            for noise, friction in CASES:
+                arm = ps.make_arm(name, friction)
+                phi_arm = ps.identify_arm(arm, rate, noise)
+                n = found = false = 0
+                delays, mass, com = [], [], []
+                for k, changes in enumerate(SEQUENCES.values()):
+                    d, m, c, f = run_sequence(arm, phi_arm, rate, noise, changes, 10 + k)
+                    n += len(d)
+                    found += sum(x is not None for x in d)
+                    delays += [x for x in d if x is not None]
+                    mass += m
+                    com += c
+                    false += f
+                print(f'{name:>8} {rate:5.0f} {noise:5.2f} {"yes" if friction else "no":>4} '
+                      f'{found:>4}/{n:<4} {max(delays, default=np.nan):11.3f} '
+                      f'{max(mass, default=np.nan):10.2f} {max(com, default=np.nan):10.2f} '
+                      f'{false:>5}', flush=True)
 
 
-def _ms(values: list) -> str:
-    if not values:
-        return '-'
-    v = 1e3 * np.array(values)
-    return f'{np.median(v):.0f}, {v.max():.0f}'
+def threshold(rates) -> None:
+    print('\n2. detection threshold (UR5, friction, 0.1 N m; smallest mass picked and '
+          'detected in 3 of 3 seeds)')
+    arm = ps.make_arm('ur5', True)
+    for rate in rates:
+        phi_arm = ps.identify_arm(arm, rate, 0.1)
+        smallest = None
+        for mass in (0.3, 0.25, 0.2, 0.15, 0.1, 0.05):
+            ok = all(run_sequence(arm, phi_arm, rate, 0.1,
+                                  [PayloadChange(4.0, None, mass, (0.02, 0.0, 0.05))],
+                                  20 + s)[0][0] is not None for s in range(3))
+            if not ok:
+                break
+            smallest = mass
+        print(f'   {rate:6.0f} Hz: {smallest if smallest is not None else "> 0.3"} kg',
+              flush=True)
 
 
-def false_alarms(robot, minutes: float) -> None:
-    print(f'\n2. false alarms: {minutes:g} min of simulated motion without a change, '
-          'and the bundled bags')
-    traj = load_trajectory('fourier', robot)
-    run = Runner(robot)
-    chunk = 10.0
-    start = time.perf_counter()
+def false_alarms(minutes: float) -> None:
+    print(f'\n3. false alarms: {minutes:g} min of motion without a change (UR5, friction, '
+          '0.2 N m, 1 kHz), and the bundled bags')
+    arm = ps.make_arm('ur5', True)
+    phi_arm = ps.identify_arm(arm, 1000.0, 0.2)
+    mon = ps.monitor(arm, phi_arm)
+    pipe = arm.settings.build(arm.robot)
+    pipe_time = mon_time = 0.0
+    declared, samples = 0, 0
+    chunk = 60.0
     for k in range(int(np.ceil(minutes * 60 / chunk))):
-        t = k * chunk + np.arange(int(chunk * 1000)) / 1000.0
-        sim = simulate_kinematic(robot, None, traj, t, NOISE, seed=k)
-        run.feed(sim.t, sim.q_meas, sim.tau_meas)
-    hours = run.samples / 1000.0 / 3600.0
-    print(f'   simulated run: {len(run.changes())} changes declared over {run.samples} samples '
-          f'({hours * 60:.1f} min; {time.perf_counter() - start:.0f} s to run)')
-    if run.changes():
-        print('   at ' + ', '.join(f'{e.detected:.3f} s' for e in run.changes()))
-    print(f'   cost per sample: pipeline {1e6 * run.pipe_time / run.samples:.1f} us, payload '
-          f'monitor {1e6 * run.mon_time / run.samples:.1f} us '
-          f'(ratio {run.mon_time / run.pipe_time:.2f})')
+        sim = ps.simulate(arm, 1000.0, chunk, 0.2, 100 + k)
+        sim.t = sim.t + k * chunk
+        t0 = time.perf_counter()
+        ps.stream(pipe, sim)
+        t1 = time.perf_counter()
+        declared += sum(e.kind == 'change' for e in ps.watch(mon, sim))
+        mon_time += time.perf_counter() - t1
+        pipe_time += t1 - t0
+        samples += len(sim.t)
+    print(f'   simulated: {declared} changes declared over {samples / 60000:.1f} min; cost per '
+          f'sample: pipeline {1e6 * pipe_time / samples:.1f} us, payload monitor '
+          f'{1e6 * mon_time / samples:.1f} us (ratio {mon_time / pipe_time:.2f})')
     for bag, config in BAGS:
         settings = Settings.from_dict(read_parameter_file(ROOT / 'config' / config))
-        bot = settings.load_robot()
-        mon = monitor_from_settings(settings, bot)
+        robot = settings.load_robot()
+        mon = monitor_from_settings(settings, robot)
         events = []
-        identify_bag(ROOT / 'bags' / bag, settings, bot, on_output=lambda out: events.extend(
-            mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)))
-        n = sum(e.kind == 'change' for e in events)
-        print(f'   bag {bag}: {n} changes declared')
+        identify_bag(ROOT / 'bags' / bag, settings, robot,
+                     on_output=lambda out: events.extend(mon.add_output(out)))
+        print(f"   bag {bag}: {sum(e.kind == 'change' for e in events)} changes declared")
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--arms', nargs='+', default=['ur5', 'panda', 'kinova', 'fixture'])
+    parser.add_argument('--rates', nargs='+', type=float, default=[250, 500, 1000, 2000])
     parser.add_argument('--minutes', type=float, default=30.0)
-    parser.add_argument('--seeds', type=int, default=3)
+    parser.add_argument('--skip-matrix', action='store_true')
+    parser.add_argument('--skip-threshold', action='store_true')
     args = parser.parse_args()
-    robot = load_robot(URDF)
-    delays(robot, args.seeds)
-    false_alarms(robot, args.minutes)
+    if not args.skip_matrix:
+        matrix(args.arms, args.rates)
+    if not args.skip_threshold:
+        threshold(args.rates)
+    false_alarms(args.minutes)
     return 0
 
 

@@ -117,6 +117,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'payload.min_change': (0.2, 'kg; the smallest mass change declared (detection threshold)'),
     'payload.min_z': (8.0, 'a mass change is declared at this many of its standard deviations'),
     'payload.confirm': (0.1, 's the change conditions must hold before a change is declared'),
+    'payload.cutoff': (20.0, "Hz, -3 dB cut-off of the payload monitor's own smoother (its "
+                       'delay ~ 0.7 / cutoff s at any rate; the estimator keeps its own)'),
     'payload.tolerance.mass': (0.02, 'kg; mass stddev above this: not excited'),
     'payload.tolerance.com': (0.005, 'm; centre of mass stddev above this: not excited'),
     'payload.tolerance.inertia': (0.002, 'kg m^2; inertia stddev above this: not excited'),

@@ -39,7 +39,7 @@ def run_monitor(robot, changes, duration, noise=NOISE, seed=0, link=None, drop=N
     keep = np.ones(len(sim), dtype=bool) if drop is None else ~(
         (sim.t >= drop[0]) & (sim.t < drop[1]))
     ns = np.round(sim.t[keep] * 1e9).astype(np.int64)
-    pipe = IdentificationPipeline(robot, PipelineConfig(half_window=10))   # the monitor's
+    pipe = IdentificationPipeline(robot, PipelineConfig())   # shipped defaults
     mon = PayloadMonitor(robot, attachment(robot, link), phi, config)
     events = []
     names = tuple(robot.joint_names)
@@ -48,7 +48,7 @@ def run_monitor(robot, changes, duration, noise=NOISE, seed=0, link=None, drop=N
         pipe.add_joint_states(JointStateRecord(ns[s], names, sim.q_meas[keep][s],
                                                np.zeros((len(ns[s]), 0)), sim.tau_meas[keep][s]))
         out = pipe.process()
-        events += mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+        events += mon.add_output(out)
     return mon, events
 
 
@@ -221,7 +221,7 @@ def test_restarted_stream_is_not_a_change():
     sim = ArmSimulator(robot, phi).run(load_trajectory('fourier', robot), 4.0, NOISE, 5,
                                        changes=changes)
     ns = np.round(sim.t * 1e9).astype(np.int64)
-    pipe = IdentificationPipeline(robot, PipelineConfig(half_window=10))   # the monitor's
+    pipe = IdentificationPipeline(robot, PipelineConfig())   # shipped defaults
     mon = PayloadMonitor(robot, attachment(robot), phi)
     events = []
     for _ in range(2):
@@ -231,7 +231,7 @@ def test_restarted_stream_is_not_a_change():
                                                    sim.q_meas[s], np.zeros((len(ns[s]), 0)),
                                                    sim.tau_meas[s]))
             out = pipe.process()
-            events += mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+            events += mon.add_output(out)
     assert pipe.restarts == 1
     assert [e.kind for e in events if e.kind != 'refresh'] == ['start']
     assert abs(mon.finish()[0].payload.mass - 0.8) <= 0.016
@@ -253,7 +253,7 @@ def test_stalled_and_bursting_stream_is_not_a_change():
         m = int(stall * 1000)
         stamp[k0:k0 + m] = t[k0] + stall + np.arange(m) * 2e-5
     ns = np.round(np.maximum.accumulate(stamp + np.arange(N) * 1e-9) * 1e9).astype(np.int64)
-    pipe = IdentificationPipeline(robot, PipelineConfig(half_window=10))   # the monitor's
+    pipe = IdentificationPipeline(robot, PipelineConfig())   # shipped defaults
     mon = PayloadMonitor(robot, attachment(robot), robot.phi_model)
     events = []
     for a in range(0, N, 20):
@@ -261,5 +261,6 @@ def test_stalled_and_bursting_stream_is_not_a_change():
         pipe.add_joint_states(JointStateRecord(ns[s], tuple(robot.joint_names), sim.q_meas[s],
                                                sim.qd_meas[s], sim.tau_meas[s]))
         out = pipe.process()
-        events += mon.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+        events += mon.add_output(out)
     assert [e.kind for e in events if e.kind != 'refresh'] == ['start']
+    assert mon.burst_samples > 0   # the compressed stamps were dropped, not smoothed

@@ -27,6 +27,27 @@ class URSetPayloadRequest:
         self.mass, self.center_of_gravity = 0.0, Vector3()
 
 
+class Duration:
+    def __init__(self):
+        self.sec, self.nanosec = 0, 0
+
+
+class URSetPayloadInertiaRequest(URSetPayloadRequest):
+    """ur_msgs/srv/SetPayload's request with the inertia (ur_msgs #42/#43): float32 mass,
+    Vector3 center_of_gravity, float64 ixx iyy izz ixy ixz iyz, Duration transition_time."""
+    def __init__(self):
+        super().__init__()
+        self.ixx = self.iyy = self.izz = self.ixy = self.ixz = self.iyz = 0.0
+        self.transition_time = Duration()
+
+
+class URSetPayloadWholeRequest:
+    """A SetPayload request carrying geometry_msgs/Inertia payload and float64
+    transition_time."""
+    def __init__(self):
+        self.payload, self.transition_time = Inertia(), 0.0
+
+
 class FrankaSetLoadRequest:
     """franka_msgs/srv/SetLoad's request: float64 mass, float64[3] center_of_mass,
     float64[9] load_inertia (column-major)."""
@@ -35,7 +56,8 @@ class FrankaSetLoadRequest:
 
 
 def test_ur_and_franka_requests_filled_by_their_presets():
-    ur = fill_request(URSetPayloadRequest(), PRESETS['ur']['fields'], inertia())
+    ur = fill_request(URSetPayloadRequest(), PRESETS['ur']['fields'], inertia(),
+                      PRESETS['ur']['optional'])
     assert ur.mass == 1.25
     assert (ur.center_of_gravity.x, ur.center_of_gravity.y, ur.center_of_gravity.z) == (
         0.01, -0.02, 0.08)
@@ -43,6 +65,25 @@ def test_ur_and_franka_requests_filled_by_their_presets():
     assert fr.mass == 1.25 and fr.center_of_mass == [0.01, -0.02, 0.08]
     assert fr.load_inertia == [0.004, 0.0001, -0.0002, 0.0001, 0.005, 0.0003,
                                -0.0002, 0.0003, 0.003]
+
+
+def test_ur_newer_layouts_get_the_inertia_and_transition_time():
+    """Each SetPayload layout filled from the one preset: the inertia where the request has
+    it, the transition time as a Duration or a number; the older layout as before."""
+    fields, optional = PRESETS['ur']['fields'], PRESETS['ur']['optional']
+    new = fill_request(URSetPayloadInertiaRequest(), fields, inertia(), optional, 1.25)
+    assert new.mass == 1.25 and new.center_of_gravity.z == 0.08
+    assert (new.ixx, new.iyy, new.izz, new.ixy, new.ixz, new.iyz) == (
+        0.004, 0.005, 0.003, 0.0001, -0.0002, 0.0003)
+    assert (new.transition_time.sec, new.transition_time.nanosec) == (1, 250_000_000)
+    whole = fill_request(URSetPayloadWholeRequest(), fields, inertia(), optional, 0.5)
+    assert whole.payload == inertia() and whole.transition_time == 0.5
+    old = fill_request(URSetPayloadRequest(), fields, inertia(), optional, 0.5)
+    assert old.mass == 1.25 and not hasattr(old, 'transition_time')
+    with pytest.raises(IdentificationError, match='none of the preset'):
+        fill_request(Duration(), fields, inertia(), optional)
+    with pytest.raises(IdentificationError, match='transition_time'):
+        fill_request(URSetPayloadInertiaRequest(), fields, inertia(), optional, -1.0)
 
 
 def test_bad_mappings_refused():

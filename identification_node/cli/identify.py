@@ -85,6 +85,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     payload.add_argument('--arm', metavar='ESTIMATE_YAML',
                          help="the arm's parameters without payload (estimate.yaml, ~/save); "
                          "default: the model's own")
+    payload.add_argument('--arm-table', action='store_true',
+                         help="with --payload, print the arm's identification too (the "
+                         'payload changes alone otherwise)')
     drive = parser.add_argument_group(
         'drive gains (N m/A at the joint = kt x gear_ratio, identified in situ; the torques '
         'then use them)')
@@ -319,11 +322,14 @@ def _number(value: float | None, spec: str = '.4g') -> str:
     return 'inf' if value is None else format(value, spec)
 
 
-def format_payload_changes(changes: list) -> str:
-    """The payload segments as text: values with stddev, 'not excited' where unknown."""
+def format_payload_changes(changes: list, warnings: list | None = None) -> str:
+    """The payload segments as text: values with stddev, 'not excited' where unknown, each
+    change's mass step; ``warnings`` first."""
     def show(v, sd, unit):
         return 'not excited' if v is None else f'{v:.4g} +- {sd:.2g} {unit}'
-    lines = ['', 'payload changes (link frame; inertia about the centre of mass):']
+    lines = [f'warning: {w}' for w in warnings or ()]
+    lines += [f'payload: {len(changes) - 1} change(s) detected (link frame; inertia about the '
+              'centre of mass):']
     for c in changes:
         p = c['payload']
         when = (f"at {c['stamp']:.3f} s" + (f" (detected {c['detected']:.3f} s)"
@@ -332,7 +338,9 @@ def format_payload_changes(changes: list) -> str:
             lines.append(f'  {when}: no fit (too few samples)')
             continue
         sd = p['stddev']
-        lines.append(f"  {when}, {p['link']}: mass {show(p['mass'], sd['mass'], 'kg')}")
+        step = ('' if c.get('mass_change') is None else
+                f"; change {c['mass_change']:+.4g} +- {c['mass_change_std']:.2g} kg")
+        lines.append(f"  {when}, {p['link']}: mass {show(p['mass'], sd['mass'], 'kg')}{step}")
         lines.append('    com ' + ', '.join(show(v, s, 'm') for v, s in zip(p['com'], sd['com'])))
         lines.append('    inertia ' + ', '.join(show(v, s, 'kg m^2') for v, s in zip(
             p['inertia'], sd['inertia'])))
@@ -428,12 +436,12 @@ def batch_options(args: argparse.Namespace, robot):
     return options
 
 
-def payload_monitor(args: argparse.Namespace, settings, robot, method: str, pipeline=None):
-    """The PayloadMonitor of --payload (None without it), for ``pipeline``'s smoother."""
+def payload_monitor(args: argparse.Namespace, settings, robot, method: str):
+    """The PayloadMonitor of --payload (None without it)."""
     from identification_node.errors import IdentificationError
     if not args.payload:
-        if args.payload_link or args.arm:
-            raise IdentificationError('--payload-link and --arm need --payload')
+        if args.payload_link or args.arm or args.arm_table:
+            raise IdentificationError('--payload-link, --arm and --arm-table need --payload')
         return None
     if method != 'rls':
         raise IdentificationError('--payload streams the bag: not with --method batch')
@@ -442,8 +450,7 @@ def payload_monitor(args: argparse.Namespace, settings, robot, method: str, pipe
     values = dict(settings.values)
     values.update({'payload.link': args.payload_link or values['payload.link'],
                    'payload.arm': args.arm or values['payload.arm']})
-    return monitor_from_settings(Settings(values, settings.given), robot,
-                                 lambda: pipeline.row_builder.half_window)
+    return monitor_from_settings(Settings(values, settings.given), robot)
 
 
 def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
@@ -515,7 +522,7 @@ def run(args: argparse.Namespace) -> int:
         settings = settings_with_gains(settings, robot, used_gains(gains))
     options = None
     pipeline = settings.build(robot) if method == 'rls' else None
-    monitor = payload_monitor(args, settings, robot, method, pipeline)
+    monitor = payload_monitor(args, settings, robot, method)
     ident = None
     if method == 'rls' and args.workers != 1 and monitor is None and not args.report \
             and args.start is None and args.end is None:
@@ -524,9 +531,7 @@ def run(args: argparse.Namespace) -> int:
                                   *topics)
     if ident is None and method == 'rls':
         ident = replay_identify(args.bag, settings, robot, *topics, on_output=None if (
-            monitor is None) else lambda out: monitor.add(
-                out.stamps_ns, out.q, out.qd, out.qdd, out.measured), window=window,
-            pipeline=pipeline)
+            monitor is None) else monitor.add_output, window=window, pipeline=pipeline)
     elif ident is None:
         options = batch_options(args, robot)
         ident = offline_identify(args.bag, settings, robot, options, *topics, window=window)
@@ -555,6 +560,9 @@ def run(args: argparse.Namespace) -> int:
         from identification_node.payload.monitor import segments_document
         from identification_node.offline.results import plain
         doc['payload_changes'] = plain(segments_document(monitor.finish()))
+        doc['payload_warnings'] = monitor.warnings()
+        for w in doc['payload_warnings']:
+            print(f'warning: {w}', file=sys.stderr)
     if args.save:
         from identification_node.offline.results import write_results
         saved = saved_document(ident)
@@ -575,11 +583,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
-        print(format_report(doc))
+        payload = 'payload_changes' in doc
+        if payload:   # the payload first; the arm's table when asked
+            print(format_payload_changes(doc['payload_changes'], doc['payload_warnings']))
+        if not payload or args.arm_table:
+            print(('\n' if payload else '') + format_report(doc))
         if args.paper_tables:
             print(paper_table3(ident))
-        if 'payload_changes' in doc:
-            print(format_payload_changes(doc['payload_changes']))
         if gains is not None:
             from identification_node.estimation.drive_gains import gains_text
             print('\n'.join(gains_text(gains)))

@@ -9,11 +9,13 @@ whose gravity torque dominates), each joint j weighted by 1 / its noise variance
     delta = G^+ b,  T = b' G^+ b   (chi-square, rank G degrees of freedom, while nothing
     changed),  z = delta_0 / sqrt(G^+_00)  (the mass change in its standard deviations).
 
-s_j^2 is the mean square residual of the window before (scaled from the smoothed samples'
-variance to the long-run variance the sums average; a change inside the tested window has
-not reached it), never below the segment's noise level: the residual grows with the motion
-(errors in variables, model errors), and a test normalised by a quiet segment's noise would
-flag every faster move.
+s_j^2 is the window's mean square residual left by its fitted change (weighted by the
+segment's noise level; scaled from the smoothed samples' variance to the long-run variance
+the sums average), never below the segment's noise level: the residual grows with the
+motion (errors in variables, model errors), and a test normalised by a quiet segment's noise
+would flag every faster move, while a change is what its own fit explains. (The window
+before, once used, holds the change itself a window after its onset: the test went deaf
+before the conditions had held ``confirm`` s.)
 
 A change is declared when T exceeds ``threshold``, z exceeds ``min_z``, the mass change
 |delta_0| exceeds ``min_change`` (kg) and the window determines it to DETERMINED *
@@ -57,7 +59,8 @@ class Detection:
 
 class WindowedGLR:
     """The moving-window GLR of the module docstring. ``noise_scale``: long-run over sample
-    variance of the residuals (1 / the smoother's noise gain). ``push`` samples in time order;
+    variance of the residuals (1 / the smoother's noise gain for smoothed white noise; a
+    value per joint may be set). ``push`` samples in time order;
     after a detection it stays silent until ``reset``."""
 
     def __init__(self, window: float = DEFAULT_WINDOW, threshold: float = DEFAULT_THRESHOLD,
@@ -78,7 +81,8 @@ class WindowedGLR:
                 raise IdentificationError(f'change detection {name} = {value!r} is out of range')
         self.window, self.threshold = float(window), float(threshold)
         self.min_change, self.max_gap, self.min_fill = float(min_change), float(max_gap), min_fill
-        self.min_z, self.noise_scale = float(min_z), float(noise_scale)
+        self.min_z = float(min_z)
+        self.noise_scale: float | np.ndarray = float(noise_scale)   # or per joint (n,)
         self.confirm, self.recent = float(confirm), float(recent)
         self.statistic = 0.0      # the latest T, for diagnostics
         self.gaps = 0
@@ -137,12 +141,14 @@ class WindowedGLR:
         M = len(idx)
         G = W[:, :n * k * k].reshape(M, n, k, k)
         b = W[:, n * k * k:n * k * (k + 1)].reshape(M, n, k)
-        # the noise of the window before (which a change inside this one has not reached)
-        before = np.searchsorted(tt, tt[idx] - 2 * self.window, side='right')
-        count = (first - before)[:, None].astype(float)
-        ss = (S[first] - S[before])[:, n * k * (k + 1):]
-        with np.errstate(divide='ignore', invalid='ignore'):
-            var = np.where(count > 0, ss / np.maximum(count, 1.0) * self.noise_scale, 0.0)
+        # the window's own noise once the change it tests is taken out: a change explains
+        # its residual, the model noise of a fast motion does not
+        w0 = np.broadcast_to(1.0 / floor, (M, n))
+        d_0, _, _ = _solve(np.einsum('mj,mjkl->mkl', w0, G), np.einsum('mj,mjk->mk', w0, b))
+        rss = (W[:, n * k * (k + 1):] - 2.0 * np.einsum('mk,mjk->mj', d_0, b)
+               + np.einsum('mk,mjkl,ml->mj', d_0, G, d_0))
+        count = (idx + 1 - first)[:, None].astype(float)
+        var = np.maximum(rss, 0.0) / count * self.noise_scale
         w = 1.0 / np.maximum(var, floor)
         delta, T, sd0 = _solve(np.einsum('mj,mjkl->mkl', w, G), np.einsum('mj,mjk->mk', w, b))
         d0 = delta[:, 0]

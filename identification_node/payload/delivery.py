@@ -14,8 +14,12 @@ Presets for the drivers users ask about (those packages are not needed here; the
 type is imported by name when the forwarder starts):
 
 - ``ur``: ur_msgs/srv/SetPayload (Universal Robots' ROS 2 driver, service
-  ``/io_and_status_controller/set_payload``): ``mass`` (kg) and ``center_of_gravity``
-  (Vector3, m) in the tool flange frame ``tool0``.
+  ``/io_and_status_controller/set_payload``), in the tool flange frame ``tool0``: the
+  older layout ``mass`` (kg) and ``center_of_gravity`` (Vector3, m); the newer adds the
+  inertia about the centre of gravity (``ixx`` ... ``iyz``, kg m^2) and ``transition_time``
+  (a Duration, s), or carries the payload whole (``payload``, geometry_msgs/Inertia) with a
+  float ``transition_time``. Its fields are filled where the request has them (a preset's
+  ``optional``), so every layout works; ``transition_time`` is the forwarder's parameter.
 - ``franka``: franka_msgs/srv/SetLoad (franka_ros2, service ``/service_server/set_load``):
   ``mass`` (kg), ``center_of_mass`` (m, flange frame) and ``load_inertia`` (9 values, kg m^2,
   about the centre of mass, column-major).
@@ -35,7 +39,9 @@ QUANTITIES = ('mass', 'com', 'com.x', 'com.y', 'com.z', 'inertia_matrix', 'inert
 PRESETS: dict[str, dict[str, Any]] = {
     'ur': {'service_type': 'ur_msgs/srv/SetPayload', 'frame': 'tool0',
            'service': '/io_and_status_controller/set_payload',
-           'fields': {'mass': 'mass', 'center_of_gravity': 'com'}},
+           'fields': {'mass': 'mass', 'center_of_gravity': 'com', 'payload': 'inertia',
+                      **{k: k for k in ('ixx', 'iyy', 'izz', 'ixy', 'ixz', 'iyz')}},
+           'optional': True},
     'franka': {'service_type': 'franka_msgs/srv/SetLoad', 'frame': '',
                'service': '/service_server/set_load',
                'fields': {'mass': 'mass', 'center_of_mass': 'com',
@@ -74,9 +80,27 @@ def payload_values(inertia) -> dict[str, Any]:
             'com.z': com[2], 'inertia_matrix': matrix, 'inertia': inertia, **i}
 
 
-def fill_request(request: Any, fields: Mapping[str, str], inertia) -> Any:
-    """``request`` with each mapped field set from the payload ``inertia`` (see module doc)."""
+def fill_request(request: Any, fields: Mapping[str, str], inertia, optional: bool = False,
+                 transition_time: float | None = None) -> Any:
+    """``request`` with each mapped field set from the payload ``inertia`` (see module doc);
+    ``optional``: fields the request does not have are left out (at least one must be
+    there); ``transition_time`` (s): into the request's field of that name where it has one
+    (a Duration or a number)."""
     values = payload_values(inertia)
+    if optional:
+        fields = {p: q for p, q in fields.items() if has_field(request, p)}
+        if not fields:
+            raise IdentificationError(f'request {type(request).__name__} has none of the '
+                                      'preset\'s payload fields')
+    if transition_time is not None and hasattr(request, 'transition_time'):
+        if not (math.isfinite(transition_time) and transition_time >= 0):
+            raise IdentificationError(f'transition_time {transition_time!r} must be >= 0 s')
+        current = request.transition_time
+        if hasattr(current, 'sec') and hasattr(current, 'nanosec'):
+            ns = int(round(transition_time * 1e9))
+            current.sec, current.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+        else:
+            request.transition_time = float(transition_time)
     for path, quantity in fields.items():
         *parents, name = path.split('.')
         target = request
@@ -89,6 +113,16 @@ def fill_request(request: Any, fields: Mapping[str, str], inertia) -> Any:
             raise IdentificationError(f'request {type(request).__name__} has no field {path}')
         _assign(target, name, getattr(target, name), values[quantity], path)
     return request
+
+
+def has_field(request: Any, path: str) -> bool:
+    """Whether ``request`` has the dotted field ``path``."""
+    target = request
+    for name in path.split('.'):
+        if not hasattr(target, name):
+            return False
+        target = getattr(target, name)
+    return True
 
 
 def _assign(target: Any, name: str, current: Any, value: Any, path: str) -> None:

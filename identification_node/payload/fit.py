@@ -250,16 +250,24 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
     cov_s = (Vk / lam[keep]) @ Vk.T
     phi_ls = (cov_s @ (b / d)) / d
     cov = cov_s / np.outer(d, d)
-    phi = consistent_payload(ne, w, phi_ls) if keep.any() else np.zeros(10)
+    try:
+        phi = consistent_payload(ne, w, phi_ls) if keep.any() else np.zeros(10)
+    except IdentificationError:   # the solvers failed: the least-squares fit, not consistent
+        phi = phi_ls
     consistent = bool(np.linalg.eigvalsh(pseudo_inertia(phi))[0] > 0)
     stddev = dict.fromkeys(QUANTITIES, math.inf)
-    if keep.any() and phi[0] > 0:
+
+    def determined(g: np.ndarray) -> bool:   # g: a gradient in the scaled coordinates
+        return not (Vn.shape[1] and np.linalg.norm(Vn.T @ g) > 1e-6 * np.linalg.norm(g))
+    if keep.any() and determined(np.eye(10)[0] / d):
+        # the mass is linear in phi: known also where it is nil (a detach)
+        stddev['mass'] = float(np.sqrt(max(cov[0, 0], 0.0)))
+    if keep.any() and phi[0] > 3.0 * stddev['mass']:
+        # the centre of mass and inertia only where the mass is known to be positive
         Jq = _jacobian(phi)
-        for i, q in enumerate(QUANTITIES):
-            g = Jq[i] / d                   # gradient in the scaled coordinates
-            if Vn.shape[1] and np.linalg.norm(Vn.T @ g) > 1e-6 * np.linalg.norm(g):
-                continue                    # depends on an undetermined direction
-            stddev[q] = float(np.sqrt(max(Jq[i] @ cov @ Jq[i], 0.0)))
+        for i, q in enumerate(QUANTITIES[1:], 1):
+            if determined(Jq[i] / d):     # not on an undetermined direction
+                stddev[q] = float(np.sqrt(max(Jq[i] @ cov @ Jq[i], 0.0)))
     group = {'mass': 'mass', 'com': 'com', 'inertia': 'inertia'}
     excited = [q for q in QUANTITIES if stddev[q] <= tol[group[q.split('.')[0]]]]
     # the centre of mass means nothing without the mass, the inertia nothing without both

@@ -1,8 +1,12 @@
-"""Payload identification with change detection on the pipeline's smoothed samples.
+"""Payload identification with change detection, on samples smoothed by the monitor itself.
 
-PayloadMonitor takes the pipeline's outputs (q, qd, qdd and the measured torque of each
-sample, stamped), forms the residual of a fixed arm model r = tau - Y phi_arm and the
-payload's regressor, and runs through segments of constant payload:
+PayloadMonitor takes the validated samples as they enter the pipeline (q, qd where measured
+and the joint torque, stamped; PipelineOutput.inputs), smooths them with a short fixed-lag
+smoother of its own (signals.FixedLagSmoother, cut-off ``cutoff`` Hz: the same local cubic
+fit as the estimator's, but with a short delay of its own, whatever window the estimator's
+automatic smoother picks and however long it holds samples to pick it), forms the residual
+of a fixed arm model r = tau - Y phi_arm and the payload's regressor, and runs through
+segments of constant payload:
 
 - *fitting*: after the start (or a change, once ``settle`` s have passed), ``fit_time`` s of
   samples are gathered and the payload fitted (payload.fit_payload); then
@@ -11,6 +15,10 @@ payload's regressor, and runs through segments of constant payload:
   (so none from after a change), refine the segment's fit every ``refresh`` s. A detection
   ends the segment at the estimated onset and starts *fitting* again.
 
+The torque noise is measured too (raw torque minus its smoothed value, at the window
+centres): a fit whose residual is many times that noise means the arm's model does not
+explain the torque (``arm_residual_ratio``, ``warnings``).
+
 Events (PayloadEvent) report the segment starts, the detections and each fit. Stamps are
 seconds (header stamps).
 """
@@ -18,23 +26,27 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Mapping
 
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.residuals import MIN_BLOCKS, ResidualStatistics
 from identification_node.model.robot import RobotModel
 from identification_node.payload.change_detection import (DEFAULT_CONFIRM, DEFAULT_MIN_CHANGE,
                                                           DEFAULT_MIN_Z, DEFAULT_THRESHOLD,
                                                           DEFAULT_WINDOW, Detection, WindowedGLR)
 from identification_node.payload.fit import (Attachment, PayloadEstimate, fit_payload,
                                              given_payload, payload_regressor)
-from identification_node.pipeline.signals import smoothing_noise_gain
+from identification_node.pipeline.signals import (FixedLagSmoother, half_window_for_cutoff,
+                                                  smoothing_noise_gain)
 
 ARM_ESTIMATE = 'estimate'   # payload.arm: the node's running estimate, taken at each reset
 NOISE_FLOOR = 1e-4   # N m: the smallest noise standard deviation a joint is weighted by
 DETECTOR_COLUMNS = 4  # m, mx, my, mz
+DEFAULT_CUTOFF = 20.0   # Hz: the monitor's smoother (delay ~ 0.7 / cutoff s at any rate)
+DERIVATIVE_BAND = 4.0  # the derivatives' smoother's cut-off over the low-pass's
+ARM_RESIDUAL_RATIO = 4.0   # a fit's residual this many times the noise: the arm is not known
 
 
 @dataclass
@@ -50,11 +62,15 @@ class MonitorConfig:
     confirm: float = DEFAULT_CONFIRM
     max_gap: float = 0.05
     batch: float = 0.02          # s of samples gathered per run (numpy calls cost per run)
+    cutoff: float = DEFAULT_CUTOFF   # Hz, -3 dB cut-off of the monitor's own smoother
+    order: int = 3               # its polynomial order
     tolerance: Mapping[str, float] = field(default_factory=dict)
 
     def validate(self) -> None:
+        if self.order not in (2, 3, 4):
+            raise IdentificationError(f'payload smoother order {self.order!r}: 2, 3 or 4')
         for name in ('fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change',
-                     'min_z', 'max_gap', 'batch', 'confirm'):
+                     'min_z', 'max_gap', 'batch', 'confirm', 'cutoff'):
             value = getattr(self, name)
             zero_ok = name in ('settle', 'min_change', 'min_z', 'batch', 'confirm')
             ok = value >= 0 if zero_ok else value > 0
@@ -72,12 +88,16 @@ class MonitorConfig:
 class PayloadEvent:
     """``kind``: 'start' (a segment's first fit: the initial payload, stamp = first sample),
     'change' (a detection: stamp = estimated onset, ``detected`` = when detected, no payload
-    yet), 'estimate' (the first fit after a change) or 'refresh' (a refined fit)."""
+    yet), 'estimate' (the first fit after a change) or 'refresh' (a refined fit).
+    ``mass_change``: of an 'estimate', the fitted mass minus the previous segment's (kg) and
+    its standard deviation ``mass_change_std`` (NaN where either is not known)."""
     kind: str
     stamp: float
     detected: float | None = None
     payload: PayloadEstimate | None = None
     detection: Detection | None = None
+    mass_change: float = math.nan
+    mass_change_std: float = math.nan
 
 
 @dataclass
@@ -91,13 +111,10 @@ class Segment:
 
 class PayloadMonitor:
     """See the module docstring. ``phi_arm``: the arm's standard parameters (payload.
-    arm_parameters); ``half_window``/``order``: the pipeline's smoother (noise scaling):
-    its half window, or a callable giving it (None while the pipeline chooses it), asked when
-    the first samples come."""
+    arm_parameters). Its smoother is made from the first samples' rate."""
 
     def __init__(self, robot: RobotModel, attach: Attachment, phi_arm: np.ndarray,
-                 config: MonitorConfig | None = None,
-                 half_window: int | Callable[[], int | None] = 10, order: int = 3):
+                 config: MonitorConfig | None = None):
         self.robot, self.attach = robot, attach
         self.phi_arm = np.asarray(phi_arm, dtype=float)
         if self.phi_arm.shape != (robot.num_params,) or not np.isfinite(self.phi_arm).all():
@@ -105,36 +122,52 @@ class PayloadMonitor:
         self.config = config or MonitorConfig()
         self.config.validate()
         c = self.config
-        self._order = int(order)
-        self._half_window = half_window if callable(half_window) else None
-        self._smoother(10 if callable(half_window) else int(half_window))
+        self.smoother: FixedLagSmoother | None = None   # made from the first samples
+        self.rate = math.nan      # Hz, of the first samples
+        self._block = 1
+        self._white_scale = 1.0
+        self._derivative_gain = 0.0
+        self.derivatives: FixedLagSmoother | None = None
         self.detector = WindowedGLR(c.window, c.threshold, c.min_change, c.max_gap,
-                                    min_z=c.min_z, noise_scale=self._white_scale,
-                                    confirm=c.confirm)
+                                    min_z=c.min_z, confirm=c.confirm)
         self.segments: list[Segment] = []
         self._queued: list[tuple] = []
         self._last_t = -math.inf
+        self._epoch_ns: int | None = None
+        self._last_ns: int | None = None
+        self._tail = (np.empty(0), np.empty((0, robot.dof)))   # raw (t, tau) not yet centred
+        self._hf = np.zeros(robot.dof)   # sum of (raw - smoothed torque)^2 at the centres
+        self._hf_count = 0
+        self.arm_residual_ratio = math.nan
+        self.burst_samples = 0
         self.changes = 0
         self.reset()
 
-    def _smoother(self, half_window: int) -> None:
-        if int(half_window) < 1:
-            raise IdentificationError(f'the smoother half window must be >= 1, got '
-                                      f'{half_window!r}')
-        self._block = 4 * (2 * int(half_window) + 1)
-        self._white_scale = 1.0 / smoothing_noise_gain(int(half_window), self._order)
+    @property
+    def detector_delay(self) -> float:
+        """s: how far the detector's samples lag the newest input (the smoother's half
+        window; NaN before the first samples). A change is declared ``confirm`` s and a
+        fraction of ``window`` after that."""
+        if self.smoother is None:
+            return math.nan
+        return self.smoother.delay(self.rate) + self.derivatives.delay(self.rate)
 
-    def _resolve_smoother(self) -> None:
-        """The pipeline's half window, once it is chosen (before the first samples are used:
-        the statistics started with a stand-in block length restart with the real one)."""
-        L = self._half_window()
-        if L is None:
-            return
-        self._half_window = None
-        self._smoother(L)
-        self.detector.noise_scale = self._white_scale
-        if self._stats.count == 0:
-            self._stats = ResidualStatistics(10, self.robot.dof, self._block)
+    def torque_noise(self) -> np.ndarray:
+        """Per joint the standard deviation (N m) of the white torque noise: the raw torque
+        minus its smoothed value at the window centres, over 1 - the smoother's noise gain
+        (NaN before any sample)."""
+        if not self._hf_count:
+            return np.full(self.robot.dof, math.nan)
+        return np.sqrt(self._hf / self._hf_count / max(1.0 - self._derivative_gain, 1e-9))
+
+    def warnings(self, hint: str = 'pass --arm') -> list[str]:
+        """What the user must know: an arm model that does not explain the torque (``hint``:
+        how to give the identified arm)."""
+        r = self.arm_residual_ratio
+        if math.isfinite(r) and r > ARM_RESIDUAL_RATIO:
+            return [f"the arm's residual is {r:.0f} times the noise: identify the arm first "
+                    f'and {hint}']
+        return []
 
     # -- state ------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -171,23 +204,115 @@ class PayloadMonitor:
         return self._state
 
     # -- samples ----------------------------------------------------------------------------------
-    def add(self, stamps_ns: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-            tau: np.ndarray) -> list[PayloadEvent]:
-        """Samples in time order (the pipeline's outputs): the events they bring, once
-        ``batch`` s of samples are gathered."""
+    def add_output(self, out) -> list[PayloadEvent]:
+        """``add`` of a PipelineOutput's input samples."""
+        inp = getattr(out, 'inputs', None)
+        return [] if inp is None else self.add(inp.stamps_ns, inp.q, inp.tau)
+
+    def add(self, stamps_ns: np.ndarray, q: np.ndarray, tau: np.ndarray
+            ) -> list[PayloadEvent]:
+        """Validated samples in time order (header stamps int64 ns; q and the joint torque
+        (N, n)): the events they bring, once ``batch`` s of samples are gathered. Velocities
+        and accelerations are the smoother's derivatives of q: over a short window a
+        measured velocity's noise, differentiated, would swamp the payload's torque, where
+        an encoder's is orders of magnitude below it."""
         if len(stamps_ns) == 0:
             return []
-        if self._half_window is not None:
-            self._resolve_smoother()
-        self._queued.append((stamps_ns, q, qd, qdd, tau))
-        if (int(stamps_ns[-1]) - int(self._queued[0][0][0])) * 1e-9 < self.config.batch:
+        self._queued.append((np.asarray(stamps_ns, dtype=np.int64), q, tau))
+        span = (int(stamps_ns[-1]) - int(self._queued[0][0][0])) * 1e-9
+        if span < self.config.batch or (self.smoother is None and span <= 0):
             return []
-        parts, self._queued = self._queued, []
-        return self._run(*(np.concatenate(a) for a in zip(*parts)) if len(parts) > 1
-                         else parts[0])
+        return self._smooth(*self._take())
 
-    def _run(self, stamps_ns: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-             tau: np.ndarray) -> list[PayloadEvent]:
+    def _take(self) -> tuple:
+        parts, self._queued = self._queued, []
+        return tuple(np.concatenate(a) for a in zip(*parts)) if len(parts) > 1 else parts[0]
+
+    def _smooth(self, ns: np.ndarray, q: np.ndarray, tau: np.ndarray) -> list[PayloadEvent]:
+        """_filter on each run of increasing stamps (a stream restarts where they fall)."""
+        cuts = [0, *(np.flatnonzero(np.diff(ns) <= 0) + 1).tolist(), len(ns)]
+        events: list[PayloadEvent] = []
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            events += self._filter(ns[a:b], q[a:b], tau[a:b])
+        return events
+
+    def _filter(self, ns: np.ndarray, q: np.ndarray, tau: np.ndarray) -> list[PayloadEvent]:
+        """Parallel filtering of raw samples: the derivatives (wide smoother), the residual
+        and payload regressor at its window centres from the raw torque, then the same
+        low-pass (narrow smoother) on both; _run on its window centres."""
+        if self._epoch_ns is None:
+            self._epoch_ns = int(ns[0])
+        if self.smoother is None:
+            self._make_smoother(ns)
+        elif int(ns[0]) <= self._last_ns:   # a restarted stream
+            self.smoother.reset()
+            self.derivatives.reset()
+            self._tail = (np.empty(0), np.empty((0, self.robot.dof)))
+        else:
+            ns, q, tau = self._drop_bursts(ns, q, tau)
+            if len(ns) == 0:
+                return []
+        self._last_ns = int(ns[-1])
+        t = (ns - self._epoch_ns) * 1e-9
+        n = self.robot.dof
+        tc, x, xd, xdd = self.derivatives.push_checked(t, np.hstack([q, tau]))
+        raw_t, raw_tau = (np.concatenate([self._tail[0], t]),
+                          np.concatenate([self._tail[1], tau]))
+        keep = max(len(raw_t) - 2 * self.derivatives.half_window - 2, 0)
+        self._tail = raw_t[keep:], raw_tau[keep:]
+        if len(tc) == 0:
+            return []
+        at = np.clip(np.searchsorted(raw_t, tc - 1e-10), 0, len(raw_t) - 1)
+        if not np.all(np.abs(raw_t[at] - tc) < 1e-9):
+            raise IdentificationError('payload monitor: a window centre without its sample')
+        tau_c = raw_tau[at]
+        self._hf += ((tau_c - x[:, n:]) ** 2).sum(axis=0)
+        self._hf_count += len(tc)
+        Y = self.robot.regressor(x[:, :n], xd[:, :n], xdd[:, :n], checked=True)
+        r = tau_c - Y @ self.phi_arm
+        Yp = payload_regressor(self.attach, Y)
+        tf, z, _, _ = self.smoother.push_checked(tc, np.hstack([Yp.reshape(len(tc), -1), r]))
+        if len(tf) == 0:
+            return []
+        stamps = (self._epoch_ns + np.round(tf * 1e9).astype(np.int64))
+        return self._run(stamps, z[:, :10 * n].reshape(len(tf), n, 10), z[:, 10 * n:])
+
+    def _drop_bursts(self, ns: np.ndarray, q: np.ndarray, tau: np.ndarray) -> tuple:
+        """Samples stamped closer than half the sampling period to the one before, and the
+        sample before each run of them, dropped (counted in ``burst_samples``): a stalled
+        stream's held samples sent at once with compressed stamps, whose first carries the
+        end of the stall; their stamps are not their times. The smoother fits across the
+        hole (or restarts, past max_gap)."""
+        step = np.diff(np.concatenate([[self._last_ns], ns]))
+        bad = step < 0.5e9 / self.rate
+        if not bad.any():
+            return ns, q, tau
+        starts = np.flatnonzero(bad & ~np.concatenate([[False], bad[:-1]]))
+        drop = bad.copy()
+        drop[starts[starts > 0] - 1] = True
+        self.burst_samples += int(drop.sum())
+        return ns[~drop], q[~drop], tau[~drop]
+
+    def _make_smoother(self, ns: np.ndarray) -> None:
+        """The two smoothers, for the first samples' rate: ``derivatives`` (cut-off
+        DERIVATIVE_BAND times ``cutoff``: little distortion of the motion) and ``smoother``
+        (``cutoff``: it takes out most of the noise the derivatives bring)."""
+        c = self.config
+        self.rate = 1e9 / float(np.median(np.diff(ns)))
+        n = self.robot.dof
+        Ld = half_window_for_cutoff(DERIVATIVE_BAND * c.cutoff, self.rate, c.order)
+        self.derivatives = FixedLagSmoother(2 * n, Ld, c.order, c.max_gap)
+        L = half_window_for_cutoff(c.cutoff, self.rate, c.order)
+        self.smoother = FixedLagSmoother(11 * n, L, c.order, c.max_gap)
+        self._block = 2 * L + 1
+        self._white_scale = 1.0 / smoothing_noise_gain(L, c.order)
+        self._derivative_gain = smoothing_noise_gain(Ld, c.order)
+        self.detector.noise_scale = self._white_scale
+        self._stats = ResidualStatistics(10, n, self._block)
+
+    def _run(self, stamps_ns: np.ndarray, Yp: np.ndarray, r: np.ndarray
+             ) -> list[PayloadEvent]:
+        """Filtered payload regressor (N, n, 10) and arm residual (N, n) at stamps (ns)."""
         t = np.asarray(stamps_ns, dtype=np.int64) * 1e-9
         if t[0] <= self._last_t:   # a restarted stream: keep the payload, restart the clocks
             self._settle_until = -math.inf
@@ -195,9 +320,6 @@ class PayloadMonitor:
                 self._fit_due = math.nan
             self._next_refresh = float(t[0]) + self.config.refresh
         self._last_t = float(t[-1])
-        Y = self.robot.regressor(q, qd, qdd, checked=True)
-        r = np.asarray(tau, dtype=float) - Y @ self.phi_arm
-        Yp = payload_regressor(self.attach, Y)
         events: list[PayloadEvent] = []
         i, N = 0, len(t)
         while i < N:
@@ -223,10 +345,17 @@ class PayloadMonitor:
             return len(t)
         first = self.segments[-1].detected is None
         est = self._fit()
-        events.append(PayloadEvent('start' if first else 'estimate', self.segments[-1].stamp,
-                                   self.segments[-1].detected, est))
+        event = PayloadEvent('start' if first else 'estimate', self.segments[-1].stamp,
+                             self.segments[-1].detected, est)
+        before = self.segments[-2].payload if len(self.segments) > 1 else None
+        if not first and before is not None:
+            sd = math.hypot(before.stddev['mass'], est.stddev['mass'])
+            if math.isfinite(sd):
+                event.mass_change, event.mass_change_std = est.mass - before.mass, sd
+        events.append(event)
         self._state = 'watching'
-        self._next_refresh = float(t[j]) + self.config.refresh
+        self._refresh_step = self.config.fit_time
+        self._next_refresh = float(t[j]) + self._refresh_step
         return j
 
     def _watching(self, t, Yp, r, i: int, events: list) -> int:
@@ -247,7 +376,10 @@ class PayloadMonitor:
             return stop
         self._flush(float(t[-1]) - self.config.window, inclusive=True)
         if float(t[-1]) >= self._next_refresh and not self._given:
-            self._next_refresh = float(t[-1]) + self.config.refresh
+            # refits come at doubling intervals up to ``refresh``: a first fit from a short
+            # motion may leave directions unexcited that the next seconds determine
+            self._refresh_step = min(2.0 * self._refresh_step, self.config.refresh)
+            self._next_refresh = float(t[-1]) + self._refresh_step
             events.append(PayloadEvent('refresh', self.segments[-1].stamp,
                                        self.segments[-1].detected, self._fit()))
         return len(t)
@@ -259,7 +391,7 @@ class PayloadMonitor:
         j = i + int(np.searchsorted(t[i:], self._fit_due, side='left'))
         self._stats.add(Yp[i:j], r[i:j])
         if j < len(t):
-            self._noise = self._noise_variance(self.current.phi)
+            self._set_noise(self.current.phi)
             self._stats = ResidualStatistics(10, self.robot.dof, self._block)
         return j
 
@@ -276,8 +408,24 @@ class PayloadMonitor:
         self._pending = keep
 
     def _noise_variance(self, phi: np.ndarray) -> np.ndarray:
-        var = self._stats.noise_variance(phi, self._white_scale)
+        """Per joint the variance (N m)^2 of the residual noise a sum over the segment
+        averages: its long-run variance once MIN_BLOCKS blocks are in (the smoothed torque
+        noise, and model errors at the motion's frequencies; not the noise the derivatives
+        bring into the regressor, which is high-frequency), else the white noise that
+        explains the residual's variance."""
+        s = self._stats
+        var = (s.long_run_variance(phi) if s.blocks >= MIN_BLOCKS
+               else s.variance(phi) * self._white_scale)
         return np.maximum(np.nan_to_num(var, nan=NOISE_FLOOR ** 2), NOISE_FLOOR ** 2)
+
+    def _set_noise(self, phi: np.ndarray) -> None:
+        """The detector's noise: the segment's long-run variance, and per joint its ratio to
+        the residual's variance per sample (how the detector scales a window's)."""
+        self._noise = self._noise_variance(phi)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            scale = self._noise / self._stats.variance(phi)
+        self.detector.noise_scale = np.clip(np.nan_to_num(scale, nan=self._white_scale), 1.0,
+                                            self._white_scale)
 
     def _fit(self) -> PayloadEstimate:
         """Fit the segment's statistics: weights from the residual without payload, then from
@@ -287,7 +435,11 @@ class PayloadMonitor:
         est = fit_payload(ne, self._noise_variance(np.zeros(10)), self.attach.link, tol)
         var = self._noise_variance(est.phi)
         est = fit_payload(ne, var, self.attach.link, tol)
-        self._noise = self._noise_variance(est.phi)
+        self._set_noise(est.phi)
+        noise = self.torque_noise() ** 2
+        ok = np.isfinite(noise) & (noise > 0)
+        if ok.any():
+            self.arm_residual_ratio = float(np.sqrt((self._noise[ok] / noise[ok]).max()))
         self.current = est
         self.segments[-1].payload = est
         return est
@@ -300,8 +452,9 @@ class PayloadMonitor:
         """At the end of the data: the last segment fitted with everything pending; the
         segments (with a payload where one could be fitted)."""
         if self._queued:
-            parts, self._queued = self._queued, []
-            self._run(*(np.concatenate(a) for a in zip(*parts)))
+            ns, q, tau = self._take()
+            if self.smoother is not None or ns[-1] > ns[0]:
+                self._smooth(ns, q, tau)
         if self._pending:
             self._flush(math.inf, inclusive=False)
         if self._stats.count and not self._given:
@@ -312,22 +465,31 @@ class PayloadMonitor:
 def segments_document(segments: list[Segment]) -> list[dict]:
     """The ``payload_changes`` of the JSON output: per segment its start ``stamp`` (s; the
     first at the data's start), when the change was ``detected`` (None for the first) and
-    the payload fitted over it (payload.PayloadEstimate.document)."""
-    return [{'stamp': s.stamp, 'detected': s.detected,
-             'payload': None if s.payload is None else s.payload.document()}
-            for s in segments]
+    the payload fitted over it (payload.PayloadEstimate.document); ``mass_change``: its
+    mass minus the segment before's (kg), with ``mass_change_std`` (None where unknown)."""
+    out = []
+    for k, s in enumerate(segments):
+        doc = {'stamp': s.stamp, 'detected': s.detected,
+               'payload': None if s.payload is None else s.payload.document(),
+               'mass_change': None, 'mass_change_std': None}
+        before = segments[k - 1].payload if k else None
+        if before is not None and s.payload is not None:
+            sd = math.hypot(before.stddev['mass'], s.payload.stddev['mass'])
+            if math.isfinite(sd):
+                doc['mass_change'] = s.payload.mass - before.mass
+                doc['mass_change_std'] = sd
+        out.append(doc)
+    return out
 
 
-def monitor_from_settings(settings, robot: RobotModel, half_window=None) -> PayloadMonitor:
-    """The PayloadMonitor of the ``payload.*`` parameters (settings.Settings), for the
-    pipeline's smoother: ``half_window`` (an int, or a callable giving the pipeline's once
-    chosen, e.g. ``lambda: pipeline.row_builder.half_window``; default the settings' value,
-    which must then be set); errors name the parameter."""
+def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
+    """The PayloadMonitor of the ``payload.*`` parameters (settings.Settings); errors name the
+    parameter."""
     from identification_node.payload.fit import arm_parameters, attachment
     v = settings.values
     config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
         'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change', 'min_z',
-        'confirm')},
+        'confirm', 'cutoff')},
         max_gap=v['smoother.max_gap'],
         tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
     attach = attachment(robot, v['payload.link'])
@@ -336,10 +498,4 @@ def monitor_from_settings(settings, robot: RobotModel, half_window=None) -> Payl
         phi_arm = arm_parameters(robot, '' if arm == ARM_ESTIMATE else arm)
     except IdentificationError as exc:
         raise IdentificationError(f'parameter payload.arm: {exc}') from None
-    if half_window is None:
-        half_window = v['smoother.half_window']
-        if not half_window:
-            raise IdentificationError('parameter smoother.half_window: the payload monitor '
-                                      'needs the pipeline\'s smoother (0: give the pipeline\'s '
-                                      'chosen half window)')
-    return PayloadMonitor(robot, attach, phi_arm, config, half_window, v['smoother.order'])
+    return PayloadMonitor(robot, attach, phi_arm, config)

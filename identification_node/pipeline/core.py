@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Mapping, NamedTuple
 
 import numpy as np
 
@@ -23,17 +23,28 @@ from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.wire.records import JointStateRecord
 
 
+class InputSamples(NamedTuple):
+    """The validated samples one ``process`` call took in, before the smoother: header
+    stamps (int64 ns), q, qd (NaN where not measured) and the joint torque (each (N, n))."""
+    stamps_ns: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    tau: np.ndarray
+
+
 @dataclass
 class PipelineOutput:
     """Samples processed by one ``process`` call, stamped with their own header stamps
     (``stamps_ns``, int64 ns): smoothed q, qd, qdd, the smoothed measured torque and the
-    torque predicted by the estimate before the call's update (each (N, n))."""
+    torque predicted by the estimate before the call's update (each (N, n)); ``inputs``: the
+    samples the call took in (not delayed by the smoother, nor held for its choice)."""
     stamps_ns: np.ndarray
     q: np.ndarray
     qd: np.ndarray
     qdd: np.ndarray
     measured: np.ndarray
     predicted: np.ndarray
+    inputs: InputSamples | None = None
 
     @classmethod
     def empty(cls, dof: int) -> PipelineOutput:
@@ -186,11 +197,16 @@ class IdentificationPipeline:
             self.time_offset.finish()
         outputs = [o for o in outputs if len(o.stamps_ns)]
         if not outputs:
-            return PipelineOutput.empty(self.robot.dof)
-        if len(outputs) == 1:
-            return outputs[0]
-        return PipelineOutput(*(np.concatenate(a) for a in zip(*(
-            (o.stamps_ns, o.q, o.qd, o.qdd, o.measured, o.predicted) for o in outputs))))
+            result = PipelineOutput.empty(self.robot.dof)
+        elif len(outputs) == 1:
+            result = outputs[0]
+        else:
+            result = PipelineOutput(*(np.concatenate(a) for a in zip(*(
+                (o.stamps_ns, o.q, o.qd, o.qdd, o.measured, o.predicted) for o in outputs))))
+        if len(s):
+            result.inputs = InputSamples(self.samples.counters.stamps_ns(s.stamps), s.q, s.qd,
+                                         s.tau)
+        return result
 
     def _use(self, r) -> PipelineOutput:
         """Rows (rows.Rows) checked, predicted and given to the estimator."""

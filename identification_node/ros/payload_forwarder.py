@@ -6,8 +6,10 @@ node's ``~/payload``) and, for each message whose frame_id is ``frame`` (empty: 
 ``service`` (type ``service_type``, ``pkg/srv/Type``) with the request fields ``fields``
 (``field.path=quantity``, payload_delivery.py) filled from it. ``preset`` (ur, franka) sets
 the service, its type, the fields and the frame of those drivers; explicit parameters
-override it. The response's ``success`` and ``error``/``message`` fields are logged. The
-call is asynchronous; a payload arriving while one is in flight replaces the waiting one.
+override it. ``transition_time`` (s, default 0): into the request's field of that name, where
+the service has one (UR's newer SetPayload). The response's ``success`` and
+``error``/``message`` fields are logged. The call is asynchronous; a payload arriving while
+one is in flight replaces the waiting one.
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from identification_node.errors import IdentificationError
-from identification_node.payload.delivery import PRESETS, fill_request, parse_fields
+from identification_node.payload.delivery import PRESETS, has_field, fill_request, parse_fields
 from identification_node.ros.spin import run_node
 
 PAYLOAD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -52,6 +54,7 @@ class PayloadForwarder(Node):
                                       f'{", ".join(PRESETS)}')
         base = PRESETS.get(preset, {'service': '', 'service_type': '', 'frame': '',
                                     'fields': {}})
+        self.transition_time = float(self.declare_parameter('transition_time', 0.0).value)
         value = {k: self.declare_parameter(k, None, text).value
                  for k in ('service', 'service_type', 'frame', 'fields')}
         self.service_name = value['service'] or base['service']
@@ -63,7 +66,11 @@ class PayloadForwarder(Node):
         try:
             self.fields = parse_fields(list(value['fields']) if value['fields'] else
                                        base['fields'])
-            fill_request(self.srv_type.Request(), self.fields, InertiaStamped().inertia)
+            self.optional = not value['fields'] and bool(base.get('optional'))
+            request = fill_request(self.srv_type.Request(), self.fields,
+                                   InertiaStamped().inertia, self.optional, self.transition_time)
+            if self.optional:
+                self.fields = {p: q for p, q in self.fields.items() if has_field(request, p)}
         except IdentificationError as exc:
             raise IdentificationError(f'parameter fields: {exc}') from None
         self.client = self.create_client(self.srv_type, self.service_name)
@@ -89,7 +96,8 @@ class PayloadForwarder(Node):
         if self._waiting is None or self._in_flight or not self.client.service_is_ready():
             return
         msg, self._waiting = self._waiting, None
-        request = fill_request(self.srv_type.Request(), self.fields, msg.inertia)
+        request = fill_request(self.srv_type.Request(), self.fields, msg.inertia,
+                               transition_time=self.transition_time)
         self._in_flight = True
         self.client.call_async(request).add_done_callback(self._done)
 

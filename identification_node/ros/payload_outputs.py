@@ -42,6 +42,7 @@ from identification_node.ros.diagnostics import NOT_EXCITED, vector
 from identification_node.ros.service_requests import (Outcome, RequestQueue, ServiceThread,
                                                       failed)
 
+ARM_HINT = 'set payload.arm to its estimate.yaml'
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -79,6 +80,17 @@ def stddev_message(est: PayloadEstimate, stamp: float) -> InertiaStamped:
     return msg
 
 
+def change_text(e: PayloadEvent) -> str:
+    """'mass 2.001 +- 0.004 kg (change +2.001 +- 0.005 kg)' of a fit event."""
+    p = e.payload
+    sd = p.stddev['mass']
+    text = (f'mass {p.mass:.4g} +- {sd:.2g} kg' if 'mass' in p.excited
+            else 'mass not excited')
+    if math.isfinite(e.mass_change):
+        text += f' (change {e.mass_change:+.4g} +- {e.mass_change_std:.2g} kg)'
+    return text
+
+
 def _split(stamp: float) -> tuple[int, int]:
     ns = int(round(stamp * 1e9)) if math.isfinite(stamp) else 0
     return ns // 1_000_000_000, ns % 1_000_000_000
@@ -91,8 +103,7 @@ class PayloadOutputs:
     def __init__(self, node: Node, settings, pipeline, services: ServiceThread,
                  requests: RequestQueue):
         self.node, self.requests = node, requests
-        self.monitor = monitor_from_settings(settings, pipeline.robot,
-                                             lambda: pipeline.row_builder.half_window)
+        self.monitor = monitor_from_settings(settings, pipeline.robot)
         prepare_consistency()   # cvxpy's import: seconds, not in a run
         self.pipeline = pipeline
         self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
@@ -113,7 +124,7 @@ class PayloadOutputs:
         return self.monitor.current
 
     def add(self, out) -> list[PayloadEvent]:
-        events = self.monitor.add(out.stamps_ns, out.q, out.qd, out.qdd, out.measured)
+        events = self.monitor.add_output(out)
         if events:
             self.version += 1
             changes = [e for e in events if e.kind == 'change']
@@ -128,10 +139,15 @@ class PayloadOutputs:
                 msg.stamp.sec, msg.stamp.nanosec = _split(e.stamp)
                 self._pub_changed.publish(msg)
                 self.node.get_logger().info(
-                    f'payload change at {e.stamp:.3f} s (detected {e.detected:.3f} s, mass '
-                    f'change about {e.detection.delta[0]:+.3g} kg)')
+                    f'payload change at {e.stamp:.3f} s (detected {e.detected:.3f} s); '
+                    'fitting the new payload')
             elif e.payload is not None:
                 self._publish_payload(e.payload, e.stamp)
+                if e.kind == 'estimate':
+                    self.node.get_logger().info(f'payload since {e.stamp:.3f} s: '
+                                                + change_text(e))
+        for warning in self.monitor.warnings(ARM_HINT):
+            self.node.get_logger().warning(warning, throttle_duration_sec=60.0)
 
     def _publish_payload(self, est: PayloadEstimate, stamp: float) -> None:
         self._pub_sd.publish(stddev_message(est, stamp))   # first: ~/payload completes a pair
@@ -143,7 +159,14 @@ class PayloadOutputs:
         values = {'payload.link': self.link, 'payload.changes': m.changes,
                   'payload.detector_statistic': m.detector.statistic,
                   'payload.stream_gaps': m.detector.gaps,
-                  'payload.state': m.state}
+                  'payload.state': m.state,
+                  'payload.detector_delay': m.detector_delay,
+                  'payload.arm_residual_ratio': m.arm_residual_ratio,
+                  **vector('payload.torque_noise', self.pipeline.robot.joint_names,
+                           m.torque_noise())}
+        warnings = m.warnings(ARM_HINT)
+        if warnings:
+            values['payload.warning'] = '; '.join(warnings)
         if self.last_change is not None:
             values['payload.last_change'] = f'{self.last_change.stamp:.6f}'
             values['payload.last_change_detected'] = f'{self.last_change.detected:.6f}'
