@@ -43,6 +43,7 @@ def test_incompatible_qos_is_logged_with_both_profiles_and_counted(ros, tmp_path
     lossy = ros.client.create_publisher(JointState, f'/{name}/js', BEST_EFFORT)
     fine = ros.client.create_publisher(JointState, f'/{name}/js', RELIABLE)
     late = Collector(ros, Float64MultiArray, f'/{name}/base_parameters', TRANSIENT)
+    plain = Collector(ros, Float64MultiArray, f'/{name}/base_parameters')   # compatible
 
     def count():
         found = [diagnostic_values(s) for m in diag.snapshot() for s in m.status
@@ -51,11 +52,11 @@ def test_incompatible_qos_is_logged_with_both_profiles_and_counted(ros, tmp_path
     try:
         assert wait_for(lambda: count() == 2, 30), count()
         assert wait_for(lambda: fine.get_subscription_count() == 1, 10)
-        assert count() == 2                           # the compatible publisher is none
+        assert count() == 2          # the compatible publisher and subscription are none
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(10)
-        for c in (diag, late):
+        for c in (diag, late, plain):
             c.close()
         ros.client.destroy_publisher(lossy)
         ros.client.destroy_publisher(fine)

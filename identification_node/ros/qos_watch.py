@@ -54,12 +54,19 @@ class QosWatch:
             topic = ours.topic_name
             others = (node.get_publishers_info_by_topic(topic) if kind == 'subscription'
                       else node.get_subscriptions_info_by_topic(topic))
+            # our profile as the graph has it: the endpoint's own holds unset durations
+            # (deadline, lease 0) where the graph holds infinite ones, which
+            # qos_check_compatible takes for a deadline the publisher lacks
+            mine = (node.get_subscriptions_info_by_topic(topic) if kind == 'subscription'
+                    else node.get_publishers_info_by_topic(topic))
+            own = next((i.qos_profile for i in mine if (i.node_name, i.node_namespace) == me),
+                       ours.qos_profile)
             for info in others:
                 if (info.node_name, info.node_namespace) == me:
                     continue
-                offered, requested = ((info.qos_profile, ours.qos_profile)
+                offered, requested = ((info.qos_profile, own)
                                       if kind == 'subscription'
-                                      else (ours.qos_profile, info.qos_profile))
+                                      else (own, info.qos_profile))
                 compatibility, reason = qos_check_compatible(offered, requested)
                 key = (kind, topic, bytes(info.endpoint_gid))
                 if compatibility != QoSCompatibility.ERROR or key in self._reported:
