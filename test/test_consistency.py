@@ -15,7 +15,8 @@ import pytest
 import yaml
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.consistency import (Body, ConsistencyOptions, ConsistentSolver,
+from identification_node.estimation.consistency import (DEFAULT_CONFIDENCE, Body,
+                                                        ConsistencyOptions, ConsistentSolver,
                                                         SolverProcess, from_pseudo_inertia,
                                                         pseudo_inertia, robot_bodies)
 from identification_node.estimation.rls import RecursiveLeastSquares
@@ -115,7 +116,7 @@ def test_well_excited_consistent_lies_in_the_confidence_region(panda):
     np.testing.assert_allclose(result.stddev, stddev, rtol=1e-6)
     G = ne.combined(sigma ** -2)[0]
     d = result.theta - theta
-    assert d @ G @ d <= chi2.ppf(0.99, base.num_base) * (1 + 1e-5), d @ G @ d
+    assert d @ G @ d <= chi2.ppf(DEFAULT_CONFIDENCE, base.num_base) * (1 + 1e-5), d @ G @ d
     assert result.excess < 1e-3
     z = (result.theta - base.to_base(phi)) / stddev
     assert np.sqrt(np.mean(z ** 2)) < 3.0, np.sqrt(np.mean(z ** 2))
