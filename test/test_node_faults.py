@@ -19,6 +19,8 @@ from identification_node.ros.spin import STALLED_EXIT
 from identification_node.wire.cdr import encode_joint_states
 from ros_helpers import PYTHON, ROOT, RosHarness, domain_id, wait_for
 
+pytestmark = pytest.mark.ros
+
 BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          reliability=ReliabilityPolicy.BEST_EFFORT)
 BURST = 20_000

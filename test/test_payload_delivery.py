@@ -104,6 +104,7 @@ def ros():
     harness.shutdown()
 
 
+@pytest.mark.ros
 def test_forwarder_calls_a_stand_in_service(ros):
     received = []
 
@@ -139,6 +140,7 @@ def test_forwarder_calls_a_stand_in_service(ros):
         node.destroy_node()
 
 
+@pytest.mark.ros
 def test_forwarder_refuses_unknown_service_type(ros):
     with pytest.raises(IdentificationError, match='service_type: ur_msgs/srv/SetPayload is '
                        'not installed'):

@@ -16,6 +16,8 @@ from std_srvs.srv import Trigger
 
 from ros_helpers import LATCHED, Collector, RosHarness, diagnostic_values, domain_id, wait_for
 
+pytestmark = pytest.mark.ros
+
 URDF = 'test/fixtures/panda_like.urdf'
 PICK = 3.0                       # s (sample time) the arm picks the payload up
 MASS, COM = 1.0, [0.0, 0.02, 0.06]
