@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.consistency import (DEFAULT_CONFIDENCE, Body,
-                                                        ConsistencyOptions, ConsistentSolver,
+from identification_node.estimation.consistency import (Body, ConsistencyOptions,
+                                                        ConsistentSolver,
                                                         SolverProcess, from_pseudo_inertia,
                                                         pseudo_inertia, robot_bodies)
 from identification_node.estimation.rls import RecursiveLeastSquares
@@ -26,6 +26,8 @@ from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
+
+REGION = 0.99   # a confidence region for the prior to choose in (the default has none)
 
 FIXTURES = Path(__file__).parent / 'fixtures'
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,13 +112,13 @@ def test_well_excited_consistent_lies_in_the_confidence_region(panda):
     Yb, tau = data(robot, base, phi, 20.0, 0.8, sigma, seed=1)
     ne = NormalEquations.from_rows(Yb, tau)
     theta, stddev = wls(ne, sigma ** -2)
-    solver = ConsistentSolver.for_robot(robot, base)
+    solver = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(confidence=REGION))
     result = solver.solve(ne, sigma ** -2)
     assert result.status == 'optimal' and result.method == 'CLARABEL' and not result.attempts
     np.testing.assert_allclose(result.stddev, stddev, rtol=1e-6)
     G = ne.combined(sigma ** -2)[0]
     d = result.theta - theta
-    assert d @ G @ d <= chi2.ppf(DEFAULT_CONFIDENCE, base.num_base) * (1 + 1e-5), d @ G @ d
+    assert d @ G @ d <= chi2.ppf(REGION, base.num_base) * (1 + 1e-5), d @ G @ d
     assert result.excess < 1e-3
     z = (result.theta - base.to_base(phi)) / stddev
     assert np.sqrt(np.mean(z ** 2)) < 3.0, np.sqrt(np.mean(z ** 2))
@@ -475,7 +477,8 @@ def test_mass_ratio_bound_holds_and_is_reported(six):
     assert bounded.ok and bounded.phi[10] == pytest.approx(3 * robot.phi_model[10], rel=1e-4)
     assert any(n.startswith(f'{robot.link_names[1]}: mass') and 'upper bound' in n
                for n in bounded.notes)
-    free = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(mass_ratio=0.0)).solve(
+    free = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(
+        mass_ratio=0.0, confidence=REGION)).solve(
         ne, 400.0)
     assert free.phi[10] > 3.5 * robot.phi_model[10]   # what the data ask for
     assert not any('bound' in n for n in free.notes) and free.excess < 1e-3

@@ -55,7 +55,8 @@ from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 
 DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
-DEFAULT_CONFIDENCE = 0.5   # chi-square level of the data's confidence region
+DEFAULT_CONFIDENCE = 0.0   # chi-square level of the data's confidence region (0: none)
+NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
 DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
 DEFAULT_MARGIN = 1e-6      # eps: J - eps 1 >= 0 (kg, kg m^2), lowered for tiny priors
@@ -155,7 +156,7 @@ class ConsistencyOptions:
         checks = [('weight', self.weight > 0, '> 0'), ('margin', self.margin > 0, '> 0'),
                   ('time_limit', self.time_limit > 0, '> 0'),
                   ('solver', self.solver in SOLVERS, f'one of {SOLVERS}'),
-                  ('confidence', 0 < self.confidence < 1, 'in (0, 1)'),
+                  ('confidence', 0 <= self.confidence < 1, 'in [0, 1)'),
                   ('mass_ratio', self.mass_ratio == 0 or self.mass_ratio > 1, '0 or > 1'),
                   ('total_mass', len(self.total_mass) == 0 or (
                       len(self.total_mass) == 2 and 0 <= self.total_mass[0]
@@ -378,10 +379,12 @@ class ConsistentSolver:
             if method == PROJECTION:
                 notes.append('no conic solver succeeded (' + '; '.join(attempts) + '): the '
                              'unconstrained estimate projected onto physical bodies is given')
-            if excess > 1e-3 * q:
+            from scipy.stats import chi2
+            beyond = q + excess - chi2.ppf(NOTE_LEVEL, max(int(np.any(M, axis=1).sum()), 1))
+            if beyond > 0:
                 notes.append('the consistent bodies lie outside the data\'s '
-                             f'{100 * self.options.confidence:g} % confidence region by '
-                             f'chi-square {excess:.3g}')
+                             f'{100 * NOTE_LEVEL:g} % confidence region by chi-square '
+                             f'{beyond:.3g}: the data disagree with a physical arm')
         return ConsistentEstimate(status, phi, None if phi is None else self.base.to_base(phi),
                                   stddev, time.perf_counter() - start, notes, method, attempts,
                                   excess)
