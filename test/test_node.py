@@ -806,9 +806,6 @@ def test_qos_overrides_apply_to_their_own_subscription_only(ros):
     node.destroy_node()
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "known failure (issue 31): 2-3 of 15001 joint states not counted as received since the "
-    "receiving thread; under investigation"))
 def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):
     stream = Stream(ros, diag, CRS, tmp_path, 'crs')
     stream.start(tmp_path, subscriptions=3)

@@ -139,9 +139,10 @@ class PolledSubscription:
     def receive(self) -> int:
         """Move every message the middleware holds into this subscription's queue (the oldest
         beyond ``max_bytes`` dropped); returns how many were taken."""
-        sub, numbers, queue = self.subscription, [], self._queue
+        sub, numbers = self.subscription, []
         dropped = 0
         with self._queue_lock, sub.handle:
+            queue = self._queue     # under the lock: poll swaps it for a new one
             take = sub.handle.take_message
             while (taken := take(sub.msg_type, True)) is not None:
                 queue.append(taken[0])
