@@ -73,5 +73,6 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
         *pipeline_equations(offline.pipeline))
     assert np.all(np.abs(values - consistent.theta) <= 0.2 * est.stddev), (
         (values - consistent.theta) / est.stddev).round(3)
+    # the stddev is the data's estimate's (the consistent one may lie anywhere in their region)
     true = true_base_parameters(bag, est.names)
-    assert np.all(np.abs(values - true) < 4 * stddev)
+    assert np.all(np.abs(unconstrained - true) < 4 * stddev)

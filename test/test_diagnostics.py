@@ -18,8 +18,8 @@ from ros_helpers import RELIABLE, Collector, diagnostic_values, joint_state_msgs
 NUMBER = re.compile(r'-?\d+(\.\d+)?(e[+-]\d+)?')
 # keys whose value is text by nature (words, a sentence, names)
 TEXT = {'smoother', 'robust_gate', 'consistency_status', 'consistency_notes', 'missing_joints',
-        'model_term_warnings', 'consistency_problems', 'payload.link', 'payload.state',
-        'payload.excited', 'payload.not_excited', 'payload.last_change',
+        'model_term_warnings', 'consistency_problems', 'consistency_method', 'payload.link',
+        'payload.state', 'payload.excited', 'payload.not_excited', 'payload.last_change',
         'payload.last_change_detected'}
 PYTHON_SYNTAX = re.compile(r"None|True|False|\[|\]|\{|'|\bnan\b|\binf\b")
 

@@ -55,7 +55,7 @@ from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 
 DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
-DEFAULT_CONFIDENCE = 0.0   # chi-square level of the data's confidence region (0: none)
+DEFAULT_CONFIDENCE = 0.5   # chi-square level of the data's confidence region (0: none)
 NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
 DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
@@ -238,8 +238,9 @@ class ConsistentSolver:
             if degenerate:
                 J0 = _repaired(J0, max(1e-3 * ev[-1], 10 * eps))
                 self.notes.append(f'{body.name}: the prior is not physically consistent '
-                                  f'(pseudo-inertia eigenvalues {np.array2string(ev, precision=3)}'
-                                  '); regularised toward its nearest consistent one')
+                                  '(pseudo-inertia eigenvalues '
+                                  + ', '.join(f'{e:.4g}' for e in ev)
+                                  + '); regularised toward its nearest consistent one')
             self.eps.append(eps)
             m0 = J0[3, 3]
             size = np.sqrt(max(np.linalg.eigvalsh(J0[:3, :3])[-1], 1e-12 * m0) / m0)
