@@ -77,6 +77,7 @@ def test_bundled_bags_read_by_other_readers(bag):
         assert topics.count('/joint_states') == counts['/joint_states']
 
 
+@pytest.mark.slow
 def test_identify_cli_json_matches_the_replay(capsys):
     bag = REPO / 'bags' / 'mit_paper_moves'
     assert main(['identify', str(bag), '--config', str(REPO / 'config' / 'identification.yaml'),
@@ -104,6 +105,7 @@ def test_identify_cli_json_matches_the_replay(capsys):
     assert doc['condition_number'] > 1
 
 
+@pytest.mark.slow
 def test_robot_comes_from_the_bag_when_not_given(capsys):
     # crs_a465_fourier carries /robot_description; the joint torque is measured (default).
     assert main(['identify', str(REPO / 'bags' / 'crs_a465_fourier'), '--json']) == 0

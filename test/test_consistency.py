@@ -346,6 +346,7 @@ def test_solution_within_tolerance_is_projected(panda, monkeypatch):
     assert any('projection' in n for n in result.notes)
 
 
+@pytest.mark.slow
 def test_solver_process_equals_in_process_and_survives_its_child(panda):
     """The node's solver runs in a child process: same result; a child that died is replaced
     by the next solve; an error in the child comes back as the status."""
@@ -401,6 +402,7 @@ def identify(*args):
     return run
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('method', ['rls', 'batch'])
 def test_identify_json_and_save(method, tmp_path):
     bag, config = str(ROOT / 'bags' / 'crs_a465_fourier'), str(ROOT / 'config' / 'crs_a465.yaml')
@@ -423,6 +425,7 @@ def test_identify_json_and_save(method, tmp_path):
     assert off['estimate'] == off['unconstrained_estimate'] == pytest.approx(unc.tolist())
 
 
+@pytest.mark.slow
 def test_identify_refuses_to_save_an_inconsistent_estimate(tmp_path):
     """The CRS bag's unconstrained estimate breaks a triangle inequality: --save refuses it
     (exit 1, an error line, no file written) unless --save-inconsistent."""
@@ -441,6 +444,7 @@ def test_identify_refuses_to_save_an_inconsistent_estimate(tmp_path):
     assert 'NOT physically consistent' in (tmp_path / 'b' / 'identified.urdf').read_text()
 
 
+@pytest.mark.slow
 def test_identify_says_loudly_when_every_method_fails(tmp_path, monkeypatch, capsys):
     """No consistent estimate at all (every solver and the projection failed): an error line
     in the text and in the JSON's ``errors``, and --save refuses."""

@@ -272,6 +272,7 @@ def test_bad_arguments(mit):
 
 
 # -- command line ------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_writes_yaml_csv_and_bag(crs, tmp_path, capsys):
     robot, base = crs
     out, bag = tmp_path / 'exc' / 'crs.yaml', tmp_path / 'bag'
@@ -319,6 +320,7 @@ def test_cli_writes_yaml_csv_and_bag(crs, tmp_path, capsys):
     assert main(argv + ['--overwrite', '--maxiter', '1']) == 0
 
 
+@pytest.mark.slow
 def test_cli_initial_file_and_table1(tmp_path, capsys):
     first = tmp_path / 'a.yaml'
     assert main(['excite', '--robot', 'crs_a465', '--initial', 'table1', '--maxiter', '3',

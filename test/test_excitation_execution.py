@@ -176,6 +176,7 @@ def _lowest_point(obj, placement) -> float:
     raise AssertionError(f'unexpected primitive {name}')
 
 
+@pytest.mark.slow
 def test_no_self_collision_on_a_dense_grid(designs):
     robot, res = designs['panda']
     assert has_collision_geometry(robot) and res.collision['pairs'] > 0
@@ -385,6 +386,7 @@ def test_iteration_limit_is_said_not_warned_with_the_best_feasible_point():
     assert max(res.ratios[k] for k in LIMIT_KINDS) <= 0.9 + 1e-9
 
 
+@pytest.mark.slow
 def test_progress_lines_and_time_limit_keep_the_best_feasible_design(monkeypatch):
     robot = load_robot('crs_a465')
     lines = []
@@ -445,6 +447,7 @@ def test_cli_infeasible_or_bad_gives_a_clear_error_and_no_files(tmp_path, capsys
 
 
 # -- outputs ---------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_outputs_a_robot_can_execute(tmp_path, capsys):
     robot = load_robot(PANDA)
     limits = tmp_path / 'limits.yaml'
@@ -499,6 +502,7 @@ def test_cli_outputs_a_robot_can_execute(tmp_path, capsys):
     np.testing.assert_allclose(msg.points[-1].positions, framed.start, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_identification_from_a_simulated_run_ramps_included(tmp_path, capsys):
     """excite -> simulate (ArmSimulator under computed torque, ramps included, torque noise)
     -> identify with the framed trajectory (periodic part only): every base parameter within

@@ -180,6 +180,7 @@ def test_residual_statistics_of_two_recordings_add_with_their_blocks_apart():
         a + ResidualStatistics(4, 2, 8)
 
 
+@pytest.mark.slow
 def test_one_bag_statistics_give_identify(fleet_dir, robot, settings):
     bag = fleet_dir / 'bags/arm_a_day1_0'
     stats = fleet.bag_statistics(bag, settings, robot)
@@ -188,6 +189,7 @@ def test_one_bag_statistics_give_identify(fleet_dir, robot, settings):
     assert_same_as_identify(doc, result_document(ref))
 
 
+@pytest.mark.slow
 def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, robot, settings,
                                                                   tmp_path):
     # The robust gate judges a sample against the model of everything before it, so with it
@@ -213,6 +215,7 @@ def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, rob
     assert_same_identification(doc, result_document(ref), rtol=1e-9, figures_rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, tmp_path):
     """A group's document has identify's shape; its consistent estimate is ConsistentSolver's
     on the merged normal equations and identify's (make_consistent) of the concatenated
@@ -258,6 +261,7 @@ def long_bag(tmp_path_factory, robot):
     return write_bag(tmp_path_factory.mktemp('long') / 'long', robot, t, q, qd, tau)
 
 
+@pytest.mark.slow
 def test_segments_give_the_whole_bag_and_identify(long_bag, robot):
     """A bag cut at multiples of the residual grid into 2 or 5 segments (the smoother's
     overlap handled) merges to the whole bag's statistics: the same rows, normal equations
@@ -415,6 +419,7 @@ def four_arms(tmp_path_factory, robot):
     return entries
 
 
+@pytest.mark.slow
 def test_the_odd_arm_of_a_simulated_fleet_is_the_outlier(four_arms, robot, settings):
     """Four simulated arms of one model, one with four times the viscous friction on joint1:
     it, and only it, is flagged against the fleet, on that parameter, and by about the
@@ -468,6 +473,7 @@ def test_a_folder_of_bags_is_grouped_by_their_robot_description(fleet_dir, robot
     assert all(r.startswith('mit_dd_arm-') for r in groups)
 
 
+@pytest.mark.slow
 def test_a_segmented_run_equals_the_whole_bags(long_bag, robot, settings):
     from distributed import Client
 
@@ -600,6 +606,7 @@ def without_solve_times(doc):
     return json.dumps(strip(doc), sort_keys=True)
 
 
+@pytest.mark.slow
 def test_missing_scheduler_is_a_clear_error(fleet_dir):
     r = subprocess.run([PYTHON, '-m', 'identification_node', 'fleet',
                         str(fleet_dir / 'manifest.csv'), '--scheduler',

@@ -168,6 +168,7 @@ def test_a_bag_without_friction_gives_consistent_inertials_and_friction_near_zer
 
 
 # -- a missing term is flagged ----------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize('method', ['rls', 'batch'])
 def test_missing_coulomb_friction_is_flagged(bags, method, capsys):
     args = ['identify', str(bags['friction'][0]), '--robot', 'mit_dd_arm', '--extras', 'fv,fo',

@@ -65,6 +65,7 @@ def test_joint_state_bag_round_trip(tmp_path):
         joint_state_bag(tmp_path / 'c', t, ['a'], q, None, tau, '')
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (data_dir() / 'staubli_tx40').is_dir(), reason='no ../shared/data')
 def test_tx40_split_in_time(tmp_path):
     """The TX40 run becomes a training bag before TX40_SPLIT s and a held-out bag after it,

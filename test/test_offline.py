@@ -330,6 +330,7 @@ def test_validation_error_is_close_to_training_and_grows_with_wrong_parameters(
         (wrong.relative_error, same.relative_error)
 
 
+@pytest.mark.slow
 def test_validate_cli_reports_the_held_out_error(validation_bags, mit, mit_settings, capsys):
     train, test = (str(validation_bags[k]) for k in ('train', 'test'))
     assert main(['identify', train, '--robot', 'mit_dd_arm', '--method', 'batch',
@@ -349,6 +350,7 @@ def test_validate_cli_reports_the_held_out_error(validation_bags, mit, mit_setti
     assert doc['validation'][0]['estimate'] == doc['training_error']['estimate']
 
 
+@pytest.mark.slow
 def test_validation_bag_of_another_robot_is_refused(validation_bags, tmp_path, mit, capsys):
     train = str(validation_bags['train'])
     crs = str(REPO / 'bags' / 'crs_a465_fourier')   # has joint1..3 too, but is another arm

@@ -89,6 +89,7 @@ CASES = [(SEVEN, None, 0.5, (0.0, 0.0, 0.03), (0.0004, 0, 0, 0.0004, 0, 0.0003))
          (SIX, 'flange', 2.0, (0.06, 0.0, 0.1), (0.006, 0, 0.0005, 0.008, 0, 0.004))]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('urdf, link, mass, com, inertia', CASES)
 def test_payload_identified_within_targets(urdf, link, mass, com, inertia):
     """Mass within 2 %, centre of mass within 5 mm, inertia within 3 stddev, consistent:
@@ -109,6 +110,7 @@ def test_payload_identified_within_targets(urdf, link, mass, com, inertia):
     assert doc['link'] == (link or 'link7') and doc['not_excited'] == []
 
 
+@pytest.mark.slow
 def test_pick_and_place_detected_quickly_without_false_alarms():
     """7-DOF at 1 kHz: 1 kg picked at 4 s and placed at 10 s, detected within 0.5 s each,
     and nothing else declared over 16 s."""
@@ -125,6 +127,7 @@ def test_pick_and_place_detected_quickly_without_false_alarms():
     assert abs(segments[2].payload.mass) <= 0.02
 
 
+@pytest.mark.slow
 def test_stream_drop_is_not_a_change():
     robot = load_robot(SEVEN)
     mon, events = run_monitor(robot, [PayloadChange(0.0, None, 0.8, (0, 0, 0.05))], 8.0,
@@ -175,6 +178,7 @@ def test_payload_events_parsed_and_checked():
             read_payload_changes(bad)
 
 
+@pytest.mark.slow
 def test_simulate_and_identify_cli(tmp_path):
     """simulate --payload-events writes the true payloads; identify --payload --json gives
     payload_changes, the first at the bag's start."""
@@ -213,6 +217,7 @@ def test_given_payload_is_watched():
     assert math.isclose(est.document()['mass'], 0.5)
 
 
+@pytest.mark.slow
 def test_restarted_stream_is_not_a_change():
     """A bag played twice (stamps jump back): the payload stays, no change is declared."""
     robot = load_robot(SEVEN)
@@ -237,6 +242,7 @@ def test_restarted_stream_is_not_a_change():
     assert abs(mon.finish()[0].payload.mass - 0.8) <= 0.016
 
 
+@pytest.mark.slow
 def test_stalled_and_bursting_stream_is_not_a_change():
     """A publisher stalls for 5-40 ms every 3 s and then sends the held samples at once with
     compressed stamps (as a loaded machine does): the smoothed accelerations go wild for a

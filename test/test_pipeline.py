@@ -106,6 +106,7 @@ def test_measured_torque_converges_to_truth():
     np.testing.assert_allclose(p.relative_error(), direct, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_three_phase_currents_converge_to_truth():
     converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
     current_std = 0.02
@@ -131,6 +132,7 @@ def test_differentiated_positions_without_velocity():
     assert_within_3_sigma(p.estimate())
 
 
+@pytest.mark.slow
 def test_chunking_does_not_change_the_result():
     sim = simulate(duration=4.0)
     js = joint_records(sim)
@@ -376,6 +378,7 @@ def as_blocks(records):
     return out
 
 
+@pytest.mark.slow
 def test_blocks_equal_records_one_by_one():
     sim = simulate(duration=6.0)
     js = joint_records(sim)

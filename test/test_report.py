@@ -127,6 +127,7 @@ def test_mit_report_has_the_papers_table3_and_the_validation(tmp_path, capsys):
         assert_png(out / name)
 
 
+@pytest.mark.slow
 def test_batch_torque_figure_data_is_the_filtered_bag(crs_batch, crs_bag_arrays, tmp_path):
     ident, _ = crs_batch
     report = write_report(tmp_path, ident)
@@ -153,6 +154,7 @@ def test_batch_torque_figure_data_is_the_filtered_bag(crs_batch, crs_bag_arrays,
     assert data['joints'] == robot.joint_names
 
 
+@pytest.mark.slow
 def test_rls_torque_figure_data_is_the_smoothed_bag(crs_settings, crs_bag_arrays, tmp_path):
     robot = crs_settings.load_robot()
     ident = replay_identify(CRS, crs_settings, robot, series_points=1000)
@@ -195,6 +197,7 @@ def test_convergence_figure_data(crs_batch):
     assert set(data['worst']) == set(np.argsort(-late)[:10])
 
 
+@pytest.mark.slow
 def test_periodic_report_shows_the_averaged_period(tmp_path):
     robot = load_robot('mit_dd_arm')
     traj = FourierTrajectory.random(robot, period=1.0, seed=2)

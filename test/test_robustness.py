@@ -205,6 +205,7 @@ def test_one_sample_outlier_is_gated_and_counted(clean):
     assert moved(p.estimate(), ref) < 0.2
 
 
+@pytest.mark.slow
 def test_twenty_percent_outliers_no_worse_than_without_gating(clean):
     sim, _ = clean
     tau = poisoned(sim, 0.2, start=0)
@@ -216,6 +217,7 @@ def test_twenty_percent_outliers_no_worse_than_without_gating(clean):
     assert err <= err_ungated * 1.01
 
 
+@pytest.mark.slow
 def test_a_sustained_shift_is_reported_and_not_hidden():
     """A payload change: the last link 5 kg heavier after 12 s. The gate reports a residual
     shift and stops gating, so the estimate follows the data as without gating."""
@@ -309,6 +311,7 @@ def _rss_bytes() -> int:
         return int(f.read().split()[1]) * resource.getpagesize()
 
 
+@pytest.mark.slow
 def test_names_per_message_are_capped_and_the_layout_cache_is_bounded_in_bytes():
     limit = 1 << 20
     p = IdentificationPipeline(ROBOT, PipelineConfig(layout_cache_bytes=limit), BASE)

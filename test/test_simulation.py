@@ -224,6 +224,7 @@ def test_bad_input_raises(mit_full):
         SensorNoise(encoder_counts=1.5)
 
 
+@pytest.mark.slow
 def test_simulate_verb_seeds_the_motion_and_shows_its_defaults(tmp_path, capsys):
     """Another --seed is another motion (held-out bags), unless --trajectory-seed fixes it; 100
     Hz is integrated at 1 kHz; --help states rate, noise and friction defaults."""

@@ -73,6 +73,7 @@ def good_bag(tmp_path_factory):
 
 
 # -- degenerate URDF priors ----------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize('mass, inertia, words', [
     (0.0, None, 'mass 0 kg is not positive'),
     (-2.0, None, 'mass -2 kg is not positive'),
@@ -158,6 +159,7 @@ def test_training_bag_of_another_robot_is_refused(tmp_path, capsys):
 
 
 # -- parameter files -----------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize('content, words', [
     (None, 'cannot read parameter file'),
     ('identification_node:\n  ros__parameters:\n    robot: [1, {a: 2}\n', 'not valid YAML'),
@@ -176,6 +178,7 @@ def test_bad_parameter_files_exit_2_naming_the_file(tmp_path, content, words):
 
 
 # -- an arm at rest ------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_bag_at_rest_is_reported_not_excited(tmp_path):
     N = 3000
     q = np.tile([0.3, -0.5, 0.8], (N, 1))
@@ -203,6 +206,7 @@ def test_a_bag_at_rest_is_reported_not_excited(tmp_path):
 
 
 # -- corrupt bags and poisoned samples ----------------------------------------------------------
+@pytest.mark.slow
 def test_bit_flips_in_mcap_chunks_are_errors_naming_it(good_bag, tmp_path):
     storage = next(good_bag.glob('*.mcap'))
     assert verify_chunks(storage) == 0           # our bags carry chunk CRCs
@@ -223,6 +227,7 @@ def test_bit_flips_in_mcap_chunks_are_errors_naming_it(good_bag, tmp_path):
         assert re.search(r'chunk 0 \(at byte \d+.*\) is corrupt', line), line
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('value', [1e5, 1e100])
 def test_one_absurd_sample_in_a_bag_changes_nothing(good_bag, tmp_path, value):
     sim = simulate()
@@ -259,6 +264,7 @@ def test_consistency_problems_on_non_finite_and_absurd_parameters():
     assert len(consistency_problems(ROBOT, phi)) == 3
 
 
+@pytest.mark.slow
 def test_a_bag_without_chunk_crcs_is_read_with_a_warning(good_bag, tmp_path):
     import shutil
     import struct

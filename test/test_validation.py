@@ -142,6 +142,7 @@ def test_validation_of_an_identification_on_several_bags(bags, robot, settings, 
         assert v.errors['estimate'].stacked >= 0.99 * stacked
 
 
+@pytest.mark.slow
 def test_cli_validate_several_bags_windows_and_predictions(bags, robot, tmp_path, capsys):
     (a, sim_a), (b, sim_b) = bags['a'], bags['b']
     config = tmp_path / 'config.yaml'
@@ -241,6 +242,7 @@ def test_window_bounds():
         TimeWindow(6.0).bounds_ns('bag', 0, 5_000_000_000)
 
 
+@pytest.mark.slow
 def test_report_and_atomic_files_get_0644_under_a_normal_umask(tmp_path, bags, capsys):
     old = os.umask(0o022)
     try:
