@@ -1,7 +1,8 @@
 """Shared test configuration and fixtures.
 
-Markers (setup.cfg): ``ros`` tests start ROS 2 nodes or processes, ``slow`` ones take seconds
-of CPU; ``pytest -m "not ros and not slow"`` runs the ROS-free core, ``make test`` everything.
+Markers (setup.cfg): ``ros`` tests start ROS 2 nodes or processes, ``slow`` ones take over a
+second of CPU; ``pytest -m "not ros and not slow"`` runs the ROS-free core, ``make test``
+everything.
 
 The ``ros`` marker is enforced: a test that uses the ``ros`` fixture (directly or through
 another fixture) without the marker stops the collection, and a test without the marker that
