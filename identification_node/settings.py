@@ -127,7 +127,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     'consistency.weight': (1e-3, 'weight of the log-det prior toward the description\'s '
                            'inertials where no consistent body lies in the confidence region, '
                            'in chi-square units of the data term'),
-    'consistency.confidence': (0.5, 'chi-square level of the data\'s confidence region inside '
+    'consistency.confidence': (0.99, 'chi-square level of the data\'s confidence region inside '
                                'which the prior (closest to the description) chooses; 0: '
                                'none, the data\'s best consistent fit'),
     'consistency.mass_ratio': (3.0, 'each link\'s mass within [1/r, r] times the description\'s '

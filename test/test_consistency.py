@@ -27,7 +27,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
 
-REGION = 0.99   # a confidence region for the prior to choose in (the default has none)
+REGION = 0.99   # the confidence region the prior chooses in (stated: the default may change)
 
 FIXTURES = Path(__file__).parent / 'fixtures'
 ROOT = Path(__file__).resolve().parents[1]

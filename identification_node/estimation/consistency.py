@@ -55,7 +55,7 @@ from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 
 DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
-DEFAULT_CONFIDENCE = 0.5   # chi-square level of the data's confidence region (0: none)
+DEFAULT_CONFIDENCE = 0.99  # chi-square level of the data's confidence region (0: none)
 NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
 DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
