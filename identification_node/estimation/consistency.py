@@ -381,8 +381,9 @@ class ConsistentSolver:
                 notes.append('no conic solver succeeded (' + '; '.join(attempts) + '): the '
                              'unconstrained estimate projected onto physical bodies is given')
             from scipy.stats import chi2
-            beyond = q + excess - chi2.ppf(NOTE_LEVEL, max(int(np.any(M, axis=1).sum()), 1))
-            if beyond > 0:
+            q_note = chi2.ppf(NOTE_LEVEL, max(int(np.any(M, axis=1).sum()), 1))
+            beyond = q + excess - q_note
+            if beyond > 1e-3 * q_note:   # not the solver's tolerance on the region's edge
                 notes.append('the consistent bodies lie outside the data\'s '
                              f'{100 * NOTE_LEVEL:g} % confidence region by chi-square '
                              f'{beyond:.3g}: the data disagree with a physical arm')
