@@ -838,11 +838,11 @@ def test_invalid_parameters_exit_2_naming_them(ros, tmp_path, params, name):
 
 
 def test_parameters_are_typed_and_ranged_by_the_settings_table(ros):
-    """Each parameter's descriptor has the type of its default in settings.PARAMETERS and the
-    range of settings.RANGES; the values given are the node's (its settings agree)."""
+    """Each parameter's descriptor has the type of its default in config.PARAMETERS and the
+    range of config.RANGES; the values given are the node's (its settings agree)."""
     from rcl_interfaces.msg import ParameterType
     from identification_node.ros.runtime_parameters import RUNTIME
-    from identification_node.settings import EMPTY_LISTS, PARAMETERS, RANGES
+    from identification_node.config import EMPTY_LISTS, PARAMETERS, RANGES
     node = start_node(ros, 'typed', {'robot': 'mit_dd_arm', 'forgetting_factor': 0.95,
                                      'joints': ['joint2', 'joint1'], 'extras': []}, 'typed')
     try:

@@ -21,18 +21,20 @@ from typing import Sequence
 
 import numpy as np
 
+from identification_node.config import Plausibility, default
 from identification_node.errors import IdentificationError
 
 
 @dataclass
 class PlausibilitySettings:
     """How the bounds are made (the node's ``plausibility.*`` parameters)."""
-    margin: float = 2.0
-    position: float = 1e6
-    velocity: float = 100.0
-    acceleration: float = 1000.0
-    effort: float = 1e4
-    current_limit: Sequence[float] = field(default_factory=list)
+    margin: float = Plausibility.margin
+    position: float = Plausibility.position
+    velocity: float = Plausibility.velocity
+    acceleration: float = Plausibility.acceleration
+    effort: float = Plausibility.effort
+    current_limit: Sequence[float] = field(
+        default_factory=lambda: default('plausibility.current_limit'))
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""

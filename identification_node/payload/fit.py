@@ -19,6 +19,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
+from identification_node.config import PayloadTolerance
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (SOLVERS, Body, ConsistencyOptions,
                                                         ConsistentSolver, pseudo_inertia)
@@ -35,7 +36,8 @@ QUANTITIES = ('mass',) + tuple(f'com.{k}' for k in COM_KEYS) + tuple(
     f'inertia.{k}' for k in INERTIA_KEYS)
 _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 # Quantities with a standard deviation above these are reported "not excited" (no value).
-DEFAULT_TOLERANCE = {'mass': 0.02, 'com': 0.005, 'inertia': 0.002}   # kg, m, kg m^2
+DEFAULT_TOLERANCE = {'mass': PayloadTolerance.mass, 'com': PayloadTolerance.com,   # kg, m,
+                     'inertia': PayloadTolerance.inertia}                  # kg m^2
 PSEUDO_INERTIA_EPS = 1e-9   # J(phi) - eps 1 >= 0 (at most; kg m^2): consistent but free to be tiny
 
 

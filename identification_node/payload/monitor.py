@@ -30,6 +30,7 @@ from typing import Mapping
 
 import numpy as np
 
+from identification_node.config import Payload, Smoother
 from identification_node.errors import IdentificationError
 from identification_node.estimation.residuals import MIN_BLOCKS, ResidualStatistics
 from identification_node.model.robot import RobotModel
@@ -44,7 +45,7 @@ from identification_node.pipeline.signals import (FixedLagSmoother, half_window_
 ARM_ESTIMATE = 'estimate'   # payload.arm: the node's running estimate, taken at each reset
 NOISE_FLOOR = 1e-4   # N m: the smallest noise standard deviation a joint is weighted by
 DETECTOR_COLUMNS = 4  # m, mx, my, mz
-DEFAULT_CUTOFF = 20.0   # Hz: the monitor's smoother (delay ~ 0.7 / cutoff s at any rate)
+DEFAULT_CUTOFF = Payload.cutoff   # Hz: the monitor's smoother (delay ~ 0.7 / cutoff s)
 DERIVATIVE_BAND = 4.0  # the derivatives' smoother's cut-off over the low-pass's
 ARM_RESIDUAL_RATIO = 4.0   # a fit's residual this many times the noise: the arm is not known
 
@@ -52,15 +53,15 @@ ARM_RESIDUAL_RATIO = 4.0   # a fit's residual this many times the noise: the arm
 @dataclass
 class MonitorConfig:
     """Settings of the payload monitor (node parameters ``payload.*``)."""
-    fit_time: float = 1.0        # s of samples after a change for the first fit
-    settle: float = 0.1          # s after a detection before samples are used (the pick)
-    refresh: float = 5.0         # s between refits while the payload stays
+    fit_time: float = Payload.fit_time   # s of samples after a change for the first fit
+    settle: float = Payload.settle       # s after a detection before samples are used
+    refresh: float = Payload.refresh     # s between refits while the payload stays
     window: float = DEFAULT_WINDOW
     threshold: float = DEFAULT_THRESHOLD
     min_change: float = DEFAULT_MIN_CHANGE
     min_z: float = DEFAULT_MIN_Z
     confirm: float = DEFAULT_CONFIRM
-    max_gap: float = 0.05
+    max_gap: float = Smoother.max_gap
     batch: float = 0.02          # s of samples gathered per run (numpy calls cost per run)
     cutoff: float = DEFAULT_CUTOFF   # Hz, -3 dB cut-off of the monitor's own smoother
     order: int = 3               # its polynomial order

@@ -54,6 +54,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
+from identification_node.config import EMPTY_LISTS, PARAMETERS, RANGES, element_type
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistentEstimate, SolverProcess,
                                                         pipeline_equations)
@@ -73,8 +74,7 @@ from identification_node.ros.qos_watch import QosWatch
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
                                                       ServiceThread, Snapshot, failed)
 from identification_node.ros.spin import PeriodicThread, run_node
-from identification_node.settings import (EMPTY_LISTS, PARAMETERS, RANGES, Settings,
-                                          element_type)
+from identification_node.settings import Settings
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -101,7 +101,7 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
     """The typed descriptor of a settings table entry (read-only unless runtime_parameters.
     RUNTIME has it), with its range from
-    settings.RANGES. Lists with an empty default, or which may be empty (settings.
+    config.RANGES. Lists with an empty default, or which may be empty (config.
     EMPTY_LISTS), stay dynamically typed (Settings checks them): rclpy declares a typed
     parameter without a value uninitialized, which its parameter services then fail to
     report, and types an empty list as bytes."""

@@ -46,6 +46,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+from identification_node.config import PARAMETERS, PER_JOINT, coerce, flatten
 from identification_node.errors import IdentificationError
 from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectories import Trajectory, load_trajectory
@@ -58,7 +59,7 @@ from identification_node.payload.fit import read_payload_changes, true_parameter
 from identification_node.ros.conversions import publish_joint_states, time_msg, wait_for_all_acked
 from identification_node.ros.node import declare_settings
 from identification_node.ros.spin import run_node
-from identification_node.settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
+from identification_node.settings import Settings
 
 MAX_BATCH = 20      # samples per catch-up batch
 LINGER = 0.5        # s the process stays up after the acks, for best-effort samples in flight
