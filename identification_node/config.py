@@ -25,8 +25,8 @@ from identification_node.errors import IdentificationError
 __all__ = ['Config', 'Smoother', 'TimeOffset', 'Publish', 'Plausibility', 'Robust',
            'LostMessages', 'PayloadTolerance', 'Payload', 'DriveGains', 'Consistency',
            'BatchConfig', 'PARAMETERS', 'RANGES', 'FLOAT_LISTS', 'EMPTY_LISTS', 'PER_JOINT',
-           'default', 'metadata', 'flatten', 'parameters_of', 'element_type', 'coerce',
-           'validated']
+           'FIELDS', 'Descriptor', 'default', 'descriptor', 'metadata', 'flatten',
+           'parameters_of', 'element_type', 'coerce', 'validated']
 
 
 def setting(default: Any, description: str, *, unit: str = '',
@@ -372,6 +372,36 @@ def metadata(name: str) -> Mapping[str, Any]:
     """The metadata of parameter ``name``: description, unit, range, check, element,
     empty_ok, per_joint."""
     return FIELDS[name].metadata
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    """What the ROS parameter descriptor of a parameter says, ROS-free (ros/node.py makes the
+    rclpy ParameterDescriptor of it): ``type`` of the value (bool, int, float or str), of its
+    elements when ``array``; None: dynamically typed. ``range``: inclusive bounds, ints for
+    an int parameter (rclpy's integer_range), floats otherwise (floating_point_range)."""
+    description: str
+    type: type | None
+    array: bool = False
+    range: tuple[float, float] | None = None
+
+
+def descriptor(name: str, default: Any, description: str) -> Descriptor:
+    """The descriptor of a parameter table entry (PARAMETERS' or another node's table of the
+    same layout), its range from RANGES. Lists with an empty default, or which may be empty
+    (EMPTY_LISTS), stay dynamically typed (``validated`` checks them): rclpy declares a typed
+    parameter without a value uninitialized, which its parameter services then fail to
+    report, and types an empty list as bytes."""
+    if isinstance(default, list):
+        if default and name not in EMPTY_LISTS:
+            return Descriptor(description, element_type(name, default), array=True)
+        return Descriptor(description, None)
+    kind = type(default)
+    bounds = RANGES.get(name)
+    if bounds is not None:
+        convert = int if kind is int else float
+        bounds = (convert(bounds[0]), convert(bounds[1]))
+    return Descriptor(description, kind, range=bounds)
 
 
 def flatten(tree: Mapping, prefix: str = '') -> dict[str, Any]:

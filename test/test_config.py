@@ -145,3 +145,22 @@ def test_identification_yaml_holds_every_parameter_at_its_default():
         default = PARAMETERS[name][0]
         if isinstance(default, float):
             assert isinstance(value, float) or math.isinf(default), name
+
+
+def test_descriptors_are_typed_and_ranged_from_the_tree():
+    """What the node's rclpy descriptors say (ros/node.py parameter_descriptor)."""
+    for name, (default, text) in PARAMETERS.items():
+        d = config.descriptor(name, default, text)
+        assert d.description == text
+        if isinstance(default, list):
+            assert d.array == bool(default and name not in EMPTY_LISTS), name
+            assert d.type is (config.element_type(name, default) if d.array else None), name
+            continue
+        assert d.type is type(default) and not d.array, name
+        assert d.range == RANGES.get(name), name
+        if d.range is not None:
+            assert all(type(b) is (int if type(default) is int else float)
+                       for b in d.range), name
+    assert config.descriptor('kt', [1.0], '').type is float
+    assert config.descriptor('smoother.order', 3, '').range == (2, 4)
+    assert config.descriptor('coulomb_velocity', 0.0, '').range == (0.0, math.inf)

@@ -54,7 +54,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
-from identification_node.config import EMPTY_LISTS, PARAMETERS, RANGES, element_type
+from identification_node.config import PARAMETERS, descriptor
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistentEstimate, SolverProcess,
                                                         pipeline_equations)
@@ -99,26 +99,22 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 
 
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
-    """The typed descriptor of a settings table entry (read-only unless runtime_parameters.
-    RUNTIME has it), with its range from
-    config.RANGES. Lists with an empty default, or which may be empty (config.
-    EMPTY_LISTS), stay dynamically typed (Settings checks them): rclpy declares a typed
-    parameter without a value uninitialized, which its parameter services then fail to
-    report, and types an empty list as bytes."""
-    d = ParameterDescriptor(description=text, read_only=name not in RUNTIME)
-    if isinstance(default, list):
-        if default and name not in EMPTY_LISTS:
-            d.type = _ARRAY_TYPES[element_type(name, default)].value
-        else:
-            d.dynamic_typing = True
-        return d
-    d.type = _TYPES[type(default)]
-    lo, hi = RANGES.get(name, (None, None))
-    if lo is not None and type(default) is int:
-        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
-    elif lo is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(lo),
-                                                     to_value=float(hi), step=0.0)]
+    """The rclpy descriptor of a settings table entry: config.descriptor's type and range,
+    read-only unless runtime_parameters.RUNTIME has it."""
+    spec = descriptor(name, default, text)
+    d = ParameterDescriptor(description=spec.description, read_only=name not in RUNTIME)
+    if spec.type is None:
+        d.dynamic_typing = True
+    elif spec.array:
+        d.type = _ARRAY_TYPES[spec.type].value
+    else:
+        d.type = _TYPES[spec.type]
+    if spec.range is not None and spec.type is int:
+        d.integer_range = [IntegerRange(from_value=int(spec.range[0]),
+                                        to_value=int(spec.range[1]), step=0)]
+    elif spec.range is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=spec.range[0],
+                                                     to_value=spec.range[1], step=0.0)]
     return d
 
 
