@@ -24,8 +24,8 @@ from identification_node.errors import IdentificationError
 
 __all__ = ['Config', 'Smoother', 'TimeOffset', 'Publish', 'Plausibility', 'Robust',
            'LostMessages', 'PayloadTolerance', 'Payload', 'DriveGains', 'Consistency',
-           'BatchConfig', 'PARAMETERS', 'RANGES', 'FLOAT_LISTS', 'EMPTY_LISTS', 'PER_JOINT',
-           'FIELDS', 'Descriptor', 'default', 'descriptor', 'metadata', 'flatten',
+           'BatchConfig', 'Excitation', 'PARAMETERS', 'RANGES', 'FLOAT_LISTS', 'EMPTY_LISTS',
+           'PER_JOINT', 'FIELDS', 'Descriptor', 'default', 'descriptor', 'metadata', 'flatten',
            'parameters_of', 'element_type', 'coerce', 'validated']
 
 
@@ -309,6 +309,21 @@ class BatchConfig:
                             unit='Hz')
     order: int = setting(4, 'Butterworth order of the zero-phase filter (run twice: squared '
                          'gain, no phase)')
+
+
+@dataclass
+class Excitation:
+    """Defaults of excitation design (the ``excite`` verb; not ROS parameters)."""
+    harmonics: int = setting(5, 'harmonics per joint of the Fourier series')
+    period: float = setting(10.0, 'period of the series', unit='s')
+    periods: int = setting(5, 'periods of the periodic part between the ramps')
+    margin: float = setting(0.1, 'fraction of every limit kept free (position: of the half '
+                            'range)')
+    min_distance: float = setting(0.01, 'minimum distance between checked collision pairs',
+                                  unit='m')
+    maxiter: int = setting(200, 'SLSQP iterations')
+    samples: int = setting(100, 'criterion samples over one period')
+    rate: float = setting(100.0, 'sample rate of the CSV, the plot and the bag', unit='Hz')
 
 
 def _section_kinds() -> dict[type, dict[str, type]]:

@@ -69,9 +69,12 @@ class Settings:
         false."""
         if not self.values['physical_consistency']:
             return None
-        given = {k: tuple(v) if isinstance(v, list) else v
-                 for k, v in asdict(self.config.consistency).items()}
-        options = ConsistencyOptions(**dict(given, solver=given['solver'].upper()))
+        c = self.config.consistency
+        options = ConsistencyOptions(
+            weight=c.weight, margin=c.margin, solver=c.solver.upper(), time_limit=c.time_limit,
+            geometry_box=c.geometry_box, mass_min=tuple(c.mass_min), mass_max=tuple(c.mass_max),
+            com_box=tuple(c.com_box), confidence=c.confidence, mass_ratio=c.mass_ratio,
+            total_mass=tuple(c.total_mass))
         options.validate()
         return options
 

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 from identification_node.cli import add_robot_arguments, robot_from_args, split_list
+from identification_node.config import Excitation
 
 TOPIC = '/excitation_trajectory'
 CONFIG_KEYS = ('limits', 'margin', 'start', 'periods', 'min_distance', 'srdf',
@@ -35,11 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_robot_arguments(parser)
     parser.add_argument('--config', help='excitation YAML: ' + ', '.join(CONFIG_KEYS))
     parser.add_argument('--harmonics', type=int, default=None,
-                        help='harmonics per joint (default 5, or the --initial file\'s)')
+                        help=f'harmonics per joint (default {Excitation.harmonics}, or the '
+                        '--initial file\'s)')
     parser.add_argument('--period', type=float, default=None,
-                        help='period of the series in s (default 10, or the --initial file\'s)')
+                        help=f'period of the series in s (default {Excitation.period:g}, or '
+                        'the --initial file\'s)')
     parser.add_argument('--periods', type=int, default=None,
-                        help='periods between the ramps (default 5)')
+                        help=f'periods between the ramps (default {Excitation.periods})')
     parser.add_argument('--start', help='comma-separated start (and end) configuration, rad '
                         '(default: the offset of the series)')
     parser.add_argument('--criterion', choices=('cond', 'dopt'), default='cond',
@@ -48,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--limits', help='YAML file of per-joint limits overriding the '
                         "robot's: joint: {position: [lo, hi], velocity, acceleration, effort}")
     parser.add_argument('--margin', type=float, default=None,
-                        help='fraction of every limit kept free (default 0.1)')
+                        help=f'fraction of every limit kept free (default '
+                        f'{Excitation.margin:g})')
     parser.add_argument('--no-effort', action='store_true',
                         help='ignore the torque (effort) limits of the robot description')
     parser.add_argument('--estimate', metavar='FILE',
@@ -58,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            help='directory resolving package:// meshes (repeatable)')
     collision.add_argument('--srdf', help='MoveIt SRDF: its disabled pairs are not checked')
     collision.add_argument('--min-distance', type=float, default=None,
-                           help='minimum distance between checked pairs, m (default 0.01)')
+                           help='minimum distance between checked pairs, m (default '
+                           f'{Excitation.min_distance:g})')
     collision.add_argument('--no-collision', action='store_true',
                            help='do not check collisions')
     parser.add_argument('--noise-std', help='comma-separated torque noise standard deviations '
@@ -69,14 +74,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'A465) or a YAML file of Fourier coefficients')
     parser.add_argument('--seed', type=int, default=0, help='seed of the initial guess')
     parser.add_argument('--maxiter', type=int, default=None,
-                        help='SLSQP iterations (default 200)')
+                        help=f'SLSQP iterations (default {Excitation.maxiter})')
     parser.add_argument('--time-limit', type=float, default=None, metavar='S',
                         help='stop optimising after S seconds and keep the best feasible '
                         'design found by then (default: none)')
     parser.add_argument('--samples', type=int, default=None,
-                        help='criterion samples over one period (default 100)')
-    parser.add_argument('--rate', type=float, default=100.0,
-                        help='sample rate of the CSV, the plot and the bag, Hz (default 100)')
+                        help=f'criterion samples over one period (default {Excitation.samples})')
+    parser.add_argument('--rate', type=float, default=Excitation.rate,
+                        help='sample rate of the CSV, the plot and the bag, Hz (default '
+                        f'{Excitation.rate:g})')
     parser.add_argument('--out', required=True,
                         help='output YAML file (.yaml/.yml); the CSV and PNG go beside it')
     parser.add_argument('--bag', help=f'also write a JointTrajectory on {TOPIC} to this bag')

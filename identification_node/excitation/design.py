@@ -30,6 +30,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.criteria import (DEFAULT_SAMPLES, _base_of, _check_criterion,
                                                      _noise_weights, _objective, _report_value)
@@ -40,13 +41,13 @@ from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, V
 from identification_node.excitation.trajectories import (TABLE1_PERIOD, FourierTrajectory,
                                                          FramedTrajectory, Trajectory)
 
-DEFAULT_HARMONICS = 5
-DEFAULT_PERIOD = 10.0
-DEFAULT_MAXITER = 200       # SLSQP iterations
+DEFAULT_HARMONICS = Excitation.harmonics
+DEFAULT_PERIOD = Excitation.period
+DEFAULT_MAXITER = Excitation.maxiter   # SLSQP iterations
 LSQ_POINTS = 100            # random target velocities of the initial guess (paper: 100)
 MARGIN = 1.0                # the optimiser's constraints: smooth max of the ratios <= MARGIN
-DEFAULT_LIMIT_MARGIN = 0.1  # fraction of every limit kept free (position: of the half range)
-DEFAULT_PERIODS = 5         # periods of the periodic part between the ramps
+DEFAULT_LIMIT_MARGIN = Excitation.margin   # fraction of every limit kept free
+DEFAULT_PERIODS = Excitation.periods   # periods of the periodic part between the ramps
 COLLISION_RATE = 100.0      # Hz: collision check of the final trajectory (and 10 ms at most)
 COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's constraints
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
