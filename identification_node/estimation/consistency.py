@@ -132,7 +132,7 @@ class ConsistentEstimate:
 
 @dataclass(frozen=True)
 class ConsistencyOptions:
-    """Settings of the solve (config: ``physical_consistency.*``). ``mass_ratio`` r > 1: each
+    """Settings of the solve (parameters ``consistency.*``). ``mass_ratio`` r > 1: each
     body's mass within [m0 / r, r m0] of the description's m0 (0: no bound); ``total_mass``
     (lo, hi) kg of the identified bodies together, or empty."""
     weight: float = Consistency.weight   # gamma: prior weight outside the confidence region
