@@ -129,7 +129,7 @@ class BagReader:
         self._files: list[BinaryIO] = []
         target = _storage_target(self.path)
         try:
-            self._reader = Reader(target)
+            self._reader: Reader | None = Reader(target)
             self._reader.open()
             # chunk checksums before any message: corruption is an error naming the chunk
             files = sorted(target.glob('*.mcap')) if target.is_dir() else [target]
@@ -147,6 +147,7 @@ class BagReader:
 
     def _setup(self, allow_empty: bool) -> None:
         reader = self._reader
+        assert reader is not None  # opened by __init__
         self._connections = list(reader.connections)
         self.topics: dict[str, str] = {}
         self.topic_counts: dict[str, int] = {}
