@@ -87,16 +87,16 @@ def payload_quantity(name: str, mass: float, com: Sequence[float], mass_sd: floa
                      com_sd: Sequence[float]) -> Quantity:
     """A payload quantity from the payload's mass (kg) and centre of mass (m) and their
     standard deviations (inf where not excited)."""
-    com, com_sd = np.asarray(com, dtype=float), np.asarray(com_sd, dtype=float)
+    centre, centre_sd = np.asarray(com, dtype=float), np.asarray(com_sd, dtype=float)
     if name == 'payload.mass':
         q = Quantity(np.array([mass]), np.array([mass_sd]))
     elif name == 'payload.weight':
         q = Quantity(np.array([mass * GRAVITY]), np.array([mass_sd * GRAVITY]))
     elif name == 'payload.com':
-        q = Quantity(com, com_sd)
+        q = Quantity(centre, centre_sd)
     else:
         k = 'xyz'.index(name[-1])
-        q = Quantity(com[k:k + 1], com_sd[k:k + 1])
+        q = Quantity(centre[k:k + 1], centre_sd[k:k + 1])
     if not mass > 0 or not math.isfinite(mass_sd):
         q.problem = f'payload mass {mass:.6g} kg is not physically consistent or not excited'
     elif not np.isfinite(q.stddev).all():

@@ -219,7 +219,7 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     for solver in SOLVERS:
         options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0)
         result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
-        if result.ok:
+        if result.phi is not None:   # result.ok
             return result.phi
         status = result.status
     raise IdentificationError(f'payload consistency solve failed: {status}')
@@ -394,7 +394,7 @@ def urdf_with_payload(urdf: str, estimate: PayloadEstimate, name: str = PAYLOAD_
         inertial = ET.SubElement(link, 'inertial')
         ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
         ET.SubElement(inertial, 'mass', value=f'{m:.9g}')
-        ET.SubElement(inertial, 'inertia', **{
+        ET.SubElement(inertial, 'inertia', {
             k: f'{Ic[a, b]:.9g}' for k, (a, b) in zip(INERTIA_KEYS, _SYM)})
     joint = ET.SubElement(root, 'joint', name=f'{name}_joint', type='fixed')
     ET.SubElement(joint, 'parent', link=estimate.link)
