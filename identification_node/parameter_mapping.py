@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -28,10 +28,12 @@ PAYLOAD_QUANTITIES = ('payload.mass', 'payload.weight', 'payload.com', 'payload.
 # the checks of model/urdf_export.consistency_problems, per quantity
 POSITIVE = ('m',)               # > 0
 NON_NEGATIVE = ('fv', 'fc', 'Ia')
-ADMITTANCE = {'target': '/admittance_controller',
-              'frame_parameter': 'gravity_compensation.frame.id',
-              'mapping': {'gravity_compensation.CoG.pos': 'payload.com',
-                          'gravity_compensation.CoG.force': 'payload.weight'}}
+# preset: its target node, the frame parameter and the mapping (remote parameter: quantity)
+ADMITTANCE: dict[str, Any] = {
+    'target': '/admittance_controller',
+    'frame_parameter': 'gravity_compensation.frame.id',
+    'mapping': {'gravity_compensation.CoG.pos': 'payload.com',
+                'gravity_compensation.CoG.force': 'payload.weight'}}
 PRESETS = {'admittance': ADMITTANCE}
 
 

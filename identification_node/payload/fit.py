@@ -280,8 +280,8 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
                            consistent, float(vals[0]), vals[1:4], vals[4:])
 
 
-def payload_parameters(mass: float, com: Sequence[float], inertia: Sequence[float]
-                       ) -> np.ndarray:
+def payload_parameters(mass: float, com: Sequence[float] | np.ndarray,
+                       inertia: Sequence[float] | np.ndarray) -> np.ndarray:
     """10 parameters about the frame origin from mass (kg), com (3,) m and the inertia about
     the com (6,) kg m^2 (INERTIA_KEYS order): a user-given payload."""
     c = np.asarray(com, dtype=float)
