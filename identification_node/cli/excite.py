@@ -248,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
         checker=checker, progress=lambda line: print(line, flush=True),
         time_limit=args.time_limit)
     framed = result.framed
+    assert framed is not None   # optimize_excitation's result is framed
 
     baseline = None
     if robot.name == 'crs_a465' and robot.dof == 6 and harmonics >= 5:
@@ -292,6 +293,7 @@ def run(args: argparse.Namespace) -> int:
               + '; '.join(limits.assumed_list()))
     if checker is not None:
         c = result.clearance
+        assert c is not None   # checked for collisions
         print(f'collision: {checker.num_pairs} pairs checked ({checker.srdf_removed} disabled '
               f'by the SRDF), smallest distance {c["distance"]:.4g} m ({c["pair"][0]} - '
               f'{c["pair"][1]}), minimum {checker.min_distance:g} m')

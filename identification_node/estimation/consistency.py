@@ -46,7 +46,7 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -259,8 +259,8 @@ class ConsistentSolver:
             if np.isfinite(hi):
                 constraints.append(total[0] <= hi)
             if body.com_box is not None:
-                lo, hi = body.com_box
-                constraints += [total[1:4] >= total[0] * lo, total[1:4] <= total[0] * hi]
+                com_lo, com_hi = body.com_box
+                constraints += [total[1:4] >= total[0] * com_lo, total[1:4] <= total[0] * com_hi]
         if len(self.options.total_mass) and masses:
             lo, hi = self.options.total_mass
             constraints += [sum(masses) >= lo, sum(masses) <= hi]
@@ -275,14 +275,14 @@ class ConsistentSolver:
             S = np.zeros((p, ne))
             S[self._extra, np.arange(ne)] = 1.0
             phi = phi + S @ x
-        self._phi = phi
+        self._phi: Any = phi   # a cvxpy expression (cvxpy has no type information)
         constraints.append(cp.sum_squares(self._M @ (base.K @ phi) - self._m)
                            <= self._q + self._t)
         self.problem = cp.Problem(cp.Minimize(regulariser + self._t / gamma), constraints)
         self._phi_prior = phi_prior
         # a base parameter's typical size: its terms' prior magnitudes (the floor's unit)
         self._typical = np.abs(base.K) @ np.maximum(np.abs(phi_prior), EXTRA_SCALE)
-        self._solved = set()
+        self._solved: set[str] = set()
 
     @classmethod
     def for_robot(cls, robot, base: BaseParameters,

@@ -107,7 +107,8 @@ class PlausibilityBounds:
         self.__post_init__()
         self._limits.clear()
 
-    def describe(self, joint_names: Sequence[str]) -> dict[str, dict[str, list[float]]]:
+    def describe(self, joint_names: Sequence[str]
+                 ) -> dict[str, dict[str, list[float] | float]]:
         """The bounds per joint, for logs and the README's table."""
         return {j: {'position': [float(self.position_lower[i]), float(self.position_upper[i])],
                     'velocity': float(self.velocity[i]),
@@ -143,7 +144,7 @@ class PlausibilityBounds:
 
 
 def _per_joint(values: Sequence[float], n: int, default: float) -> np.ndarray:
-    values = np.asarray(list(values), dtype=float)
-    if values.size == 0:
+    array = np.asarray(list(values), dtype=float)
+    if array.size == 0:
         return np.full(n, default)
-    return np.broadcast_to(values, (n,)).astype(float) if values.size == 1 else values
+    return np.broadcast_to(array, (n,)).astype(float) if array.size == 1 else array

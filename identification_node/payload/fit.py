@@ -221,7 +221,7 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     for solver in SOLVERS:
         options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0)
         result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
-        if result.ok:
+        if result.phi is not None:   # result.ok
             return result.phi
         status = result.status
     raise IdentificationError(f'payload consistency solve failed: {status}')
@@ -282,8 +282,8 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
                            consistent, float(vals[0]), vals[1:4], vals[4:])
 
 
-def payload_parameters(mass: float, com: Sequence[float], inertia: Sequence[float]
-                       ) -> np.ndarray:
+def payload_parameters(mass: float, com: Sequence[float] | np.ndarray,
+                       inertia: Sequence[float] | np.ndarray) -> np.ndarray:
     """10 parameters about the frame origin from mass (kg), com (3,) m and the inertia about
     the com (6,) kg m^2 (INERTIA_KEYS order): a user-given payload."""
     c = np.asarray(com, dtype=float)
@@ -396,7 +396,7 @@ def urdf_with_payload(urdf: str, estimate: PayloadEstimate, name: str = PAYLOAD_
         inertial = ET.SubElement(link, 'inertial')
         ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
         ET.SubElement(inertial, 'mass', value=f'{m:.9g}')
-        ET.SubElement(inertial, 'inertia', **{
+        ET.SubElement(inertial, 'inertia', {
             k: f'{Ic[a, b]:.9g}' for k, (a, b) in zip(INERTIA_KEYS, _SYM)})
     joint = ET.SubElement(root, 'joint', name=f'{name}_joint', type='fixed')
     ET.SubElement(joint, 'parent', link=estimate.link)

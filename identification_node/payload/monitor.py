@@ -149,7 +149,7 @@ class PayloadMonitor:
         """s: how far the detector's samples lag the newest input (the smoother's half
         window; NaN before the first samples). A change is declared ``confirm`` s and a
         fraction of ``window`` after that."""
-        if self.smoother is None:
+        if self.smoother is None or self.derivatives is None:   # made together
             return math.nan
         return self.smoother.delay(self.rate) + self.derivatives.delay(self.rate)
 
@@ -245,7 +245,8 @@ class PayloadMonitor:
             self._epoch_ns = int(ns[0])
         if self.smoother is None:
             self._make_smoother(ns)
-        elif int(ns[0]) <= self._last_ns:   # a restarted stream
+        elif self._last_ns is not None and int(ns[0]) <= self._last_ns:   # a restarted stream
+            assert self.derivatives is not None   # made with the smoother
             self.smoother.reset()
             self.derivatives.reset()
             self._tail = (np.empty(0), np.empty((0, self.robot.dof)))
@@ -254,6 +255,7 @@ class PayloadMonitor:
             if len(ns) == 0:
                 return []
         self._last_ns = int(ns[-1])
+        assert self.smoother is not None and self.derivatives is not None   # made above
         t = (ns - self._epoch_ns) * 1e-9
         n = self.robot.dof
         tc, x, xd, xdd = self.derivatives.push_checked(t, np.hstack([q, tau]))
@@ -360,6 +362,7 @@ class PayloadMonitor:
         return j
 
     def _watching(self, t, Yp, r, i: int, events: list) -> int:
+        assert self.current is not None   # watching: the segment's payload is known
         if self._noise is None:   # a given payload, and no noise level known yet
             return self._noise_level(t, Yp, r, i)
         e = r[i:] - Yp[i:] @ self.current.phi
@@ -392,6 +395,7 @@ class PayloadMonitor:
         j = i + int(np.searchsorted(t[i:], self._fit_due, side='left'))
         self._stats.add(Yp[i:j], r[i:j])
         if j < len(t):
+            assert self.current is not None   # the given payload (called while watching)
             self._set_noise(self.current.phi)
             self._stats = ResidualStatistics(10, self.robot.dof, self._block)
         return j
@@ -437,6 +441,7 @@ class PayloadMonitor:
         var = self._noise_variance(est.phi)
         est = fit_payload(ne, var, self.attach.link, tol)
         self._set_noise(est.phi)
+        assert self._noise is not None   # set just now
         noise = self.torque_noise() ** 2
         ok = np.isfinite(noise) & (noise > 0)
         if ok.any():

@@ -79,7 +79,7 @@ class ServiceThread:
             self._thread.join()
 
     def _reply(self, srv: Any, header: Any) -> Reply:
-        done = []
+        done: list[bool] = []
 
         def reply(response: Any) -> None:
             if done:

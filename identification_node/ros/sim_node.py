@@ -277,7 +277,8 @@ class SimulatedArmNode(Node):
         self._pub_volt = (self.create_publisher(JointState, 'motor_voltages', SENSOR_QOS)
                           if v['publish_voltages'] else None)
         self._volt_rng = np.random.default_rng([v['seed'], 1])
-        self._last = None   # (t, q, qd, tau) of the last sample: di/dt across batches
+        # (t, q, qd, tau) of the last sample: di/dt across batches
+        self._last: tuple[np.ndarray, ...] | None = None
         self._pub_clock = (self.create_publisher(Clock, '/clock', SENSOR_QOS)
                            if v['publish_clock'] else None)
         self._sample_pubs = [p for p in (self._pub_js, self._pub_cur, self._pub_volt)
@@ -398,8 +399,10 @@ class SimulatedArmNode(Node):
         di/dt is continuous across batches)."""
         arrays = (b.t, b.q, b.qd, b.tau)
         if self._last is not None:
-            arrays = tuple(np.concatenate([p, a]) for p, a in zip(self._last, arrays))
+            t, q, qd, tau = (np.concatenate([p, a]) for p, a in zip(self._last, arrays))
+            arrays = (t, q, qd, tau)
         self._last = tuple(a[-1:] for a in (b.t, b.q, b.qd, b.tau))
+        assert self.setup.drives is not None   # the node's setup always has its drives
         volts = self.setup.drives.voltages(self.setup.converter, *arrays,
                                            self.setup.values['noise.voltage_std'],
                                            self._volt_rng)[-len(b):]
