@@ -293,10 +293,12 @@ def run(args: argparse.Namespace) -> int:
               + '; '.join(limits.assumed_list()))
     if checker is not None:
         c = result.clearance
-        assert c is not None   # checked for collisions
-        print(f'collision: {checker.num_pairs} pairs checked ({checker.srdf_removed} disabled '
-              f'by the SRDF), smallest distance {c["distance"]:.4g} m ({c["pair"][0]} - '
-              f'{c["pair"][1]}), minimum {checker.min_distance:g} m')
+        line = f'collision: {checker.num_pairs} pairs checked'
+        line += f' ({checker.srdf_removed} disabled by the SRDF)'
+        if c is not None:
+            line += (f', smallest distance {c["distance"]:.4g} m ({c["pair"][0]} - '
+                     f'{c["pair"][1]}), minimum {checker.min_distance:g} m')
+        print(line)
     elif not args.no_collision:
         print(f'collision: not checked (the description of {robot.name} has no collision '
               'geometry)')
