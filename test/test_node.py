@@ -484,7 +484,11 @@ def test_services_while_streaming(ros, mit):
     assert wait_for(lambda: get_estimate(ros, '/services')['num_samples']
                     > first['num_samples'], 5)
 
-    # save: estimate.yaml and identified.urdf, atomically, in output_directory only.
+    # save: estimate.yaml and identified.urdf, atomically, in output_directory only. It writes
+    # the physically consistent estimate, so it waits for the solver process's start-up (tens
+    # of seconds on a busy machine; until then the estimate goes out 'starting').
+    assert wait_for(lambda: get_estimate(ros, '/services')['consistency_status'] != 'starting',
+                    120)
     out = Path(node.settings.output_directory)
     res = ros.call(Trigger, '/services/save', Trigger.Request())
     assert res.success, res.message
