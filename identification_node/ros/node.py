@@ -517,7 +517,7 @@ class IdentificationNode(Node):
         if job.error:
             return Outcome(error=job.error)
         est = job.estimate
-        consistent = None if job.equations is None else self._solve(job.equations)
+        consistent = None if job.equations is None else self._solve(job.equations, job.save)
         self._publish_estimate(est, consistent)
         ok = consistent is not None and consistent.ok
         outcome = Outcome(estimate=json.dumps(plain({
@@ -550,9 +550,14 @@ class IdentificationNode(Node):
                 self._solver.start()
             return self._solver
 
-    def _solve(self, equations: tuple) -> ConsistentEstimate:
+    def _solve(self, equations: tuple, wait: bool = True) -> ConsistentEstimate:
+        """The constrained solve; unless ``wait``, status 'starting' (the unconstrained
+        estimate goes out) while the solver process still builds its problem."""
         solver = self._solver_instance()
         with self._solver_lock:
+            if not wait and not solver.ready():
+                return ConsistentEstimate('starting', None, None,
+                                          np.full(self.pipeline.base.num_base, np.inf), 0.0)
             result = solver.solve(*equations)
         self._consistent = result
         if not result.ok and result.status != self._solver_failure and self._worker_running:
@@ -589,8 +594,9 @@ class IdentificationNode(Node):
                 self.set_parameters_atomically(params)   # one parameter event, one snapshot
             finally:
                 self._internal_update = False
-            # The URDF topic is latched: rebuild it only when new samples changed the estimate.
-            version = (est.num_samples, self.payload.version if self.payload else 0)
+            # The URDF topic is latched: rebuild it only when new samples or the solve changed
+            # the estimate.
+            version = (est.num_samples, self.payload.version if self.payload else 0, ok)
             if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
                 self._urdf_samples = version
                 with self._lock:
