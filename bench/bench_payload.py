@@ -19,8 +19,10 @@ torque noise (18-bit encoders, measured velocities 0.01 rad/s).
    mass error (percent) and centre-of-mass error (mm) of the fitted segments, the largest
    of those errors in the fit's own reported stddev (z: mass, and per CoM axis), and
    changes declared that did not happen.
-2. Threshold: per rate (UR5, friction, 0.1 N m) the smallest mass of [0.05, 0.3] kg whose
-   pick is detected in every one of 3 seeds (payload.min_change, 0.2 kg, bounds it below).
+2. Threshold: per rate (UR5, friction, 0.1 N m) the smallest mass of the grid 0.3, 0.25,
+   ..., 0.05 kg whose pick is detected within 2 s in every one of 3 seeds, as are all the
+   grid's masses above it (payload.min_change, 0.2 kg, bounds it below; above 0.3 kg the
+   grid goes on in 0.1 kg steps).
 3. False alarms: --minutes of motion without a change (UR5, friction, 0.2 N m, 1 kHz) and
    the bundled bags (their own robots and configs, default payload settings, the arm
    identified first from the bag itself by the config's pipeline and passed as the arm);
