@@ -323,10 +323,15 @@ def _number(value: float | None, spec: str = '.4g') -> str:
 
 
 def format_payload_changes(changes: list, warnings: list | None = None) -> str:
-    """The payload segments as text: values with stddev, 'not excited' where unknown, each
-    change's mass step; ``warnings`` first."""
-    def show(v, sd, unit):
-        return 'not excited' if v is None else f'{v:.4g} +- {sd:.2g} {unit}'
+    """The payload segments as text: values with stddev, 'not excited' where unknown (with
+    the fitted value and its stddev where finite but above payload.tolerance), each change's
+    mass step; ``warnings`` first."""
+    def show(v, sd, unit, fv=None, fsd=None):
+        if v is not None:
+            return f'{v:.4g} +- {sd:.2g} {unit}'
+        if fv is not None and fsd is not None:
+            return f'not excited ({fv:.4g} +- {fsd:.2g} {unit})'
+        return 'not excited'
     lines = [f'warning: {w}' for w in warnings or ()]
     lines += [f'payload: {len(changes) - 1} change(s) detected (link frame; inertia about the '
               'centre of mass):']
@@ -338,12 +343,18 @@ def format_payload_changes(changes: list, warnings: list | None = None) -> str:
             lines.append(f'  {when}: no fit (too few samples)')
             continue
         sd = p['stddev']
+        f = p.get('fitted') or {'mass': None, 'com': [None] * 3, 'inertia': [None] * 6,
+                                'stddev': {'mass': None, 'com': [None] * 3,
+                                           'inertia': [None] * 6}}
+        fsd = f['stddev']
         step = ('' if c.get('mass_change') is None else
                 f"; change {c['mass_change']:+.4g} +- {c['mass_change_std']:.2g} kg")
-        lines.append(f"  {when}, {p['link']}: mass {show(p['mass'], sd['mass'], 'kg')}{step}")
-        lines.append('    com ' + ', '.join(show(v, s, 'm') for v, s in zip(p['com'], sd['com'])))
-        lines.append('    inertia ' + ', '.join(show(v, s, 'kg m^2') for v, s in zip(
-            p['inertia'], sd['inertia'])))
+        lines.append(f"  {when}, {p['link']}: mass "
+                     f"{show(p['mass'], sd['mass'], 'kg', f['mass'], fsd['mass'])}{step}")
+        lines.append('    com ' + ', '.join(show(*a[:2], 'm', *a[2:]) for a in zip(
+            p['com'], sd['com'], f['com'], fsd['com'])))
+        lines.append('    inertia ' + ', '.join(show(*a[:2], 'kg m^2', *a[2:]) for a in zip(
+            p['inertia'], sd['inertia'], f['inertia'], fsd['inertia'])))
     return '\n'.join(lines)
 
 
