@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import textwrap
 import sys
 
-import numpy as np
 
 from identification_node.cli import add_robot_arguments, add_settings_arguments, settings_from_args
+from identification_node.results.documents import result_document, saved_document
+from identification_node.results.text import (format_outputs, format_payload_changes,
+                                              format_report, paper_table3)
+from identification_node.replay.validation import bag_error
 
 BATCH_OPTIONS = ('period', 'trajectory', 'harmonics', 'cutoff', 'decimate',
                  'trajectory_start')
@@ -108,7 +110,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         '~/save)')
     parser.add_argument('--workers', type=int, default=1, metavar='N',
                         help='rls: stream the bag\'s 60 s segments in N processes and merge '
-                        'their statistics (offline/parallel.py; 0: one per core; default 1). '
+                        'their statistics (replay/parallel.py; 0: one per core; default 1). '
                         'Not with --report, --payload, --start/--end')
     parser.add_argument('--save-inconsistent', action='store_true',
                         help='--save writes an estimate that is not physically consistent too '
@@ -116,278 +118,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-physical-consistency', action='store_true',
                         help='the unconstrained least-squares estimate only (config: '
                         'physical_consistency: false)')
-
-
-def result_document(result, validations=(), training=None) -> dict:
-    """The ``--json`` object of an identification (offline.Identification, or the
-    replay.ReplayResult of the streaming pipeline), with the torque errors on the training
-    bag and on the validation bags (validation.BagError) when given."""
-    from identification_node.offline.identification import Identification, from_replay
-    from identification_node.offline.results import parameters_document, plain
-    from identification_node.model.urdf_export import consistency_problems
-
-    ident = result if isinstance(result, Identification) else from_replay(result)
-    robot, base = ident.robot, ident.base
-    problems = ident.consistency_problems()
-    unexcited = ident.unexcited
-    # parameters in an unexcited direction: the data say nothing about them, so no estimate
-    blind = {name for _, names in unexcited for name in names}
-    params = parameters_document(robot, base, ident.theta, ident.stddev, ident.consistent,
-                                 ident.covariance)
-    doc = {
-        'bag': ident.bag, 'robot': robot.name, 'joints': robot.joint_names,
-        'method': ident.method, 'processing': ident.details,
-        'num_samples': ident.num_samples, 'messages': ident.messages,
-        'base_parameters': [
-            {'name': n, 'expression': e, 'terms': t,
-             'estimate': None if n in blind else float(v),
-             'unconstrained_estimate': None if n in blind else float(u),
-             'stddev': None if n in blind else float(s),
-             'rel_stddev': None if n in blind else float(r), 'model': float(m),
-             'excited': n not in blind}
-            for n, e, t, v, u, s, r, m in zip(base.names, base.expressions, base.terms,
-                                              ident.estimate, ident.theta, ident.stddev,
-                                              ident.rel_stddev, ident.theta_model)],
-        'estimate': ident.estimate.tolist(),
-        'unconstrained_estimate': ident.theta.tolist(),
-        'stddev': ident.stddev.tolist(),
-        'consistency_solver': params['consistency_solver'],
-        'links': params['links'],
-        'standard_parameters': params['standard_parameters'],
-        'relative_error': dict(zip(robot.joint_names, ident.relative_error(
-            ident.estimate).tolist())),
-        'unconstrained_relative_error': dict(zip(robot.joint_names,
-                                                 ident.relative_error().tolist())),
-        'model_relative_error': dict(zip(robot.joint_names, ident.relative_error(
-            ident.theta_model).tolist())),
-        'residual_rms': dict(zip(robot.joint_names, ident.residual_rms.tolist())),
-        'noise_std': dict(zip(robot.joint_names, np.sqrt(ident.noise_variance).tolist())),
-        'condition_number': ident.condition_number,
-        'excited': not unexcited,
-        'unexcited_directions': [text for text, _ in unexcited],
-        'converged': ident.converged and not unexcited,
-        'smoother_delay_samples': (ident.pipeline.smoother.half_window
-                                   if ident.pipeline is not None
-                                   and ident.pipeline.smoother is not None else None),
-        'smoother': (ident.pipeline.smoother.document() if ident.pipeline is not None
-                     and ident.pipeline.smoother is not None else None),
-        'rejected': ident.rejected,
-        'excluded_equations': ident.details.get('excluded_per_joint', {}),
-        'warnings': list(ident.warnings),
-        'physically_consistent': not problems, 'consistency_problems': problems,
-        'errors': consistency_errors(params['consistency_solver'], problems),
-        'model_consistency_problems': consistency_problems(robot, robot.phi_model),
-        'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
-                         'stddev': np.asarray(c.stddev).tolist()} for c in ident.history],
-    }
-    if training is not None:
-        doc['training_error'] = training.document()
-    if validations:
-        doc['validation'] = [v.document() for v in validations]
-    return plain(doc)
-
-
-def consistency_errors(solver: dict, problems: list[str]) -> list[str]:
-    """The errors of a solve (results.solver_document) whose estimate is not physically
-    consistent although asked to be: none when it is, or when consistency is disabled."""
-    if solver['status'] == 'disabled' or not problems:
-        return []
-    tried = '; '.join(solver['attempts']) or solver['status']
-    return [f'the physically consistent solve failed ({tried}): the estimate given is the '
-            'unconstrained one, NOT physically consistent: ' + '; '.join(problems[:3])]
-
-
-def saved_document(ident) -> dict:
-    """estimate.yaml of an identification: what the node's ~/save writes."""
-    from identification_node.offline.results import parameters_document, plain
-
-    doc = parameters_document(ident.robot, ident.base, ident.theta, ident.stddev,
-                              ident.consistent, ident.covariance)
-    doc.update({'bag': ident.bag, 'method': ident.method, 'num_samples': ident.num_samples,
-                'condition_number': ident.condition_number, 'converged': ident.converged,
-                'residual_rms': dict(zip(ident.robot.joint_names,
-                                         ident.residual_rms.tolist())),
-                'rejected': ident.rejected})
-    return plain(doc)
-
-
-def format_report(doc: dict) -> str:
-    lines = [f"{doc['robot']} from {doc['bag']}: {doc['num_samples']} samples used "
-             f"({doc['messages']} messages)",
-             f"method: {doc['method']} ({doc['processing'].get('processing', '')})"]
-    if doc.get('smoother'):
-        sm = doc['smoother']
-
-        def known(v, scale=1.0):
-            return '?' if v is None else f'{scale * v:.4g}'
-        lines.append(f"smoother: cut-off {known(sm['cutoff_hz'])} Hz ({sm['source']}), half "
-                     f"window {sm['half_window']} samples at {known(sm['rate_hz'])} Hz, delay "
-                     f"{known(sm['delay_s'], 1e3)} ms")
-    elif doc['processing'].get('cutoff_hz') is not None:
-        lines.append(f"filter: cut-off {_number(doc['processing']['cutoff_hz'])} Hz "
-                     f"({doc['processing'].get('cutoff_source', 'given')})")
-    if doc['rejected']:
-        lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in doc['rejected'].items()))
-    rows = [(b['name'], f"{b['estimate']:.6g}", f"{b['unconstrained_estimate']:.6g}",
-             f"{b['stddev']:.3g}" if b['stddev'] is not None else 'inf',
-             _relative(b['estimate'], b['stddev']), f"{b['model']:.6g}")
-            if b['estimate'] is not None else
-            (b['name'], 'not excited', '', '', '', f"{b['model']:.6g}")
-            for b in doc['base_parameters']]
-    lines += ['', 'base parameters (SI units):'] + _table(
-        ('name', 'estimate', 'unconstrained', 'stddev', 'rel %', 'model'), rows) + [
-        f'  rel %: stddev / |estimate|; - where the estimate is within {ABOUT_ZERO:g} stddev '
-        'of zero']
-    regrouped = [b for b in doc['base_parameters'] if b['expression'] != b['name']]
-    if regrouped:
-        lines += ['', 'regrouped base parameters (sums of standard parameters; `structure` '
-                  'explains them):']
-        for b in regrouped:
-            lines += textwrap.wrap(f"{b['name']} = {b['expression']}", TEXT_WIDTH,
-                                   initial_indent='  ', subsequent_indent='      ',
-                                   break_on_hyphens=False)
-        lines.append('')
-    solver = doc['consistency_solver']
-    lines.append(f"physically consistent solve: {solver['status']}" + (
-        f" by {solver['method']}" if solver.get('method') else '') + (
-        f" ({solver['solve_time']:.3f} s)" if solver['solve_time'] is not None else '')
-        + ''.join(f'; {a} failed' for a in solver.get('attempts', [])))
-    for n in solver['notes']:
-        lines += textwrap.wrap(f'note: {n}', TEXT_WIDTH, initial_indent='  ',
-                               subsequent_indent='    ')
-    lines += [f'error: {e}' for e in doc.get('errors', [])]
-    lines += textwrap.wrap('link masses, kg (ratio to the URDF): ' + ', '.join(
-        f"{k} {v['mass']:.4g}"
-        + ('' if v.get('mass_ratio') is None else f" ({v['mass_ratio']:.2f})")
-        for k, v in doc['links'].items()), TEXT_WIDTH, subsequent_indent='  ')
-    lines += ['']
-    for what, e in ([('training bag', doc['training_error'])] if 'training_error' in doc
-                    else []) + [(f"validation bag {v['bag']}", v)
-                                for v in doc.get('validation', [])]:
-        lines += _torque_errors(what, e)
-    lines += [f"on the {doc['processing'].get('processing', '')} rows fitted, percent: "
-              + _per_joint(doc['relative_error']),
-              'with the model\'s own parameters: ' + _per_joint(doc['model_relative_error']),
-              'excitation condition number: ' + _number(doc['condition_number'])
-              + f"   converged: {'yes' if doc['converged'] else 'no'}"]
-    if not doc['excited']:
-        lines += [f"not excited: the motion does not determine {len(doc['unexcited_directions'])}"
-                  ' direction(s) of the base parameters (no estimate for the parameters in '
-                  'them; excite the arm more):'] + [
-                      f'  {d}' for d in doc['unexcited_directions']]
-    if not doc['physically_consistent']:
-        lines.append('closest full parameter set is not physically consistent: '
-                     + '; '.join(doc['consistency_problems']))
-        if doc['model_consistency_problems']:
-            lines.append('(the model\'s own parameters, which it stays closest to, are not '
-                         'either: ' + '; '.join(doc['model_consistency_problems']) + ')')
-    if any(doc['excluded_equations'].values()):
-        lines.append('equations left out near velocity reversals (coulomb_exclusion_speed): '
-                     + ', '.join(f'{j} {k}' for j, k in doc['excluded_equations'].items()))
-    lines += [f'warning: {w}' for w in doc['warnings']]
-    lines += ['', 'convergence (estimate change to final, in final standard deviations):']
-    final = np.array([np.nan if b['estimate'] is None else b['estimate']
-                      for b in doc['base_parameters']])
-    sd = np.array([b['stddev'] if b['stddev'] else np.inf for b in doc['base_parameters']])
-    picks = _spread(len(doc['convergence']), 8)
-    rows = []
-    for c in (doc['convergence'][k] for k in picks):
-        dev = np.abs(np.array(c['estimate'], dtype=float) - final) / sd
-        dev = dev[np.isfinite(dev)]   # not the unexcited parameters
-        rows.append((str(c['num_samples']),
-                     *(f'{f(dev):.2f}' if len(dev) else '-' for f in (np.max, np.median))))
-    lines += _table(('samples', 'max', 'median'), rows)
-    return '\n'.join(lines)
-
-
-def _torque_errors(what: str, e: dict) -> list[str]:
-    """The lines of one bag's torque errors (validation.BagError.document)."""
-    window = e['window_s']
-    span = '' if window is None else ' from {} to {}'.format(
-        f"{window['start'] or 0:g} s", 'the end' if window['end'] is None
-        else f"{window['end']:g} s")
-    lines = [f"relative torque error on the {what}{span} ({e['num_samples']} samples, raw "
-             'torque), percent:']
-    for key, label in (('estimate', 'identified'), ('model', 'model')):
-        lines.append(f"  {label}: stacked {_number(e[key]['stacked'], '.3f')}; "
-                     + _per_joint(e[key]['per_joint']))
-    s = e['smoothed_torque']['estimate']
-    lines.append(f"  identified, against the smoothed torque: stacked "
-                 f"{_number(s['stacked'], '.3f')}; " + _per_joint(s['per_joint']))
-    return lines
-
-
-def _number(value: float | None, spec: str = '.4g') -> str:
-    """A JSON number of the document (None: inf or NaN)."""
-    return 'inf' if value is None else format(value, spec)
-
-
-def format_payload_changes(changes: list, warnings: list | None = None) -> str:
-    """The payload segments as text: values with stddev, 'not excited' where unknown, each
-    change's mass step; ``warnings`` first."""
-    def show(v, sd, unit):
-        return 'not excited' if v is None else f'{v:.4g} +- {sd:.2g} {unit}'
-    lines = [f'warning: {w}' for w in warnings or ()]
-    lines += [f'payload: {len(changes) - 1} change(s) detected (link frame; inertia about the '
-              'centre of mass):']
-    for c in changes:
-        p = c['payload']
-        when = (f"at {c['stamp']:.3f} s" + (f" (detected {c['detected']:.3f} s)"
-                                            if c['detected'] is not None else ' (start)'))
-        if p is None:
-            lines.append(f'  {when}: no fit (too few samples)')
-            continue
-        sd = p['stddev']
-        step = ('' if c.get('mass_change') is None else
-                f"; change {c['mass_change']:+.4g} +- {c['mass_change_std']:.2g} kg")
-        lines.append(f"  {when}, {p['link']}: mass {show(p['mass'], sd['mass'], 'kg')}{step}")
-        lines.append('    com ' + ', '.join(show(v, s, 'm') for v, s in zip(p['com'], sd['com'])))
-        lines.append('    inertia ' + ', '.join(show(v, s, 'kg m^2') for v, s in zip(
-            p['inertia'], sd['inertia'])))
-    return '\n'.join(lines)
-
-
-def _per_joint(errors: dict) -> str:
-    return ', '.join(f'{j} {_number(e, ".2f")}' for j, e in errors.items())
-
-
-def paper_table3(fit) -> str:
-    """The first paper's Table 3 combinations: identified, model (Table 1) and paper values.
-    ``fit``: an offline.Identification or an IdentificationPipeline."""
-    from identification_node.offline.report import paper_table3_rows
-
-    if hasattr(fit, 'rls'):
-        theta, cov = fit.rls.theta, fit.covariance
-    else:
-        theta, cov = fit.theta, fit.covariance
-    rows = [(r['combination'], f"{r['identified']:.4f}", f"{r['stddev']:.4f}",
-             f"{r['model']:.4f}", f"{r['paper_cad']:.4f}", f"{r['paper_estimate']:.4f}")
-            for r in paper_table3_rows(fit.base, theta, cov,
-                                       fit.base.to_base(fit.robot.phi_model))]
-    return '\n'.join(['', "An, Atkeson, Hollerbach (1986) Table 3 combinations:"] + _table(
-        ('combination', 'identified', 'stddev', 'Table 1', 'paper CAD', 'paper est.'), rows))
-
-
-ABOUT_ZERO = 3.0     # an estimate within this many stddev of zero has no relative stddev
-TEXT_WIDTH = 100    # columns of the text output
-
-
-def _relative(value: float, stddev: float | None) -> str:
-    """stddev / |value| in percent, '-' where the value is about zero (or stddev unknown)."""
-    if stddev is None or not np.isfinite(stddev) or abs(value) <= ABOUT_ZERO * stddev:
-        return '-'
-    return f'{100 * stddev / abs(value):.2f}'
-
-
-def _spread(n: int, k: int) -> list[int]:
-    return sorted({int(round(i)) for i in np.linspace(0, n - 1, min(n, k))}) if n else []
-
-
-def _table(header: tuple, rows: list[tuple]) -> list[str]:
-    widths = [max(len(str(r[i])) for r in [header] + rows) for i in range(len(header))]
-    return ['  ' + '  '.join(f'{str(c):<{w}}' if i == 0 else
-                             f'{str(c):>{w}}' for i, (c, w) in enumerate(zip(r, widths))).rstrip()
-            for r in [header] + rows]
 
 
 def _method(args: argparse.Namespace) -> str:
@@ -402,7 +132,7 @@ def _method(args: argparse.Namespace) -> str:
 def batch_options(args: argparse.Namespace, robot):
     """offline.BatchOptions from --period/--trajectory/--harmonics/--cutoff/--decimate."""
     from identification_node.errors import IdentificationError
-    from identification_node.offline.identification import BatchOptions
+    from identification_node.batch.rows import BatchOptions
     from identification_node.excitation.trajectories import FramedTrajectory, load_trajectory
 
     period, least, window = args.period, 1, None
@@ -458,26 +188,27 @@ def evaluate_bags(ident, args: argparse.Namespace, settings, window, topics):
     with --predictions written as they are computed."""
     import contextlib
 
-    from identification_node.offline.identification import validate
-    from identification_node.offline.predictions import PredictionsWriter
+    from identification_node.results.predictions import PredictionsWriter
 
     with (PredictionsWriter(args.predictions, ident.robot.joint_names) if args.predictions
           else contextlib.nullcontext()) as writer:
-        training = validate(ident, args.bag, settings, window, *topics, predictions=writer,
-                            label='training', training=True)
-        validations = [validate(ident, bag, settings, window, *topics, predictions=writer,
-                                label=f'validation{k}')
+        training = bag_error(ident, args.bag, settings, window, *topics, predictions=writer,
+                             label='training', training=True)
+        validations = [bag_error(ident, bag, settings, window, *topics, predictions=writer,
+                                 label=f'validation{k}')
                        for k, bag in enumerate(args.validate or [], 1)]
     return training, validations
 
 
 def run(args: argparse.Namespace) -> int:
     from identification_node.errors import IdentificationError
-    from identification_node.offline.identification import (check_same_robot, make_consistent,
-                                                            offline_identify, replay_identify)
-    from identification_node.offline.replay import (bag_robot, foreign_joints_warning,
-                                                    locked_warning, mimic_warning, robot_for_bag)
-    from identification_node.offline.windows import TimeWindow
+    from identification_node.batch.solve import offline_identify
+    from identification_node.replay.stream import replay_identify
+    from identification_node.replay.validation import check_same_robot
+    from identification_node.results.identification import make_consistent
+    from identification_node.replay.stream import (bag_robot, foreign_joints_warning,
+                                                   locked_warning, mimic_warning, robot_for_bag)
+    from identification_node.bags.windows import TimeWindow
 
     settings = settings_from_args(args)
     if args.workers < 0:
@@ -487,13 +218,13 @@ def run(args: argparse.Namespace) -> int:
     consistency = None if args.no_physical_consistency else settings.consistency_options()
     method = _method(args)
     if args.report:
-        from identification_node.offline.report import check_writable
+        from identification_node.results.report import check_writable
         check_writable(args.report)
     if args.save:
         from identification_node.fileio import writable_directory
         writable_directory(args.save, '--save')
     if args.predictions:
-        from identification_node.offline.predictions import check_predictions
+        from identification_node.results.predictions import check_predictions
         check_predictions(args.predictions)
     robot = (settings.load_robot() if args.robot or args.urdf or settings.given_robot
              else bag_robot(args.bag, settings))
@@ -514,8 +245,8 @@ def run(args: argparse.Namespace) -> int:
     topics = (args.joint_states_topic, args.currents_topic)
     gains = None
     if args.back_emf or args.known_payload_bag or args.known_payload:
-        from identification_node.offline.drive_gains import (identify_drive_gains,
-                                                             settings_with_gains, used_gains)
+        from identification_node.batch.drive_gains import (identify_drive_gains,
+                                                           settings_with_gains, used_gains)
         gains = identify_drive_gains(args.bag, settings, robot, *topics,
                                      args.voltages_topic if args.back_emf else None,
                                      args.known_payload_bag, args.known_payload)
@@ -526,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     ident = None
     if method == 'rls' and args.workers != 1 and monitor is None and not args.report \
             and args.start is None and args.end is None:
-        from identification_node.offline.parallel import default_workers, parallel_identify
+        from identification_node.replay.parallel import default_workers, parallel_identify
         ident = parallel_identify(args.bag, settings, robot, args.workers or default_workers(),
                                   *topics)
     if ident is None and method == 'rls':
@@ -548,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
         ident.warnings.insert(0, foreign)
     make_consistent(ident, consistency)
     training, validations = evaluate_bags(ident, args, settings, window, topics)
-    from identification_node.offline.effort_semantics import training_gravity_warning
+    from identification_node.results.effort_semantics import training_gravity_warning
     gravity = training_gravity_warning(ident, training)
     if gravity:
         ident.warnings.append(gravity)
@@ -558,13 +289,13 @@ def run(args: argparse.Namespace) -> int:
         doc['warnings'] += [g.warning for g in gains if g.warning]
     if monitor is not None:
         from identification_node.payload.monitor import segments_document
-        from identification_node.offline.results import plain
+        from identification_node.results.documents import plain
         doc['payload_changes'] = plain(segments_document(monitor.finish()))
         doc['payload_warnings'] = monitor.warnings()
         for w in doc['payload_warnings']:
             print(f'warning: {w}', file=sys.stderr)
     if args.save:
-        from identification_node.offline.results import write_results
+        from identification_node.results.documents import write_results
         saved = saved_document(ident)
         if gains is not None:
             saved['drive_gains'] = doc['drive_gains']
@@ -575,7 +306,7 @@ def run(args: argparse.Namespace) -> int:
             doc['errors'].append(str(exc))
             doc['saved'] = []
     if args.report:
-        from identification_node.offline.report import write_report
+        from identification_node.results.report import write_report
         report = write_report(args.report, ident, validations, training)
         doc['report'] = {k: str(p) for k, p in report.files.items()}
     if args.predictions:
@@ -597,12 +328,3 @@ def run(args: argparse.Namespace) -> int:
     for error in doc['errors'] if args.json else ():   # the text report has them
         print(f'error: {error}', file=sys.stderr)
     return 1 if args.save and not doc['saved'] else 0
-
-
-def format_outputs(doc: dict) -> str:
-    """The files --save, --report and --predictions wrote, by name."""
-    written = [('--save', doc.get('saved') or []),
-               ('--report', list((doc.get('report') or {}).values())),
-               ('--predictions', [doc['predictions']] if doc.get('predictions') else [])]
-    lines = [f'  {option}: {path}' for option, paths in written for path in paths]
-    return '\n'.join(['', 'files written:'] + lines) if lines else ''
