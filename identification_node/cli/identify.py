@@ -114,8 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from identification_node.replay.identify import IdentifyConfig, identify
-    from identification_node.results.text import (format_outputs, format_payload_changes,
-                                                  format_report, paper_table3)
+    from identification_node.results.text import identify_text
 
     config = IdentifyConfig(
         settings_from_args(args), robot_given=bool(args.robot or args.urdf),
@@ -136,17 +135,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
-        payload = 'payload_changes' in doc
-        if payload:   # the payload first; the arm's table when asked
-            print(format_payload_changes(doc['payload_changes'], doc['payload_warnings']))
-        if not payload or args.arm_table:
-            print(('\n' if payload else '') + format_report(doc))
-        if args.paper_tables:
-            print(paper_table3(result.ident))
-        if result.gains is not None:
-            from identification_node.estimation.drive_gains import gains_text
-            print('\n'.join(gains_text(result.gains)))
-        print(format_outputs(doc))
+        for block in identify_text(doc, result.ident, result.gains, args.arm_table,
+                                   args.paper_tables):
+            print(block)
     for error in doc['errors'] if args.json else ():   # the text report has them
         print(f'error: {error}', file=sys.stderr)
     return 1 if args.save and not doc['saved'] else 0

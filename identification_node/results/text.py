@@ -7,7 +7,8 @@ import textwrap
 import numpy as np
 
 __all__ = ['format_report', 'format_payload_changes', 'paper_table3', 'ABOUT_ZERO',
-           'TEXT_WIDTH', 'text_table', 'format_outputs']
+           'TEXT_WIDTH', 'text_table', 'format_outputs',
+           'identify_text']
 
 
 def format_report(doc: dict) -> str:
@@ -198,3 +199,23 @@ def format_outputs(doc: dict) -> str:
                ('--predictions', [doc['predictions']] if doc.get('predictions') else [])]
     lines = [f'  {option}: {path}' for option, paths in written for path in paths]
     return '\n'.join(['', 'files written:'] + lines) if lines else ''
+
+
+def identify_text(doc: dict, ident, gains: list | None = None, arm_table: bool = False,
+                  paper_tables: bool = False) -> list[str]:
+    """The blocks of identify's text output, in order: the payload changes (when identified;
+    the arm's table then only with ``arm_table``), the arm's table, the MIT paper's Table 3
+    (``paper_tables``), the drive gains and the files written."""
+    blocks = []
+    payload = 'payload_changes' in doc
+    if payload:   # the payload first; the arm's table when asked
+        blocks.append(format_payload_changes(doc['payload_changes'], doc['payload_warnings']))
+    if not payload or arm_table:
+        blocks.append(('\n' if payload else '') + format_report(doc))
+    if paper_tables:
+        blocks.append(paper_table3(ident))
+    if gains is not None:
+        from identification_node.estimation.drive_gains import gains_text
+        blocks.append('\n'.join(gains_text(gains)))
+    blocks.append(format_outputs(doc))
+    return blocks
