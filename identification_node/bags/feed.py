@@ -17,11 +17,7 @@ __all__ = ['JOINT_STATES', 'MOTOR_CURRENTS', 'ROBOT_DESCRIPTION', 'check_usable'
 
 
 JOINT_STATES = '/joint_states'
-
-
 MOTOR_CURRENTS = '/motor_currents'
-
-
 ROBOT_DESCRIPTION = '/robot_description'
 
 

@@ -8,6 +8,7 @@ from typing import Iterator
 import numpy as np
 
 from identification_node.batch.samples import BagSamples, Stream
+from identification_node.config import BatchConfig
 from identification_node.errors import IdentificationError
 from identification_node.estimation.model_terms import features as model_features
 from identification_node.model.identifiability import BaseParameters
@@ -23,24 +24,12 @@ __all__ = ['DEFAULT_CUTOFF', 'FILTER_ORDER', 'EDGE_PERIODS', 'REVERSAL_PERIODS',
            'auto_cutoff']
 
 
-DEFAULT_CUTOFF = 20.0     # Hz: zero-phase low-pass of the filtered path; Fourier band (periodic)
-
-
-FILTER_ORDER = 4          # Butterworth order (run twice: squared gain, no phase)
-
-
+DEFAULT_CUTOFF = BatchConfig.cutoff   # Hz: zero-phase low-pass of the filtered path; Fourier band
+FILTER_ORDER = BatchConfig.order      # Butterworth order (run twice: squared gain, no phase)
 EDGE_PERIODS = 3.0        # 1/cutoff periods trimmed at each segment end (filter start-up)
-
-
 REVERSAL_PERIODS = 1.0    # 1/cutoff periods around a velocity reversal left out (with fc)
-
-
 OVERLAP_PERIODS = 10.0    # 1/cutoff periods of overlap between chunks: joins exact to ~1e-10
-
-
 CHUNK = 4096              # raw samples per regressor chunk
-
-
 JITTER = 0.01             # relative stamp jitter above which a segment is resampled uniformly
 
 
@@ -85,7 +74,7 @@ class BatchOptions:
     period: float | None = None
     window: tuple[float, float] | None = None
     harmonics: int | None = None
-    min_harmonics: int = 1
+    min_harmonics: int = BatchConfig.min_harmonics
     cutoff: float | None = None
     decimation: int | None = None
     order: int = FILTER_ORDER

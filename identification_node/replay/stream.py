@@ -13,13 +13,14 @@ from identification_node.bags.feed import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_D
                                            check_usable, feed_bag, input_topics)
 from identification_node.bags.reader import iter_joint_state_blocks, open_bag, read_string_topic
 from identification_node.bags.windows import TimeWindow
+from identification_node.config import PER_JOINT
 from identification_node.errors import IdentificationError
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.pipeline import IdentificationPipeline, PipelineOutput
 from identification_node.results.identification import (Checkpoint, Identification, ReplayResult,
                                                         SERIES_POINTS, SeriesSampler, TorqueSeries,
                                                         from_replay)
-from identification_node.settings import PER_JOINT, Settings
+from identification_node.settings import Settings
 
 __all__ = ['bag_robot', 'bag_joint_names', 'robot_for_bag', 'foreign_joints_warning',
            'locked_warning', 'mimic_warning', 'identify_bag', 'replay_identify']

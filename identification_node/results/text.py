@@ -169,8 +169,6 @@ def paper_table3(fit) -> str:
 
 
 ABOUT_ZERO = 3.0     # an estimate within this many stddev of zero has no relative stddev
-
-
 TEXT_WIDTH = 100    # columns of the text output
 
 
