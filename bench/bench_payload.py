@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / 'test')]
 
 import payload_scenarios as ps  # noqa: E402
-from identification_node.offline.identification import identify_bag  # noqa: E402
+from identification_node.replay.stream import identify_bag  # noqa: E402
 from identification_node.payload.fit import PayloadChange  # noqa: E402
 from identification_node.payload.monitor import monitor_from_settings  # noqa: E402
 from identification_node.settings import Settings, read_parameter_file  # noqa: E402

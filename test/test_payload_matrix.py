@@ -76,7 +76,7 @@ def test_samples_after_a_change_stay_out_of_the_segment_before():
     stay out of the fit of the segment it ends. Exact data (true arm, exact encoders, no
     torque noise), Kinova at 250 Hz: the 1 kg segment before the place at 8 s was fitted
     2.9 % light when they entered it."""
-    import identification_node.model.simulation as simulation
+    import identification_node.simulation.simulator as simulation
 
     arm = ps.make_arm('kinova', False)
     changes = SEQUENCES['pick-place-pick']

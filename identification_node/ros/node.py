@@ -59,7 +59,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistentEstimate, SolverProcess,
                                                         pipeline_equations)
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
-from identification_node.offline.results import plain, snapshot_document, write_results
+from identification_node.results.documents import plain, snapshot_document, write_results
 from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
