@@ -11,7 +11,7 @@ import pytest
 from std_srvs.srv import Trigger
 
 from identification_node.estimation.consistency import ConsistentSolver, pipeline_equations
-from identification_node.offline.replay import identify_bag
+from identification_node.replay.stream import identify_bag
 from identification_node.settings import Settings, read_parameter_file
 from ros_helpers import wait_for
 from test_bags import BAGS, true_base_parameters
@@ -54,7 +54,7 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
         # current alignment wait for; offline replay flushes them. A node slowed by a loaded
         # machine is still taking its queue: wait for it.
         live = wait_for(lambda: (e := live_estimate())['num_samples'] >= est.num_samples - 5
-                        and e, 90) or live_estimate()
+                        and e['consistency_status'] != 'starting' and e, 90) or live_estimate()
     finally:
         stop_process(node)
     assert live['names'] == est.names

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
 
-REGION = 0.99   # a confidence region for the prior to choose in (the default has none)
+REGION = 0.99   # the confidence region the prior chooses in (stated: the default may change)
 
 FIXTURES = Path(__file__).parent / 'fixtures'
 ROOT = Path(__file__).resolve().parents[1]
@@ -349,13 +350,18 @@ def test_solution_within_tolerance_is_projected(panda, monkeypatch):
 @pytest.mark.slow
 def test_solver_process_equals_in_process_and_survives_its_child(panda):
     """The node's solver runs in a child process: same result; a child that died is replaced
-    by the next solve; an error in the child comes back as the status."""
+    by the next solve; an error in the child comes back as the status. ``ready`` tells without
+    waiting when the child has built its problem."""
     robot, base = panda
     Yb, tau = data(robot, base, truth(robot), 5.0, 0.6, 0.1, seed=17)
     ne = NormalEquations.from_rows(Yb, tau)
     here = ConsistentSolver.for_robot(robot, base).solve(ne, 100.0)
     child = SolverProcess.for_robot(robot, base)
     try:
+        assert not child.ready()        # not started
+        child.start()
+        while not child.ready():        # a poll, never a wait for the build
+            time.sleep(0.01)
         there = child.solve(ne, 100.0)
         assert there.status == 'optimal'
         # to the solver's tolerance (each process orders cvxpy's canonical form its own way)

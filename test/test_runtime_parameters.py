@@ -7,7 +7,7 @@ from rclpy.parameter import Parameter
 
 from identification_node.model.robot import load_robot
 from identification_node.ros.runtime_parameters import RUNTIME
-from identification_node.settings import PARAMETERS
+from identification_node.config import PARAMETERS
 
 pytestmark = pytest.mark.ros
 

@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from identification_node.model.identifiability import BaseParameters
     from identification_node.payload.fit import (attachment, read_payload_changes,
                                                  true_parameter_changes)
-    from identification_node.model.simulation import ArmSimulator, SensorNoise
+    from identification_node.simulation.simulator import ArmSimulator, SensorNoise
     from identification_node.model.torque import TorqueConverter
     from identification_node.excitation.trajectories import load_trajectory
 
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
             bag.write_joint_state('/joint_states', ns, t, names, sim.q_meas[k],
                                   () if args.no_velocity else sim.qd_meas[k],
                                   () if args.no_effort else sim.tau_meas[k])
-            if slots:
+            if volts is not None:   # current channels (slots)
                 bag.write_joint_state(
                     '/motor_currents', ns, t, [s[0] for s in slots],
                     [sim.theta_e[k, i] for _, i, _ in slots],

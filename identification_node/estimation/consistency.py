@@ -46,21 +46,17 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
+from identification_node.config import Consistency, default
 from identification_node.errors import IdentificationError
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 
-DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
-DEFAULT_CONFIDENCE = 0.5   # chi-square level of the data's confidence region (0: none)
 NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
-DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
-DEFAULT_MARGIN = 1e-6      # eps: J - eps 1 >= 0 (kg, kg m^2), lowered for tiny priors
-DEFAULT_TIME_LIMIT = 5.0   # s per solve
 EXTRA_SCALE = 1e-2         # s_k floor of the per-joint columns' regulariser (SI)
 NONNEGATIVE = ('fv', 'fc', 'Ia')
 SOLVERS = ('CLARABEL', 'SCS')
@@ -136,20 +132,20 @@ class ConsistentEstimate:
 
 @dataclass(frozen=True)
 class ConsistencyOptions:
-    """Settings of the solve (config: ``physical_consistency.*``). ``mass_ratio`` r > 1: each
+    """Settings of the solve (parameters ``consistency.*``). ``mass_ratio`` r > 1: each
     body's mass within [m0 / r, r m0] of the description's m0 (0: no bound); ``total_mass``
     (lo, hi) kg of the identified bodies together, or empty."""
-    weight: float = DEFAULT_WEIGHT
-    margin: float = DEFAULT_MARGIN
-    solver: str = 'CLARABEL'
-    time_limit: float = DEFAULT_TIME_LIMIT
-    geometry_box: bool = True      # default CoM box from the URDF's collision/visual shapes
-    mass_min: Sequence[float] = ()   # per identified link (kg), or empty
-    mass_max: Sequence[float] = ()
-    com_box: Sequence[float] = ()    # 6 per identified link: lo xyz, hi xyz (m), or empty
-    confidence: float = DEFAULT_CONFIDENCE
-    mass_ratio: float = DEFAULT_MASS_RATIO
-    total_mass: Sequence[float] = ()
+    weight: float = Consistency.weight   # gamma: prior weight outside the confidence region
+    margin: float = Consistency.margin   # eps: J - eps 1 >= 0 (kg, kg m^2)
+    solver: str = Consistency.solver
+    time_limit: float = Consistency.time_limit   # s per solve
+    geometry_box: bool = Consistency.geometry_box   # CoM box from the URDF's shapes
+    mass_min: Sequence[float] = tuple(default('consistency.mass_min'))   # per link (kg)
+    mass_max: Sequence[float] = tuple(default('consistency.mass_max'))
+    com_box: Sequence[float] = tuple(default('consistency.com_box'))   # 6 per link: lo, hi xyz
+    confidence: float = Consistency.confidence   # chi-square level of the data's region
+    mass_ratio: float = Consistency.mass_ratio   # link masses within [1/r, r] x description's
+    total_mass: Sequence[float] = tuple(default('consistency.total_mass'))
 
     def validate(self, num_links: int | None = None) -> None:
         """IdentificationError naming the first bad setting (``consistency.<name>``)."""
@@ -263,8 +259,8 @@ class ConsistentSolver:
             if np.isfinite(hi):
                 constraints.append(total[0] <= hi)
             if body.com_box is not None:
-                lo, hi = body.com_box
-                constraints += [total[1:4] >= total[0] * lo, total[1:4] <= total[0] * hi]
+                com_lo, com_hi = body.com_box
+                constraints += [total[1:4] >= total[0] * com_lo, total[1:4] <= total[0] * com_hi]
         if len(self.options.total_mass) and masses:
             lo, hi = self.options.total_mass
             constraints += [sum(masses) >= lo, sum(masses) <= hi]
@@ -279,14 +275,14 @@ class ConsistentSolver:
             S = np.zeros((p, ne))
             S[self._extra, np.arange(ne)] = 1.0
             phi = phi + S @ x
-        self._phi = phi
+        self._phi: Any = phi   # a cvxpy expression (cvxpy has no type information)
         constraints.append(cp.sum_squares(self._M @ (base.K @ phi) - self._m)
                            <= self._q + self._t)
         self.problem = cp.Problem(cp.Minimize(regulariser + self._t / gamma), constraints)
         self._phi_prior = phi_prior
         # a base parameter's typical size: its terms' prior magnitudes (the floor's unit)
         self._typical = np.abs(base.K) @ np.maximum(np.abs(phi_prior), EXTRA_SCALE)
-        self._solved = set()
+        self._solved: set[str] = set()
 
     @classmethod
     def for_robot(cls, robot, base: BaseParameters,
@@ -381,8 +377,9 @@ class ConsistentSolver:
                 notes.append('no conic solver succeeded (' + '; '.join(attempts) + '): the '
                              'unconstrained estimate projected onto physical bodies is given')
             from scipy.stats import chi2
-            beyond = q + excess - chi2.ppf(NOTE_LEVEL, max(int(np.any(M, axis=1).sum()), 1))
-            if beyond > 0:
+            q_note = chi2.ppf(NOTE_LEVEL, max(int(np.any(M, axis=1).sum()), 1))
+            beyond = q + excess - q_note
+            if beyond > 1e-3 * q_note:   # not the solver's tolerance on the region's edge
                 notes.append('the consistent bodies lie outside the data\'s '
                              f'{100 * NOTE_LEVEL:g} % confidence region by chi-square '
                              f'{beyond:.3g}: the data disagree with a physical arm')
@@ -499,7 +496,9 @@ class SolverProcess:
     """A ConsistentSolver in a child process of its own (spawned), with ``solve`` as the
     solver's: the node's processing thread never waits for the GIL while it solves. A child
     that dies or overruns ``time_limit`` (+ STARTUP_GRACE for the first solve, which builds the
-    problem) is stopped and the solve reported failed; the next one starts a new child."""
+    problem) is stopped and the solve reported failed; the next one starts a new child.
+    ``ready`` tells, without waiting, whether the child has built its problem: on a busy
+    machine that takes tens of seconds, which a caller need not wait for."""
 
     STARTUP_GRACE = 60.0   # s: spawn, imports and the problem's canonicalisation
     GRACE = 10.0           # s over the solver's own time limit
@@ -510,7 +509,7 @@ class SolverProcess:
         self.options.validate()
         self._args = (base, np.asarray(phi_prior, dtype=float), list(bodies), self.options)
         self._process = self._conn = None
-        self._started = False
+        self._ready = False     # the child has built its problem (its first message)
         # start and close come from different threads (the node's solve worker and its
         # shutdown): a child being started is never terminated half made
         self._lock = threading.Lock()
@@ -547,21 +546,37 @@ class SolverProcess:
                 if main:
                     signal.signal(signal.SIGINT, sigint)
             child.close()
-            self._started = False
+            self._ready = False
             return self._conn
+
+    def ready(self) -> bool:
+        """Whether the child has built its problem, so that ``solve`` waits for the solve
+        only (never blocks; False before ``start``)."""
+        with self._lock:
+            if not self._ready and self._conn is not None:
+                try:
+                    if self._conn.poll(0):
+                        self._conn.recv()   # ('ready', error): an error is told by solve
+                        self._ready = True
+                except (EOFError, OSError):
+                    self._ready = True      # ended: solve reports it and starts another
+            return self._ready
 
     def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
               ) -> ConsistentEstimate:
         start = time.perf_counter()
         conn = self.start()
-        wait = self.options.time_limit + (self.GRACE if self._started else self.STARTUP_GRACE)
+        wait = self.options.time_limit + (self.GRACE if self._ready else self.STARTUP_GRACE)
+        deadline = time.monotonic() + wait
         try:
             conn.send((equations, weights))
-            if conn.poll(wait):
+            kind = 'ready'
+            while kind == 'ready' and conn.poll(max(deadline - time.monotonic(), 0.0)):
                 kind, value = conn.recv()
-                self._started = True
-                if kind == 'ok':
-                    return value
+                self._ready = True
+            if kind == 'ok':
+                return value
+            if kind == 'error':
                 status = f'solver_error: {value}'
             else:
                 status = 'time_limit'
@@ -585,8 +600,9 @@ class SolverProcess:
 
 
 def _serve(conn, base, phi_prior, bodies, options) -> None:
-    """The child of SolverProcess: build the solver, then answer (equations, weights) with
-    ('ok', ConsistentEstimate) or ('error', message) until None or the pipe closes. It runs
+    """The child of SolverProcess: build the solver, say ('ready', error), then answer
+    (equations, weights) with ('ok', ConsistentEstimate) or ('error', message) until None or
+    the pipe closes. It runs
     at a lower priority (nice +NICE) than the node, whose 1 kHz processing comes first.
     SIGINT is ignored (see SolverProcess.start): the parent ends it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -596,6 +612,10 @@ def _serve(conn, base, phi_prior, bodies, options) -> None:
         solver = ConsistentSolver(base, phi_prior, bodies, options)
     except Exception as exc:  # noqa: BLE001 - reported to the parent with every request
         error = f'{type(exc).__name__}: {exc}'
+    try:
+        conn.send(('ready', error))
+    except (EOFError, OSError):
+        return
     while True:
         try:
             request = conn.recv()

@@ -8,7 +8,7 @@ larger of the white raw noise that explains the smoothed residual
 (signals.smoothing_noise_gain) and, once there are enough blocks, the residual's long-run
 variance (ResidualStatistics' block sums); see ``noise_variance``. The blocks restart at every
 RESIDUAL_GRID of the stamps, so a bag cut there into segments has its blocks
-(offline/fleet.py).
+(replay/segments.py).
 
 Before an update, samples whose rows would overflow are dropped ('regressor_overflow') and,
 once the estimate has converged and predicts new samples, the robust gate (robust.py) holds
@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -33,6 +34,8 @@ from identification_node.estimation.robust import InnovationGate
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.rows import near_reversal
 from identification_node.pipeline.signals import smoothing_noise_gain
+
+_T = TypeVar('_T')
 
 # What the numerical update may raise on absurd data: caught, the estimator rolled back.
 PROVISIONAL_HALF_WINDOW = 10   # samples: residual blocks before the smoother is chosen
@@ -335,7 +338,7 @@ class OnlineEstimate:
                          self.rls.num_samples, condition, self.config)
 
 
-def _state(obj: object) -> object:
+def _state(obj: _T) -> _T:
     """A copy of ``obj`` to roll back to: its attributes, arrays copied (the estimators
     update some in place)."""
     saved = copy.copy(obj)

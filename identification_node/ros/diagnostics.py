@@ -35,7 +35,7 @@ def plain(value: Any) -> str:
                     '(vectors as one key per element)')
 
 
-def vector(key: str, names: Sequence[str], values: Sequence[Any],
+def vector(key: str, names: Sequence[str], values: Sequence[Any] | np.ndarray,
            excited: Sequence[bool] | None = None) -> dict[str, Any]:
     """``key.<name>`` per element; ``not excited`` where ``excited`` is false."""
     flags = [True] * len(names) if excited is None else excited

@@ -54,11 +54,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import SetBool, Trigger
 
+from identification_node.config import PARAMETERS, descriptor
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistentEstimate, SolverProcess,
                                                         pipeline_equations)
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
-from identification_node.offline.results import plain, snapshot_document, write_results
+from identification_node.results.documents import plain, snapshot_document, write_results
 from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport, PipelineOutput
 from identification_node.ros.conversions import PolledSubscription, publish_joint_states
@@ -73,8 +74,7 @@ from identification_node.ros.qos_watch import QosWatch
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
                                                       ServiceThread, Snapshot, failed)
 from identification_node.ros.spin import PeriodicThread, run_node
-from identification_node.settings import (EMPTY_LISTS, PARAMETERS, RANGES, Settings,
-                                          element_type)
+from identification_node.settings import Settings
 
 # Deep enough for a 1 s burst at 1 kHz; best effort like other sensor streams.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -99,26 +99,22 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 
 
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
-    """The typed descriptor of a settings table entry (read-only unless runtime_parameters.
-    RUNTIME has it), with its range from
-    settings.RANGES. Lists with an empty default, or which may be empty (settings.
-    EMPTY_LISTS), stay dynamically typed (Settings checks them): rclpy declares a typed
-    parameter without a value uninitialized, which its parameter services then fail to
-    report, and types an empty list as bytes."""
-    d = ParameterDescriptor(description=text, read_only=name not in RUNTIME)
-    if isinstance(default, list):
-        if default and name not in EMPTY_LISTS:
-            d.type = _ARRAY_TYPES[element_type(name, default)].value
-        else:
-            d.dynamic_typing = True
-        return d
-    d.type = _TYPES[type(default)]
-    lo, hi = RANGES.get(name, (None, None))
-    if lo is not None and type(default) is int:
-        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
-    elif lo is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(lo),
-                                                     to_value=float(hi), step=0.0)]
+    """The rclpy descriptor of a settings table entry: config.descriptor's type and range,
+    read-only unless runtime_parameters.RUNTIME has it."""
+    spec = descriptor(name, default, text)
+    d = ParameterDescriptor(description=spec.description, read_only=name not in RUNTIME)
+    if spec.type is None:
+        d.dynamic_typing = True
+    elif spec.array:
+        d.type = _ARRAY_TYPES[spec.type].value
+    else:
+        d.type = _TYPES[spec.type]
+    if spec.range is not None and spec.type is int:
+        d.integer_range = [IntegerRange(from_value=int(spec.range[0]),
+                                        to_value=int(spec.range[1]), step=0)]
+    elif spec.range is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=spec.range[0],
+                                                     to_value=spec.range[1], step=0.0)]
     return d
 
 
@@ -521,7 +517,7 @@ class IdentificationNode(Node):
         if job.error:
             return Outcome(error=job.error)
         est = job.estimate
-        consistent = None if job.equations is None else self._solve(job.equations)
+        consistent = None if job.equations is None else self._solve(job.equations, job.save)
         self._publish_estimate(est, consistent)
         ok = consistent is not None and consistent.ok
         outcome = Outcome(estimate=json.dumps(plain({
@@ -554,9 +550,14 @@ class IdentificationNode(Node):
                 self._solver.start()
             return self._solver
 
-    def _solve(self, equations: tuple) -> ConsistentEstimate:
+    def _solve(self, equations: tuple, wait: bool = True) -> ConsistentEstimate:
+        """The constrained solve; unless ``wait``, status 'starting' (the unconstrained
+        estimate goes out) while the solver process still builds its problem."""
         solver = self._solver_instance()
         with self._solver_lock:
+            if not wait and not solver.ready():
+                return ConsistentEstimate('starting', None, None,
+                                          np.full(self.pipeline.base.num_base, np.inf), 0.0)
             result = solver.solve(*equations)
         self._consistent = result
         if not result.ok and result.status != self._solver_failure and self._worker_running:
@@ -593,8 +594,9 @@ class IdentificationNode(Node):
                 self.set_parameters_atomically(params)   # one parameter event, one snapshot
             finally:
                 self._internal_update = False
-            # The URDF topic is latched: rebuild it only when new samples changed the estimate.
-            version = (est.num_samples, self.payload.version if self.payload else 0)
+            # The URDF topic is latched: rebuild it only when new samples or the solve changed
+            # the estimate.
+            version = (est.num_samples, self.payload.version if self.payload else 0, ok)
             if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
                 self._urdf_samples = version
                 with self._lock:

@@ -6,7 +6,7 @@ units). A controller reads them with the standard GetParameters service and comp
 feedforward joint torque with the same robot model::
 
     import rclpy
-    from identification_node.controller_client import IdentifiedModel
+    from controller_client import IdentifiedModel      # this file, on the Python path
 
     rclpy.init()
     node = rclpy.create_node('my_controller')
@@ -33,7 +33,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.settings import Settings
 
-# The node parameters that define the identified model (see settings.PARAMETERS).
+# The node parameters that define the identified model (see config.PARAMETERS).
 MODEL_PARAMETERS = ('robot', 'robot_description', 'joints', 'extras', 'coulomb_velocity')
 
 
