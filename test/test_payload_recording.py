@@ -15,6 +15,7 @@ from corpus import run_identify  # noqa: E402
 from recordings import data_dir, kinova_bags  # noqa: E402
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (data_dir() / 'kinova_gen3').is_dir(), reason='no ../shared/data')
 def test_kinova_gen3_load_is_reported_with_its_stddev(tmp_path):
     train, _ = kinova_bags(tmp_path)
