@@ -163,7 +163,7 @@ def test_known_payload_service_marks_the_segment_in_the_node(ros):
             assert res.successful, res.reason
             before = dict(segments.samples)
             js, cur = _records(robot, sim, 30.0 * k, np)
-            with node._lock:
+            with node.lock:
                 node.pipeline.add_joint_states(js)
                 node.pipeline.add_currents(cur)
             kind = 'loaded' if k == 0 else 'free'

@@ -6,7 +6,7 @@ import pytest
 from rclpy.parameter import Parameter
 
 from identification_node.model.robot import load_robot
-from identification_node.ros.runtime_parameters import RUNTIME
+from identification_node.ros.parameters import RUNTIME
 from identification_node.settings import PARAMETERS
 
 pytestmark = pytest.mark.ros
