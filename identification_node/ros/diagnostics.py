@@ -22,8 +22,8 @@ from identification_node.pipeline.rows import SmootherChoice
 from identification_node.pipeline.status import PipelineStatus
 
 __all__ = ['NOT_DETERMINED', 'NOT_EXCITED', 'SMOOTHER_SOURCES', 'NodeStatus',
-           'identification_status', 'key_values', 'plain', 'smoother_text', 'smoother_values',
-           'vector']
+           'identification_status', 'key_values', 'plain', 'robust_gate_text', 'smoother_plan',
+           'smoother_text', 'smoother_values', 'vector']
 
 NOT_DETERMINED = 'not determined'
 NOT_EXCITED = 'not excited'
@@ -48,7 +48,7 @@ def plain(value: Any) -> str:
                     '(vectors as one key per element)')
 
 
-def vector(key: str, names: Sequence[str], values: Sequence[Any],
+def vector(key: str, names: Sequence[str], values: Sequence[Any] | np.ndarray,
            excited: Sequence[bool] | None = None) -> dict[str, Any]:
     """``key.<name>`` per element; ``not excited`` where ``excited`` is false."""
     flags = [True] * len(names) if excited is None else excited
@@ -69,6 +69,15 @@ def smoother_text(choice: SmootherChoice) -> str:
     source = SMOOTHER_SOURCES.get(choice.source, choice.source)
     return (f'{cutoff} ({source}), half window {choice.half_window} samples at {rate}, '
             f'delay of ~/predicted_effort {delay}')
+
+
+def smoother_plan(choice: SmootherChoice | None, cutoff: float, auto_seconds: float) -> str:
+    """The smoother at start-up in words: ``choice`` when made, else the given ``cutoff``
+    (Hz, 0: none) or the ``auto_seconds`` of motion it is to be chosen from."""
+    if choice is not None:
+        return smoother_text(choice)
+    return 'cut-off ' + (f'{cutoff:g} Hz' if cutoff > 0 else
+                         f'to be chosen from the first {auto_seconds:g} s of motion')
 
 
 def smoother_values(choice: SmootherChoice | None, holding: int) -> dict[str, Any]:
@@ -95,9 +104,10 @@ class NodeStatus:
     """What the node knows besides the pipeline's status: its input rate (Hz of joint state
     messages received since the last diagnostics), failed callbacks, the constrained solve
     (``consistency_enabled``; the last ``consistent`` result, None before the first) and the
-    identified URDF's ``consistency_problems``; per input topic the messages ``lost`` (None:
-    not known) and ``dropped``; incompatible QoS endpoints seen; ``extra``: further values
-    (payload, drive gains), appended in order."""
+    identified URDF's ``consistency_problems``; per input topic the messages ``lost`` before
+    the node took them (its queue overflowing while processing stalled, dropped packets; None:
+    not known) and ``dropped`` beyond its queue's bound; incompatible QoS endpoints seen;
+    ``extra``: further values (payload, drive gains), appended in order."""
     input_rate_hz: float
     callback_errors: int
     consistency_enabled: bool

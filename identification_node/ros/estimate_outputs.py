@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
 from typing import Any, Callable
 
@@ -51,8 +52,8 @@ class EstimateOutputs:
     ``save_inconsistent``)."""
 
     def __init__(self, node: Node, pipeline, lock: threading.Lock,
-                 parameters: OutputParameters, payload, drive_gains, output_directory: str,
-                 save_inconsistent: bool):
+                 parameters: OutputParameters, payload, drive_gains,
+                 output_directory: str | os.PathLike, save_inconsistent: bool):
         self.node, self.pipeline, self.robot = node, pipeline, pipeline.robot
         self.parameters, self.payload, self.drive_gains = parameters, payload, drive_gains
         self._lock = lock
@@ -72,10 +73,9 @@ class EstimateOutputs:
             return Outcome(error=job.error)
         est = job.estimate
         consistent = None if job.equations is None else solve(job.equations)
-        self.publish(est, consistent)
-        ok = consistent is not None and consistent.ok
+        values = self.publish(est, consistent)
         outcome = Outcome(estimate=json.dumps(plain({
-            'names': est.names, 'values': (consistent.theta if ok else est.values).tolist(),
+            'names': est.names, 'values': values.tolist(),
             'stddev': est.stddev.tolist(), 'unconstrained_values': est.values.tolist(),
             'consistency_status': 'disabled' if consistent is None else consistent.status,
             'num_samples': est.num_samples, 'time': est.stamp, 'converged': est.converged,
@@ -96,10 +96,13 @@ class EstimateOutputs:
                 outcome.save_error = str(exc)
         return outcome
 
-    def publish(self, est: EstimateReport, consistent: ConsistentEstimate | None) -> None:
-        """Publish ``est`` (the consistent estimate where ``consistent`` succeeded)."""
-        ok = consistent is not None and consistent.ok
-        values = consistent.theta if ok else est.values
+    def publish(self, est: EstimateReport, consistent: ConsistentEstimate | None
+                ) -> np.ndarray:
+        """Publish ``est`` (the consistent estimate where ``consistent`` succeeded); returns
+        the values published (row 0)."""
+        theta = None if consistent is None else consistent.theta   # None: it failed
+        values = est.values if theta is None else theta
+        phi_c = None if consistent is None else consistent.phi
         b = len(est.names)
         msg = Float64MultiArray()
         msg.layout.dim = [MultiArrayDimension(label='value_stddev_unconstrained', size=3,
@@ -124,7 +127,7 @@ class EstimateOutputs:
             if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
                 self._urdf_samples = version
                 with self._lock:
-                    phi = consistent.phi if ok else self.pipeline.standard_parameters()
+                    phi = phi_c if phi_c is not None else self.pipeline.standard_parameters()
                     payload = self.payload.current if self.payload else None
                 self.problems = consistency_problems(self.robot, phi)
                 urdf = identified_urdf(self.robot, phi)
@@ -133,5 +136,6 @@ class EstimateOutputs:
                 self.urdf.publish(String(data=urdf))
             if est.num_samples and math.isfinite(est.stamp):
                 with self._lock:
-                    phi = consistent.phi if ok else self.pipeline.standard_parameters()
+                    phi = phi_c if phi_c is not None else self.pipeline.standard_parameters()
                 self.links.publish(phi, int(round(est.stamp * 1e9)))
+        return values

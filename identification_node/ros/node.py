@@ -4,31 +4,20 @@ Subscribes to ``joint_states`` and, when a joint's torque comes from motor curre
 ``motor_currents`` (sensor_msgs/JointState; channels ``<joint>/ia|ib|ic`` or ``<joint>/i``,
 amperes in effort, optional electrical angle in position). A processing thread of its own
 takes the queued input messages every ``process_period`` (wall clock), copies them into the
-pipeline, runs it on them in one batch and publishes (the effort topics only while they have
-subscribers):
+pipeline and runs it on them in one batch. This module wires the parts, each documented in its
+own module under ros/:
 
-- ``~/predicted_effort``, ``~/measured_effort`` (JointState, stamped with the sample's stamp;
-  ros/effort_outputs.py),
-- ``~/base_parameters`` (Float64MultiArray: row 0 values, row 1 standard deviations, row 2
-  the unconstrained values; row 0 is the physically consistent estimate unless
-  ``physical_consistency`` is false, then rows 0 and 2 agree; ros/estimate_outputs.py),
-- ``~/robot_description`` (String, transient local: URDF with the consistent inertials),
-- ``/diagnostics`` (counters, with ``lost_messages.<topic>``: input messages lost before the
-  node took them, e.g. its queue overflowing while processing stalled, or dropped packets;
-  ros/diagnostics.py);
-
-exposes ``estimate.<name>`` / ``estimate_stddev.<name>`` / ``estimate_unconstrained.<name>``
-parameters (read-only from outside; its settings: ros/parameters.py) and the services
-``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``, served by a thread of their own
-(service_requests.py): commands are applied in order by the processing thread and answered
-once the estimate after them is published; ``~/get_estimate`` answers from the newest
-published estimate (refreshed at ``publish.estimate_rate`` and after every command). The
-constrained solve (consistency.py) runs at every estimate refresh in a child process
-(ros/solver_worker.py), on a snapshot of the pipeline's information taken on the processing
-thread. With ``payload.enabled`` (ros/payload_outputs.py): ``~/payload`` (InertiaStamped,
-transient local), ``~/payload_changed`` (Header: the change's stamp, frame_id the payload
-link), the services ``~/payload/reset`` and ``~/payload/set``, and the payload in
-diagnostics, in ``~/robot_description`` and in what ``~/save`` writes.
+- effort_outputs.py: ``~/predicted_effort``, ``~/measured_effort`` (while they have
+  subscribers);
+- estimate_outputs.py: ``~/base_parameters``, ``~/robot_description``, ``~/links/*`` and the
+  ``estimate.*`` parameters, refreshed at ``publish.estimate_rate`` and after every command
+  from a snapshot of the pipeline taken on the processing thread; the constrained solve
+  (consistency.py) in a child process (solver_worker.py);
+- estimate_services.py: ``~/reset``, ``~/freeze``, ``~/save``, ``~/get_estimate``, served by a
+  thread of their own (service_requests.py): commands are applied in order by the processing
+  thread and answered once the estimate after them is published;
+- diagnostics.py: ``/diagnostics``; parameters.py: settings, outputs, run-time changes;
+- payload_outputs.py (``payload.enabled``), drive_gains.py (``drive_gains.*``).
 """
 from __future__ import annotations
 
@@ -48,7 +37,7 @@ from identification_node.estimation.consistency import pipeline_equations
 from identification_node.pipeline import EstimateReport
 from identification_node.ros.conversions import PolledSubscription
 from identification_node.ros.diagnostics import (NodeStatus, identification_status,
-                                                 smoother_text)
+                                                 smoother_plan, smoother_text)
 from identification_node.ros.drive_gains import COMMAND as DRIVE_GAIN_COMMAND
 from identification_node.ros.drive_gains import DriveGainOutputs
 from identification_node.ros.effort_outputs import EffortOutputs
@@ -153,11 +142,8 @@ class IdentificationNode(Node):
             self.get_logger().warning(note)
         self.get_logger().info(
             f'identifying {self.pipeline.base.num_base} base parameters of {self.robot.name} '
-            f'(joints {", ".join(self.robot.joint_names)}); smoother: '
-            + (smoother_text(self.pipeline.smoother) if self.pipeline.smoother is not None
-               else 'cut-off ' + (f"{s['smoother.cutoff']:g} Hz" if s['smoother.cutoff'] > 0
-                                  else f"to be chosen from the first "
-                                  f"{s['smoother.auto_seconds']:g} s of motion")))
+            f'(joints {", ".join(self.robot.joint_names)}); smoother: ' + smoother_plan(
+                self.pipeline.smoother, s['smoother.cutoff'], s['smoother.auto_seconds']))
 
     @property
     def settings(self) -> Settings:
@@ -217,7 +203,7 @@ class IdentificationNode(Node):
         if not chosen and self.pipeline.smoother is not None:
             self.get_logger().info(f'smoother: {smoother_text(self.pipeline.smoother)}')
         self.efforts.publish(out)
-        if events:
+        if events and self.payload is not None:
             self.payload.publish(events)
 
     def _receive(self) -> None:

@@ -63,12 +63,13 @@ def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescrip
             d.dynamic_typing = True
         return d
     d.type = _TYPES[type(default)]
-    lo, hi = RANGES.get(name, (None, None))
-    if lo is not None and type(default) is int:
-        d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
-    elif lo is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(lo),
-                                                     to_value=float(hi), step=0.0)]
+    bounds = RANGES.get(name)
+    if bounds is not None and type(default) is int:
+        d.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
+                                        step=0)]
+    elif bounds is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
+                                                     to_value=float(bounds[1]), step=0.0)]
     return d
 
 
