@@ -41,6 +41,7 @@ setup(
         'test': [
             'pytest>=7,<10',
             'flake8>=6,<8',
+            'mypy>=1.10,<3',   # `python -m mypy` (setup.cfg [mypy])
             'colcon-common-extensions>=0.3,<0.4',
             'example-robot-data>=6,<7',   # URDFs of real arms (test/arms.py)
         ],

@@ -33,7 +33,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.settings import Settings
 
-# The node parameters that define the identified model (see settings.PARAMETERS).
+# The node parameters that define the identified model (see config.PARAMETERS).
 MODEL_PARAMETERS = ('robot', 'robot_description', 'joints', 'extras', 'coulomb_velocity')
 
 

@@ -34,7 +34,8 @@ def os_error_text(exc: OSError) -> str:
     if exc.errno == errno.EEXIST and path is not None:
         return ('exists and is not a directory' if os.path.lexists(path)
                 and not os.path.isdir(path) else 'exists already')
-    return _OS_TEXT.get(exc.errno) or exc.strerror or str(exc) or type(exc).__name__
+    known = None if exc.errno is None else _OS_TEXT.get(exc.errno)
+    return known or exc.strerror or str(exc) or type(exc).__name__
 
 
 def os_error_line(exc: OSError) -> str:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -28,10 +28,12 @@ PAYLOAD_QUANTITIES = ('payload.mass', 'payload.weight', 'payload.com', 'payload.
 # the checks of model/urdf_export.consistency_problems, per quantity
 POSITIVE = ('m',)               # > 0
 NON_NEGATIVE = ('fv', 'fc', 'Ia')
-ADMITTANCE = {'target': '/admittance_controller',
-              'frame_parameter': 'gravity_compensation.frame.id',
-              'mapping': {'gravity_compensation.CoG.pos': 'payload.com',
-                          'gravity_compensation.CoG.force': 'payload.weight'}}
+# preset: its target node, the frame parameter and the mapping (remote parameter: quantity)
+ADMITTANCE: dict[str, Any] = {
+    'target': '/admittance_controller',
+    'frame_parameter': 'gravity_compensation.frame.id',
+    'mapping': {'gravity_compensation.CoG.pos': 'payload.com',
+                'gravity_compensation.CoG.force': 'payload.weight'}}
 PRESETS = {'admittance': ADMITTANCE}
 
 
@@ -87,16 +89,16 @@ def payload_quantity(name: str, mass: float, com: Sequence[float], mass_sd: floa
                      com_sd: Sequence[float]) -> Quantity:
     """A payload quantity from the payload's mass (kg) and centre of mass (m) and their
     standard deviations (inf where not excited)."""
-    com, com_sd = np.asarray(com, dtype=float), np.asarray(com_sd, dtype=float)
+    centre, centre_sd = np.asarray(com, dtype=float), np.asarray(com_sd, dtype=float)
     if name == 'payload.mass':
         q = Quantity(np.array([mass]), np.array([mass_sd]))
     elif name == 'payload.weight':
         q = Quantity(np.array([mass * GRAVITY]), np.array([mass_sd * GRAVITY]))
     elif name == 'payload.com':
-        q = Quantity(com, com_sd)
+        q = Quantity(centre, centre_sd)
     else:
         k = 'xyz'.index(name[-1])
-        q = Quantity(com[k:k + 1], com_sd[k:k + 1])
+        q = Quantity(centre[k:k + 1], centre_sd[k:k + 1])
     if not mass > 0 or not math.isfinite(mass_sd):
         q.problem = f'payload mass {mass:.6g} kg is not physically consistent or not excited'
     elif not np.isfinite(q.stddev).all():

@@ -54,7 +54,7 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
         # current alignment wait for; offline replay flushes them. A node slowed by a loaded
         # machine is still taking its queue: wait for it.
         live = wait_for(lambda: (e := live_estimate())['num_samples'] >= est.num_samples - 5
-                        and e, 90) or live_estimate()
+                        and e['consistency_status'] != 'starting' and e, 90) or live_estimate()
     finally:
         stop_process(node)
     assert live['names'] == est.names

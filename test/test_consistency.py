@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -348,13 +349,18 @@ def test_solution_within_tolerance_is_projected(panda, monkeypatch):
 
 def test_solver_process_equals_in_process_and_survives_its_child(panda):
     """The node's solver runs in a child process: same result; a child that died is replaced
-    by the next solve; an error in the child comes back as the status."""
+    by the next solve; an error in the child comes back as the status. ``ready`` tells without
+    waiting when the child has built its problem."""
     robot, base = panda
     Yb, tau = data(robot, base, truth(robot), 5.0, 0.6, 0.1, seed=17)
     ne = NormalEquations.from_rows(Yb, tau)
     here = ConsistentSolver.for_robot(robot, base).solve(ne, 100.0)
     child = SolverProcess.for_robot(robot, base)
     try:
+        assert not child.ready()        # not started
+        child.start()
+        while not child.ready():        # a poll, never a wait for the build
+            time.sleep(0.01)
         there = child.solve(ne, 100.0)
         assert there.status == 'optimal'
         # to the solver's tolerance (each process orders cvxpy's canonical form its own way)

@@ -29,7 +29,7 @@ def test_help_prints_help_and_starts_nothing(script, capsys, monkeypatch):
 
 def test_node_help_lists_its_parameters(capsys):
     from identification_node.programs import identification_node
-    from identification_node.settings import PARAMETERS
+    from identification_node.config import PARAMETERS
     with pytest.raises(SystemExit):
         identification_node(['--help'])
     out = capsys.readouterr().out

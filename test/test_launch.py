@@ -185,7 +185,7 @@ def _forwarder_parameters() -> set[str]:
 
 def test_every_parameter_named_exists(launched):
     from identification_node.ros.sim_node import SIM_PARAMETERS
-    from identification_node.settings import PARAMETERS
+    from identification_node.config import PARAMETERS
     known = {'identification_node': set(PARAMETERS), 'simulated_arm': set(SIM_PARAMETERS),
              'payload_forwarder': _forwarder_parameters()}
     assert {'preset', 'service', 'fields'} <= known['payload_forwarder']

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from identification_node.config import PARAMETERS
 from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
@@ -18,7 +19,7 @@ from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.simulation import SensorNoise, simulate_kinematic
 from identification_node.offline.identification import offline_identify, replay_identify
-from identification_node.settings import PARAMETERS, Settings
+from identification_node.settings import Settings
 
 FV = np.array([0.5, 0.3, 0.1])      # N m s/rad, per joint of the MIT arm
 FC = np.array([1.0, 0.5, 0.2])      # N m

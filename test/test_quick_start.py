@@ -9,7 +9,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 
 from identification_node.cli import main
-from identification_node.settings import PARAMETERS
+from identification_node.config import PARAMETERS
 from ros_helpers import PYTHON, ROOT, Collector, diagnostic_values, wait_for
 
 CONFIG = ROOT / 'config' / 'identification.yaml'

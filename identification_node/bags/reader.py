@@ -12,6 +12,7 @@ the receive time stored by the recorder, ``stamp`` the message's ``header.stamp`
 """
 from __future__ import annotations
 
+import os
 import struct
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -124,12 +125,12 @@ class BagReader:
     message_count, start_ns/end_ns (first/last log time), start_time/end_time [s], duration.
     """
 
-    def __init__(self, path: str | Path, *, allow_empty: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike, *, allow_empty: bool = False) -> None:
         self.path = Path(path)
         self._files: list[BinaryIO] = []
         target = _storage_target(self.path)
         try:
-            self._reader = Reader(target)
+            self._reader: Reader | None = Reader(target)
             self._reader.open()
             # chunk checksums before any message: corruption is an error naming the chunk
             files = sorted(target.glob('*.mcap')) if target.is_dir() else [target]
@@ -147,6 +148,7 @@ class BagReader:
 
     def _setup(self, allow_empty: bool) -> None:
         reader = self._reader
+        assert reader is not None  # opened by __init__
         self._connections = list(reader.connections)
         self.topics: dict[str, str] = {}
         self.topic_counts: dict[str, int] = {}
@@ -268,7 +270,7 @@ class BagReader:
                 f'{len(self.topics)} topics, {self.duration:.3f} s)')
 
 
-def open_bag(path: str | Path, *, allow_empty: bool = False) -> BagReader:
+def open_bag(path: str | os.PathLike, *, allow_empty: bool = False) -> BagReader:
     """Open a rosbag2 bag for reading (see BagReader)."""
     return BagReader(path, allow_empty=allow_empty)
 

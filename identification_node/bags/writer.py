@@ -14,7 +14,7 @@ import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -31,7 +31,7 @@ from identification_node.wire.cdr import (CLOCK, DIAGNOSTIC_ARRAY, FLOAT64_MULTI
                                           JOINT_STATE, JOINT_TRAJECTORY, STRING,
                                           encode_joint_state, jazzy_typestore, sec_nsec)
 
-_BAG_VERSION = 9  # rosbag2 metadata version written by Jazzy
+_BAG_VERSION: Final = 9  # rosbag2 metadata version written by Jazzy
 
 __all__ = [
     'BagWriter', 'check_replaceable', 'not_a_bag', 'make_time', 'make_duration', 'make_header',

@@ -14,6 +14,7 @@ import os
 import sys
 from typing import Sequence
 
+from identification_node.config import default as parameter_default
 from identification_node.error_lines import error_line
 from identification_node.errors import IdentificationError
 
@@ -44,7 +45,8 @@ def add_robot_arguments(parser: argparse.ArgumentParser, required: bool = True) 
                         '(default: all movable joints; the others are locked)')
     parser.add_argument('--extras', default='',
                         help='comma-separated per-joint columns: fv,fc,fo,Ia (friction, offset, '
-                        'rotor inertia); none: no column (identify\'s default: fv,fc,fo)')
+                        'rotor inertia); none: no column (identify\'s default: '
+                        f'{",".join(parameter_default("extras"))})')
 
 
 def split_list(text: str | None) -> list[str]:

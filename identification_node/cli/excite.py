@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 from identification_node.cli import add_robot_arguments, robot_from_args, split_list
+from identification_node.config import Excitation
 
 TOPIC = '/excitation_trajectory'
 CONFIG_KEYS = ('limits', 'margin', 'start', 'periods', 'min_distance', 'srdf',
@@ -35,11 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_robot_arguments(parser)
     parser.add_argument('--config', help='excitation YAML: ' + ', '.join(CONFIG_KEYS))
     parser.add_argument('--harmonics', type=int, default=None,
-                        help='harmonics per joint (default 5, or the --initial file\'s)')
+                        help=f'harmonics per joint (default {Excitation.harmonics}, or the '
+                        '--initial file\'s)')
     parser.add_argument('--period', type=float, default=None,
-                        help='period of the series in s (default 10, or the --initial file\'s)')
+                        help=f'period of the series in s (default {Excitation.period:g}, or '
+                        'the --initial file\'s)')
     parser.add_argument('--periods', type=int, default=None,
-                        help='periods between the ramps (default 5)')
+                        help=f'periods between the ramps (default {Excitation.periods})')
     parser.add_argument('--start', help='comma-separated start (and end) configuration, rad '
                         '(default: the offset of the series)')
     parser.add_argument('--criterion', choices=('cond', 'dopt'), default='cond',
@@ -48,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--limits', help='YAML file of per-joint limits overriding the '
                         "robot's: joint: {position: [lo, hi], velocity, acceleration, effort}")
     parser.add_argument('--margin', type=float, default=None,
-                        help='fraction of every limit kept free (default 0.1)')
+                        help=f'fraction of every limit kept free (default '
+                        f'{Excitation.margin:g})')
     parser.add_argument('--no-effort', action='store_true',
                         help='ignore the torque (effort) limits of the robot description')
     parser.add_argument('--estimate', metavar='FILE',
@@ -58,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            help='directory resolving package:// meshes (repeatable)')
     collision.add_argument('--srdf', help='MoveIt SRDF: its disabled pairs are not checked')
     collision.add_argument('--min-distance', type=float, default=None,
-                           help='minimum distance between checked pairs, m (default 0.01)')
+                           help='minimum distance between checked pairs, m (default '
+                           f'{Excitation.min_distance:g})')
     collision.add_argument('--no-collision', action='store_true',
                            help='do not check collisions')
     parser.add_argument('--noise-std', help='comma-separated torque noise standard deviations '
@@ -69,14 +74,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         'A465) or a YAML file of Fourier coefficients')
     parser.add_argument('--seed', type=int, default=0, help='seed of the initial guess')
     parser.add_argument('--maxiter', type=int, default=None,
-                        help='SLSQP iterations (default 200)')
+                        help=f'SLSQP iterations (default {Excitation.maxiter})')
     parser.add_argument('--time-limit', type=float, default=None, metavar='S',
                         help='stop optimising after S seconds and keep the best feasible '
                         'design found by then (default: none)')
     parser.add_argument('--samples', type=int, default=None,
-                        help='criterion samples over one period (default 100)')
-    parser.add_argument('--rate', type=float, default=100.0,
-                        help='sample rate of the CSV, the plot and the bag, Hz (default 100)')
+                        help=f'criterion samples over one period (default {Excitation.samples})')
+    parser.add_argument('--rate', type=float, default=Excitation.rate,
+                        help='sample rate of the CSV, the plot and the bag, Hz (default '
+                        f'{Excitation.rate:g})')
     parser.add_argument('--out', required=True,
                         help='output YAML file (.yaml/.yml); the CSV and PNG go beside it')
     parser.add_argument('--bag', help=f'also write a JointTrajectory on {TOPIC} to this bag')
@@ -242,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
         checker=checker, progress=lambda line: print(line, flush=True),
         time_limit=args.time_limit)
     framed = result.framed
+    assert framed is not None   # optimize_excitation's result is framed
 
     baseline = None
     if robot.name == 'crs_a465' and robot.dof == 6 and harmonics >= 5:
@@ -286,9 +293,12 @@ def run(args: argparse.Namespace) -> int:
               + '; '.join(limits.assumed_list()))
     if checker is not None:
         c = result.clearance
-        print(f'collision: {checker.num_pairs} pairs checked ({checker.srdf_removed} disabled '
-              f'by the SRDF), smallest distance {c["distance"]:.4g} m ({c["pair"][0]} - '
-              f'{c["pair"][1]}), minimum {checker.min_distance:g} m')
+        line = f'collision: {checker.num_pairs} pairs checked'
+        line += f' ({checker.srdf_removed} disabled by the SRDF)'
+        if c is not None:
+            line += (f', smallest distance {c["distance"]:.4g} m ({c["pair"][0]} - '
+                     f'{c["pair"][1]}), minimum {checker.min_distance:g} m')
+        print(line)
     elif not args.no_collision:
         print(f'collision: not checked (the description of {robot.name} has no collision '
               'geometry)')

@@ -2,7 +2,7 @@
 
 ``python -m identification_node node --ros-args --params-file config/identification.yaml``;
 every argument after the verb goes to ROS (parameters: ``node --help``, from
-settings.PARAMETERS). Exits 2 on invalid parameters.
+config.PARAMETERS). Exits 2 on invalid parameters.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ ROS_ARGS = True   # the CLI passes unparsed arguments on as args.ros_args
 
 
 def _parameters() -> dict:
-    from identification_node.settings import PARAMETERS
+    from identification_node.config import PARAMETERS
     return PARAMETERS
 
 

@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
             bag.write_joint_state('/joint_states', ns, t, names, sim.q_meas[k],
                                   () if args.no_velocity else sim.qd_meas[k],
                                   () if args.no_effort else sim.tau_meas[k])
-            if slots:
+            if volts is not None:   # current channels (slots)
                 bag.write_joint_state(
                     '/motor_currents', ns, t, [s[0] for s in slots],
                     [sim.theta_e[k, i] for _, i, _ in slots],

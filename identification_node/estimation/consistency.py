@@ -42,21 +42,17 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
+from identification_node.config import Consistency, default
 from identification_node.errors import IdentificationError
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 
-DEFAULT_WEIGHT = 1e-3      # gamma: prior weight outside the confidence region (chi-square units)
-DEFAULT_CONFIDENCE = 0.99  # chi-square level of the data's confidence region (0: none)
 NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
-DEFAULT_MASS_RATIO = 3.0   # link masses within [1/3, 3] x the description's
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
-DEFAULT_MARGIN = 1e-6      # eps: J - eps 1 >= 0 (kg, kg m^2), lowered for tiny priors
-DEFAULT_TIME_LIMIT = 5.0   # s per solve
 EXTRA_SCALE = 1e-2         # s_k floor of the per-joint columns' regulariser (SI)
 NONNEGATIVE = ('fv', 'fc', 'Ia')
 SOLVERS = ('CLARABEL', 'SCS')
@@ -131,20 +127,20 @@ class ConsistentEstimate:
 
 @dataclass(frozen=True)
 class ConsistencyOptions:
-    """Settings of the solve (config: ``physical_consistency.*``). ``mass_ratio`` r > 1: each
+    """Settings of the solve (parameters ``consistency.*``). ``mass_ratio`` r > 1: each
     body's mass within [m0 / r, r m0] of the description's m0 (0: no bound); ``total_mass``
     (lo, hi) kg of the identified bodies together, or empty."""
-    weight: float = DEFAULT_WEIGHT
-    margin: float = DEFAULT_MARGIN
-    solver: str = 'CLARABEL'
-    time_limit: float = DEFAULT_TIME_LIMIT
-    geometry_box: bool = True      # default CoM box from the URDF's collision/visual shapes
-    mass_min: Sequence[float] = ()   # per identified link (kg), or empty
-    mass_max: Sequence[float] = ()
-    com_box: Sequence[float] = ()    # 6 per identified link: lo xyz, hi xyz (m), or empty
-    confidence: float = DEFAULT_CONFIDENCE
-    mass_ratio: float = DEFAULT_MASS_RATIO
-    total_mass: Sequence[float] = ()
+    weight: float = Consistency.weight   # gamma: prior weight outside the confidence region
+    margin: float = Consistency.margin   # eps: J - eps 1 >= 0 (kg, kg m^2)
+    solver: str = Consistency.solver
+    time_limit: float = Consistency.time_limit   # s per solve
+    geometry_box: bool = Consistency.geometry_box   # CoM box from the URDF's shapes
+    mass_min: Sequence[float] = tuple(default('consistency.mass_min'))   # per link (kg)
+    mass_max: Sequence[float] = tuple(default('consistency.mass_max'))
+    com_box: Sequence[float] = tuple(default('consistency.com_box'))   # 6 per link: lo, hi xyz
+    confidence: float = Consistency.confidence   # chi-square level of the data's region
+    mass_ratio: float = Consistency.mass_ratio   # link masses within [1/r, r] x description's
+    total_mass: Sequence[float] = tuple(default('consistency.total_mass'))
 
     def validate(self, num_links: int | None = None) -> None:
         """IdentificationError naming the first bad setting (``consistency.<name>``)."""
@@ -258,8 +254,8 @@ class ConsistentSolver:
             if np.isfinite(hi):
                 constraints.append(total[0] <= hi)
             if body.com_box is not None:
-                lo, hi = body.com_box
-                constraints += [total[1:4] >= total[0] * lo, total[1:4] <= total[0] * hi]
+                com_lo, com_hi = body.com_box
+                constraints += [total[1:4] >= total[0] * com_lo, total[1:4] <= total[0] * com_hi]
         if len(self.options.total_mass) and masses:
             lo, hi = self.options.total_mass
             constraints += [sum(masses) >= lo, sum(masses) <= hi]
@@ -274,14 +270,14 @@ class ConsistentSolver:
             S = np.zeros((p, ne))
             S[self._extra, np.arange(ne)] = 1.0
             phi = phi + S @ x
-        self._phi = phi
+        self._phi: Any = phi   # a cvxpy expression (cvxpy has no type information)
         constraints.append(cp.sum_squares(self._M @ (base.K @ phi) - self._m)
                            <= self._q + self._t)
         self.problem = cp.Problem(cp.Minimize(regulariser + self._t / gamma), constraints)
         self._phi_prior = phi_prior
         # a base parameter's typical size: its terms' prior magnitudes (the floor's unit)
         self._typical = np.abs(base.K) @ np.maximum(np.abs(phi_prior), EXTRA_SCALE)
-        self._solved = set()
+        self._solved: set[str] = set()
 
     @classmethod
     def for_robot(cls, robot, base: BaseParameters,

@@ -63,7 +63,8 @@ class DriveGain:
         if diff > WARN_SIGMA * self.stddev and diff > WARN_RELATIVE * self.configured:
             return (f'drive gain of {self.joint}: identified {self.value:.5g} +- '
                     f'{self.stddev:.2g} N m/A ({self.method}) differs from the configured '
-                    f'kt * gear_ratio = {self.configured:.5g} by {100 * (self.ratio - 1):+.1f} '
+                    f'kt * gear_ratio = {self.configured:.5g} '
+                    f'by {100 * (self.value / self.configured - 1):+.1f} '
                     '%: the torques (and every parameter of this joint) scale with it')
         return None
 
@@ -198,13 +199,14 @@ def known_payload_gains(joints: list[str], equations: NormalEquations,
 def mark_used(gains: list[DriveGain]) -> list[DriveGain]:
     """``gains`` with, per joint, the determined gain of least relative stddev marked
     ``used`` (the others not)."""
-    best: dict[str, DriveGain] = {}
+    best: dict[str, tuple[float, DriveGain]] = {}   # joint: (relative stddev, gain)
     for g in gains:
         g.used = False
-        if g.value is not None and (g.joint not in best or g.stddev / g.value
-                                    < best[g.joint].stddev / best[g.joint].value):
-            best[g.joint] = g
-    for g in best.values():
+        if g.value is not None:
+            relative = g.stddev / g.value
+            if g.joint not in best or relative < best[g.joint][0]:
+                best[g.joint] = (relative, g)
+    for _, g in best.values():
         g.used = True
     return gains
 

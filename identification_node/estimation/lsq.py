@@ -60,7 +60,7 @@ def _relative(stddev: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def _qr_r(a: np.ndarray) -> np.ndarray:
     """Upper-triangular R (..., k, k) of the QR factorisation of a (..., m, k), m >= k."""
-    return np.linalg.qr(a, mode='r')
+    return np.linalg.qr(a, mode='r')  # type: ignore[return-value]  # stubs: QRResult always
 
 
 def _check_count(name: str, value: int, minimum: int = 1) -> int:

@@ -31,7 +31,7 @@ per-joint information sums, forgotten alike.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, cast
 
 import numpy as np
 
@@ -232,7 +232,8 @@ class RecursiveLeastSquares:
 
         spans = [(a, min(a + _CHUNK, N)) for a in range(0, N, _CHUNK)]
         if information is None or decay is not None:
-            information = sum(row_information(chunk(a, b)) for a, b in spans)
+            # N >= 1, so at least one span: an array, never sum's start 0
+            information = cast(np.ndarray, sum(row_information(chunk(a, b)) for a, b in spans))
         # The forgetting regulariser, anchored at the estimate before the batch.
         old = self._F if f == 1.0 else np.sqrt(f) * self._F
         if f < 1.0:

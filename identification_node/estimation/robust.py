@@ -26,6 +26,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from identification_node.config import Robust
 from identification_node.errors import IdentificationError
 
 ARM_FRACTION = 0.05   # of a batch's samples beyond k sigma, at most, for the gate to arm
@@ -34,10 +35,10 @@ ARM_FRACTION = 0.05   # of a batch's samples beyond k sigma, at most, for the ga
 @dataclass
 class RobustSettings:
     """The gate's settings (the node's ``robust.*`` parameters)."""
-    enabled: bool = True
-    k: float = 5.0               # residual standard deviations beyond which a sample is gated
-    window: int = 1000           # samples over which the gated fraction is watched
-    shift_fraction: float = 0.5  # gated fraction of the window that is a residual shift
+    enabled: bool = Robust.enabled
+    k: float = Robust.k                     # residual standard deviations beyond: gated
+    window: int = Robust.window             # samples over which the gated fraction is watched
+    shift_fraction: float = Robust.shift_fraction   # gated fraction that is a residual shift
 
     def validate(self) -> None:
         checks = [('k', math.isfinite(self.k) and self.k >= 2, 'finite and >= 2'),

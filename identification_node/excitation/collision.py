@@ -26,9 +26,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
+from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 
-DEFAULT_MIN_DISTANCE = 0.01   # m
+DEFAULT_MIN_DISTANCE = Excitation.min_distance   # m
 HULL_TOLERANCE = 1e-6         # m: GJK's tolerance, allowed between a hull bound and the mesh
 
 

@@ -25,12 +25,13 @@ from typing import Sequence
 
 import numpy as np
 
+from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.limits import _numbers
 from identification_node.excitation.trajectories import FramedTrajectory, Trajectory
 
 CRITERIA = ('cond', 'dopt')
-DEFAULT_SAMPLES = 100       # criterion samples over one period
+DEFAULT_SAMPLES = Excitation.samples   # criterion samples over one period
 _RANK_TOL = 1e-12  # singular value (or diagonal of R) ratio below which W is rank deficient
 
 

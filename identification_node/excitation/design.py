@@ -30,6 +30,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.criteria import (DEFAULT_SAMPLES, _base_of, _check_criterion,
                                                      _noise_weights, _objective, _report_value)
@@ -40,13 +41,13 @@ from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, V
 from identification_node.excitation.trajectories import (TABLE1_PERIOD, FourierTrajectory,
                                                          FramedTrajectory, Trajectory)
 
-DEFAULT_HARMONICS = 5
-DEFAULT_PERIOD = 10.0
-DEFAULT_MAXITER = 200       # SLSQP iterations
+DEFAULT_HARMONICS = Excitation.harmonics
+DEFAULT_PERIOD = Excitation.period
+DEFAULT_MAXITER = Excitation.maxiter   # SLSQP iterations
 LSQ_POINTS = 100            # random target velocities of the initial guess (paper: 100)
 MARGIN = 1.0                # the optimiser's constraints: smooth max of the ratios <= MARGIN
-DEFAULT_LIMIT_MARGIN = 0.1  # fraction of every limit kept free (position: of the half range)
-DEFAULT_PERIODS = 5         # periods of the periodic part between the ramps
+DEFAULT_LIMIT_MARGIN = Excitation.margin   # fraction of every limit kept free
+DEFAULT_PERIODS = Excitation.periods   # periods of the periodic part between the ramps
 COLLISION_RATE = 100.0      # Hz: collision check of the final trajectory (and 10 ms at most)
 COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's constraints
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
@@ -431,7 +432,7 @@ class _Design:
         if self.checker is not None:
             ks, dks = self._collision_ks(x, jac)
             values.append(ks)
-            if jac:
+            if dks is not None:   # jac
                 rows.append(dks)
         return np.concatenate(values), (np.vstack(rows) if jac else None)
 
@@ -442,6 +443,7 @@ class _Design:
     def _collision_ks(self, x: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Per pair, KS over the collision samples of 1 + (d_req - d) / COLLISION_SCALE, and
         its Jacobian (pairs, nx)."""
+        assert self.checker is not None   # called only with collision constraints
         key = x.tobytes()
         cached = self._collision
         if cached is None or cached[0] != key or (jac and cached[2] is None):
@@ -457,6 +459,7 @@ class _Design:
         ks, w = _ks(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if not jac:
             return ks, None
+        assert g is not None   # computed with the Jacobian
         # d r / d x[i, :] = -g[s, p, i] Bc[s, :] / scale, weighted by w[s, p]
         dks = -np.einsum('sp,spi,sk->pik', w, g, self.Bc) / COLLISION_SCALE
         return ks, dks.reshape(len(ks), -1)
@@ -465,7 +468,9 @@ class _Design:
         return self.margin - self._limits(x, False)[0]
 
     def constraint_jac(self, x: np.ndarray) -> np.ndarray:
-        return -self._limits(x, True)[1]
+        jacobian = self._limits(x, True)[1]
+        assert jacobian is not None   # asked for
+        return -jacobian
 
 
 @dataclass
@@ -517,7 +522,7 @@ class ExcitationResult:
         """Plain data for YAML: criterion, parts' durations, limit ratios (of the limits
         without margin), collision clearance, optimisation statistics and warnings."""
         names = self.trajectory.joint_names or []
-        out = {
+        out: dict[str, Any] = {
             'criterion': {'name': self.criterion, 'value': self.value,
                           'initial': self.initial_value,
                           'initial_feasible': bool(self.initial_feasible),
@@ -584,7 +589,7 @@ def _ramp(periodic: FourierTrajectory, robot, limits: ExcitationLimits, start: n
             return T
         worst = max(LIMIT_KINDS, key=lambda k: ratios[k])
         T *= RAMP_GROWTH
-    names = periodic.joint_names or list(range(periodic.dof))
+    names: Sequence[str | int] = periodic.joint_names or list(range(periodic.dof))
     raise IdentificationError(
         f'infeasible: no ramp {side} of at most {RAMP_MAX:g} s between the start configuration '
         f'and the motion stays within the limits ({worst} of '
@@ -604,7 +609,7 @@ def frame_excitation(periodic: FourierTrajectory, robot, limits: ExcitationLimit
     return FramedTrajectory(periodic, start, t_in, t_out, periods)
 
 
-def _start(start: Sequence[float], limits: ExcitationLimits) -> np.ndarray:
+def _start(start: Sequence[float] | np.ndarray, limits: ExcitationLimits) -> np.ndarray:
     q = _numbers('start configuration', start).reshape(-1)
     if q.shape != (limits.dof,) or not np.all(np.isfinite(q)):
         raise IdentificationError(f'start configuration needs {limits.dof} finite values '
@@ -629,6 +634,7 @@ def framed_clearance(framed: FramedTrajectory, robot, checker, travel: float = 0
     ``travel`` / v (no point moves more than ``travel`` m between checked times, as on a
     uniform grid of that step) and at most 1 / COLLISION_RATE."""
     t0, t1 = framed.periodic_window
+    assert framed.periodic.period is not None   # a framed trajectory's is periodic
     period = float(framed.periodic.period)
     probe = np.linspace(0.0, framed.duration, max(2001, int(framed.duration * VERIFY_RATE)))
     speed = float(np.abs(framed.sample(probe)[1]).sum(axis=1).max())
@@ -727,7 +733,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         raise IdentificationError('the initial trajectory does not excite every base '
                                   'parameter: try another seed or more harmonics')
     # init is inside the limits (shrunk on the fine grid); collisions at the design's samples
-    initial_feasible = checker is None or bool(
+    initial_feasible = design.checker is None or bool(   # None iff checker is
         design.checker.distances(design.collision_configs(x0)).min()
         >= checker.min_distance)
     # SLSQP's first step follows the gradient with a unit Hessian: scale the function so that

@@ -76,7 +76,7 @@ class ExcitationLimits:
         acc = DEFAULT_ACCELERATION_RATE * vel
         assumed: dict = {}
         for i, j in enumerate(robot.joint_names):
-            entry = {}
+            entry: dict[str, float | None] = {}
             if not has_pos[i]:
                 entry['position'] = None
             if not has_vel[i]:

@@ -10,7 +10,7 @@ import io
 import math
 import os
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Protocol, Sequence
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -49,6 +49,31 @@ DEFAULT_VELOCITY = 2.0
 DEFAULT_HALF_RANGE = math.pi
 
 
+class _Joints(Protocol):
+    """A robot as match_joints sees it: a RobotModel, or anything naming its joints."""
+
+    @property
+    def joint_names(self) -> Sequence[str]: ...
+
+
+class _JointLimits(_Joints, Protocol):
+    """Joint limits as a RobotModel or ExcitationLimits give them: position (n, 2) rad or
+    m, velocity (n,) rad/s or m/s (an acceleration_limits (n,) too when they have one)."""
+
+    @property
+    def position_limits(self) -> np.ndarray: ...
+
+    @property
+    def velocity_limits(self) -> np.ndarray: ...
+
+
+class _Robot(_JointLimits, Protocol):
+    """A RobotModel as load_trajectory uses it."""
+
+    @property
+    def dof(self) -> int: ...
+
+
 def _as_times(t: np.ndarray | float) -> np.ndarray:
     t = np.atleast_1d(np.asarray(t, dtype=float))
     if t.ndim != 1:
@@ -78,7 +103,10 @@ class Trajectory:
 
     def horizon(self) -> float:
         """Length of one pass: the duration, or one period for periodic trajectories."""
-        return self.duration if math.isfinite(self.duration) else float(self.period)
+        if math.isfinite(self.duration):
+            return self.duration
+        assert self.period is not None   # an endless trajectory is periodic
+        return float(self.period)
 
 
 class FourierTrajectory(Trajectory):
@@ -87,6 +115,8 @@ class FourierTrajectory(Trajectory):
 
     ``a``, ``b``: (n, H) velocity amplitudes (rad/s), ``q0``: (n,) offsets (rad), period in s.
     """
+
+    period: float
 
     def __init__(self, a: np.ndarray, b: np.ndarray, q0: np.ndarray, period: float,
                  joint_names: Sequence[str] | None = None):
@@ -157,8 +187,8 @@ class FourierTrajectory(Trajectory):
                    period, joint_names)
 
     @classmethod
-    def random(cls, limits: object, harmonics: int = 5, period: float = 10.0, seed: int = 0,
-               margin: float = 0.8) -> FourierTrajectory:
+    def random(cls, limits: _JointLimits | Mapping, harmonics: int = 5, period: float = 10.0,
+               seed: int = 0, margin: float = 0.8) -> FourierTrajectory:
         """A seeded random excitation inside ``margin`` times the position and velocity limits
         of a RobotModel or limits mapping (see check_limits), centred in the position range.
         Amplitudes fall as 1/l with the harmonic l."""
@@ -244,9 +274,13 @@ class QuinticMoves(Trajectory):
         # Segments: each move followed by its rest (a zero-displacement segment).
         starts, ends, lengths = [], [], []
         for k in range(dur.shape[0]):
-            starts.append(wp[k]), ends.append(wp[k + 1]), lengths.append(dur[k])
+            starts.append(wp[k])
+            ends.append(wp[k + 1])
+            lengths.append(dur[k])
             if rests[k] > 0:
-                starts.append(wp[k + 1]), ends.append(wp[k + 1]), lengths.append(rests[k])
+                starts.append(wp[k + 1])
+                ends.append(wp[k + 1])
+                lengths.append(rests[k])
         self.waypoints, self.durations, self.rests = wp, dur, rests
         self._p0, self._dp = np.array(starts), np.array(ends) - np.array(starts)
         self._len = np.array(lengths)
@@ -259,7 +293,8 @@ class QuinticMoves(Trajectory):
         self.joint_names = None if joint_names is None else [str(j) for j in joint_names]
 
     @classmethod
-    def from_moves(cls, moves: Sequence[tuple[Sequence[float], Sequence[float]]],
+    def from_moves(cls, moves: Sequence[tuple[Sequence[float] | np.ndarray,
+                                              Sequence[float] | np.ndarray]],
                    durations: Sequence[float] | float, rest: float = 0.0,
                    transfer_duration: float | None = None, repeat: bool = False,
                    joint_names: Sequence[str] | None = None) -> QuinticMoves:
@@ -268,22 +303,22 @@ class QuinticMoves(Trajectory):
         by default the previous move's duration stretched by the ratio of the largest joint
         displacements (transfer / previous move) when larger, so its peak speed stays at or
         below the moves'."""
-        moves = [(np.asarray(s, float), np.asarray(e, float)) for s, e in moves]
-        if not moves:
+        pairs = [(np.asarray(s, float), np.asarray(e, float)) for s, e in moves]
+        if not pairs:
             raise IdentificationError('no moves given')
-        dur = _per_move('durations', durations, len(moves))
-        points, lengths = [moves[0][0], moves[0][1]], [float(dur[0])]
-        for k in range(1, len(moves)):
-            start, end = moves[k]
+        dur = _per_move('durations', durations, len(pairs))
+        points, lengths = [pairs[0][0], pairs[0][1]], [float(dur[0])]
+        for k in range(1, len(pairs)):
+            start, end = pairs[k]
             if not np.allclose(start, points[-1], rtol=0, atol=1e-12):
                 points.append(start)
-                lengths.append(cls._transfer_time(points[-2], start, moves[k - 1],
+                lengths.append(cls._transfer_time(points[-2], start, pairs[k - 1],
                                                   float(dur[k - 1]), transfer_duration))
             points.append(end)
             lengths.append(float(dur[k]))
         back = None
         if repeat and not np.allclose(points[-1], points[0], rtol=0, atol=1e-12):
-            back = cls._transfer_time(points[-1], points[0], moves[-1], float(dur[-1]),
+            back = cls._transfer_time(points[-1], points[0], pairs[-1], float(dur[-1]),
                                       transfer_duration)
         elif repeat:
             points, back = points[:-1], lengths.pop()  # the last move already returns
@@ -437,6 +472,7 @@ class FramedTrajectory(Trajectory):
     @property
     def periodic_window(self) -> tuple[float, float]:
         """(start, end) of the periodic part, s from the start of the trajectory."""
+        assert self.periodic.period is not None   # checked by __init__
         return self.ramp_in, self.ramp_in + self.periods * float(self.periodic.period)
 
     def parts(self) -> dict:
@@ -475,7 +511,7 @@ class FramedTrajectory(Trajectory):
     @classmethod
     def from_dict(cls, d: Mapping) -> FramedTrajectory:
         """Inverse of to_dict (a Fourier trajectory with a 'framing' mapping)."""
-        f = d.get('framing') if isinstance(d, Mapping) else None
+        f: Any = d.get('framing') if isinstance(d, Mapping) else None   # YAML data
         _check_keys(f, ('start', 'ramp_in', 'ramp_out', 'periods'), 'framing')
         periodic = FourierTrajectory.from_dict(d)
         try:
@@ -499,10 +535,11 @@ def write_motion_csv(path: str | os.PathLike, t: np.ndarray, q: np.ndarray, qd: 
     return atomic_write_text(path, buf.getvalue())
 
 
-def _limits_of(limits: object) -> tuple[np.ndarray, np.ndarray, np.ndarray, list | None]:
+def _limits_of(limits: _JointLimits | Mapping
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list | None]:
     """(position (n,2), velocity (n,), acceleration (n,), joint names) of a RobotModel or a
     mapping with keys position, velocity and optional acceleration; missing -> inf."""
-    if hasattr(limits, 'position_limits'):
+    if hasattr(limits, 'position_limits') and not isinstance(limits, Mapping):
         pos = np.asarray(limits.position_limits, float)
         vel = np.asarray(limits.velocity_limits, float)
         acc = np.asarray(getattr(limits, 'acceleration_limits', np.full(pos.shape[0], np.inf)),
@@ -530,7 +567,8 @@ def _centre_half(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (p[:, 0] + p[:, 1]), np.where(finite, 0.5 * (p[:, 1] - p[:, 0]), np.inf)
 
 
-def check_limits(traj: Trajectory, limits: object, t: np.ndarray | None = None) -> dict:
+def check_limits(traj: Trajectory, limits: _JointLimits | Mapping,
+                 t: np.ndarray | None = None) -> dict:
     """Worst limit ratios of ``traj`` over times ``t`` (default: 2001 samples of one pass).
 
     Position ratio: |q - centre| / half range (1 = at a limit); velocity and acceleration:
@@ -553,13 +591,13 @@ def check_limits(traj: Trajectory, limits: object, t: np.ndarray | None = None) 
     centre, half = _centre_half(pos)
     per = {'position': ratio(np.abs(q - centre), half), 'velocity': ratio(np.abs(qd), vel),
            'acceleration': ratio(np.abs(qdd), acc)}
-    out = {k: float(v.max()) for k, v in per.items()}
+    out: dict[str, Any] = {k: float(v.max()) for k, v in per.items()}
     out['worst_joint'] = {k: int(np.argmax(v)) for k, v in per.items()}
     out['per_joint'] = per
     return out
 
 
-def match_joints(traj: Trajectory, robot: object, source: str = 'trajectory') -> Trajectory:
+def match_joints(traj: Trajectory, robot: _Joints, source: str = 'trajectory') -> Trajectory:
     """``traj`` with its columns in the robot's joint order (by joint names when it has them);
     IdentificationError when the joints do not match."""
     joints = list(robot.joint_names)
@@ -584,7 +622,7 @@ def match_joints(traj: Trajectory, robot: object, source: str = 'trajectory') ->
     return traj
 
 
-def load_trajectory(spec: str, robot: object, seed: int = 0) -> Trajectory:
+def load_trajectory(spec: str, robot: _Robot, seed: int = 0) -> Trajectory:
     """A trajectory for ``robot`` (a RobotModel) from a name or a file.
 
     'paper_moves': the MIT arm's quintic moves (3 joints); 'table1': the CRS A460/A465 Table I

@@ -78,7 +78,7 @@ def unexcited_directions(information: np.ndarray, names: Sequence[str],
         return [('all parameters (the information is not finite)', list(names))]
     d = np.sqrt(np.maximum(np.diag(info), 0.0))
     ok = d > 1e-12 * max(d.max(), 1e-300)
-    out = [(str(names[i]), [str(names[i])]) for i in np.flatnonzero(~ok)]
+    out = [(str(names[i]), [str(names[i])]) for i in np.flatnonzero(~ok).tolist()]
     if ok.any():
         scaled = info[np.ix_(ok, ok)] / np.outer(d[ok], d[ok])
         ev, vec = np.linalg.eigh(scaled)
@@ -163,7 +163,7 @@ class BaseParameters:
                 v = v - Q @ (Q.T @ v)
             residual = np.linalg.norm(v)
             if residual > tol:
-                base.append(j)
+                base.append(int(j))
                 Q = np.column_stack([Q, v / residual])
         base_index = np.array(base, dtype=int)
         dependent = np.flatnonzero(nonzero & ~np.isin(np.arange(p), base_index))
@@ -240,7 +240,7 @@ class BaseParameters:
                 raise IdentificationError(f'unknown parameter {name!r}')
             c[self.param_names.index(name)] = coef
         w = np.linalg.lstsq(self.K.T, c, rcond=None)[0]
-        if np.linalg.norm(self.K.T @ w - c) > 1e-8 * max(1.0, np.linalg.norm(c)):
+        if np.linalg.norm(self.K.T @ w - c) > 1e-8 * max(1.0, float(np.linalg.norm(c))):
             raise IdentificationError(f'{format_expression(dict(terms))} is not identifiable')
         return w
 

@@ -21,18 +21,20 @@ from typing import Sequence
 
 import numpy as np
 
+from identification_node.config import Plausibility, default
 from identification_node.errors import IdentificationError
 
 
 @dataclass
 class PlausibilitySettings:
     """How the bounds are made (the node's ``plausibility.*`` parameters)."""
-    margin: float = 2.0
-    position: float = 1e6
-    velocity: float = 100.0
-    acceleration: float = 1000.0
-    effort: float = 1e4
-    current_limit: Sequence[float] = field(default_factory=list)
+    margin: float = Plausibility.margin
+    position: float = Plausibility.position
+    velocity: float = Plausibility.velocity
+    acceleration: float = Plausibility.acceleration
+    effort: float = Plausibility.effort
+    current_limit: Sequence[float] = field(
+        default_factory=lambda: default('plausibility.current_limit'))
 
     def validate(self, dof: int) -> None:
         """Raise IdentificationError naming the first bad field."""
@@ -105,7 +107,8 @@ class PlausibilityBounds:
         self.__post_init__()
         self._limits.clear()
 
-    def describe(self, joint_names: Sequence[str]) -> dict[str, dict[str, list[float]]]:
+    def describe(self, joint_names: Sequence[str]
+                 ) -> dict[str, dict[str, list[float] | float]]:
         """The bounds per joint, for logs and the README's table."""
         return {j: {'position': [float(self.position_lower[i]), float(self.position_upper[i])],
                     'velocity': float(self.velocity[i]),
@@ -141,7 +144,7 @@ class PlausibilityBounds:
 
 
 def _per_joint(values: Sequence[float], n: int, default: float) -> np.ndarray:
-    values = np.asarray(list(values), dtype=float)
-    if values.size == 0:
+    array = np.asarray(list(values), dtype=float)
+    if array.size == 0:
         return np.full(n, default)
-    return np.broadcast_to(values, (n,)).astype(float) if values.size == 1 else values
+    return np.broadcast_to(array, (n,)).astype(float) if array.size == 1 else array

@@ -131,7 +131,7 @@ def _mimic_joints(xml: str) -> dict[str, tuple[str, float, float]]:
         root = ET.fromstring(xml)
     except ET.ParseError:
         return {}
-    out = {}
+    out: dict[str, tuple[str, float, float]] = {}
     for j in root.iter('joint'):
         m = j.find('mimic')
         if m is not None:
@@ -140,7 +140,7 @@ def _mimic_joints(xml: str) -> dict[str, tuple[str, float, float]]:
             except ValueError:
                 raise IdentificationError(f"joint '{j.get('name')}': <mimic> multiplier and "
                                           'offset must be numbers') from None
-            out[j.get('name')] = (m.get('joint', '?'), gain, offset)
+            out[j.get('name', '')] = (m.get('joint', '?'), gain, offset)
     return out
 
 

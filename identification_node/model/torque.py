@@ -25,6 +25,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from identification_node.config import default
 from identification_node.errors import IdentificationError
 
 SOURCES = ('measured', 'current', 'three_phase')
@@ -75,12 +76,12 @@ def _checked(values: dict, joint: str) -> dict:
 class JointTorqueConfig:
     """How the torque of one joint is obtained (see the module docstring for the laws)."""
 
-    source: str = 'measured'
-    kt: float = 1.0             # motor torque constant, N m/A (motor side)
-    gear_ratio: float = 1.0     # joint torque = gear_ratio * motor torque
-    pole_pairs: int = 1
-    angle_offset: float = 0.0   # electrical angle at q = 0, rad
-    phase_order: str = 'abc'
+    source: str = default('torque_source')[0]
+    kt: float = default('kt')[0]                # motor torque constant, N m/A (motor side)
+    gear_ratio: float = default('gear_ratio')[0]   # joint torque = gear_ratio * motor torque
+    pole_pairs: int = default('pole_pairs')[0]
+    angle_offset: float = default('angle_offset')[0]   # electrical angle at q = 0, rad
+    phase_order: str = default('phase_order')[0]
 
     def __post_init__(self) -> None:
         values = _checked({f.name: getattr(self, f.name) for f in fields(self)}, '(unnamed)')

@@ -94,9 +94,10 @@ def _origin(el: ET.Element | None) -> pin.SE3:
 def _xml_inertia(link: ET.Element) -> pin.Inertia:
     """A link's <inertial> in its link frame (zero when it has none)."""
     el = link.find('inertial')
-    if el is None or el.find('mass') is None:
+    mass = None if el is None else el.find('mass')
+    if el is None or mass is None:
         return pin.Inertia.Zero()
-    m = float(el.find('mass').get('value', 0.0))
+    m = float(mass.get('value', 0.0))
     about_com = np.zeros((3, 3))
     inertia = el.find('inertia')
     if inertia is not None:
@@ -113,12 +114,12 @@ def _shape_corners(geometry: ET.Element) -> np.ndarray | None:
     half = None
     for shape in geometry:
         if shape.tag == 'box':
-            half = 0.5 * np.array([float(v) for v in shape.get('size').split()])
+            half = 0.5 * np.array([float(v) for v in shape.attrib['size'].split()])
         elif shape.tag in ('cylinder', 'capsule'):
-            r, length = float(shape.get('radius')), float(shape.get('length'))
+            r, length = float(shape.attrib['radius']), float(shape.attrib['length'])
             half = np.array([r, r, 0.5 * length + (r if shape.tag == 'capsule' else 0.0)])
         elif shape.tag == 'sphere':
-            half = np.full(3, float(shape.get('radius')))
+            half = np.full(3, float(shape.attrib['radius']))
     if half is None:
         return None
     signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
@@ -127,12 +128,14 @@ def _shape_corners(geometry: ET.Element) -> np.ndarray | None:
 
 def _locked_links(root: ET.Element, main: str, merged: list[str]) -> set[str]:
     """Those of ``merged`` below a movable (locked) joint on their way up to ``main``."""
-    parent = {j.find('child').get('link'): (j.find('parent').get('link'), j.get('type'))
-              for j in root.findall('joint')
-              if j.find('child') is not None and j.find('parent') is not None}
+    parent: dict[str | None, tuple[str | None, str | None]] = {}
+    for j in root.findall('joint'):
+        child, up = j.find('child'), j.find('parent')
+        if child is not None and up is not None:
+            parent[child.get('link')] = (up.get('link'), j.get('type'))
     out = set()
     for name in merged:
-        link = name
+        link: str | None = name
         while link != main and link in parent:
             link, kind = parent[link]
             if kind != 'fixed':
@@ -180,8 +183,9 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
         locked = _locked_links(root, name, merged)
         for other in set(merged) - locked:
             old = links.get(other)
-            if old is not None and old.find('inertial') is not None:
-                old.remove(old.find('inertial'))
+            merged_inertial = None if old is None else old.find('inertial')
+            if old is not None and merged_inertial is not None:
+                old.remove(merged_inertial)
         link = links[name]
         old = link.find('inertial')
         if old is not None:
@@ -190,7 +194,7 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
         inertial = ET.Element('inertial')
         ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
         ET.SubElement(inertial, 'mass', value=f'{m:.9g}')
-        ET.SubElement(inertial, 'inertia', **{
+        ET.SubElement(inertial, 'inertia', {
             k: f'{Ic[a, b]:.9g}' for k, (a, b) in {
                 'ixx': (0, 0), 'ixy': (0, 1), 'ixz': (0, 2),
                 'iyy': (1, 1), 'iyz': (1, 2), 'izz': (2, 2)}.items()})

@@ -37,6 +37,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from identification_node.config import BatchConfig
 from identification_node.bags.reader import open_bag, read_string_topic
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentEstimate,
@@ -66,8 +67,8 @@ from identification_node.pipeline.signals import (central_derivatives, half_wind
                                                   zero_phase_lowpass)
 from identification_node.settings import Settings
 
-DEFAULT_CUTOFF = 20.0     # Hz: zero-phase low-pass of the filtered path; Fourier band (periodic)
-FILTER_ORDER = 4          # Butterworth order (run twice: squared gain, no phase)
+DEFAULT_CUTOFF = BatchConfig.cutoff   # Hz: zero-phase low-pass of the filtered path; Fourier band
+FILTER_ORDER = BatchConfig.order      # Butterworth order (run twice: squared gain, no phase)
 EDGE_PERIODS = 3.0        # 1/cutoff periods trimmed at each segment end (filter start-up)
 REVERSAL_PERIODS = 1.0    # 1/cutoff periods around a velocity reversal left out (with fc)
 OVERLAP_PERIODS = 10.0    # 1/cutoff periods of overlap between chunks: joins exact to ~1e-10
@@ -184,7 +185,7 @@ class BatchOptions:
     period: float | None = None
     window: tuple[float, float] | None = None
     harmonics: int | None = None
-    min_harmonics: int = 1
+    min_harmonics: int = BatchConfig.min_harmonics
     cutoff: float | None = None
     decimation: int | None = None
     order: int = FILTER_ORDER

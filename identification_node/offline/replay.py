@@ -13,13 +13,14 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from identification_node.config import PER_JOINT
 from identification_node.bags.reader import (iter_joint_state_blocks, iter_joint_states, open_bag,
                                              read_string_topic)
 from identification_node.errors import IdentificationError
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.offline.windows import TimeWindow, empty_window_error, in_window
 from identification_node.pipeline import IdentificationPipeline, PipelineOutput
-from identification_node.settings import PER_JOINT, Settings
+from identification_node.settings import Settings
 from identification_node.wire.records import JointStateRecord
 
 JOINT_STATES = '/joint_states'

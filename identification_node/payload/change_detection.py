@@ -35,14 +35,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from identification_node.config import Payload
 from identification_node.errors import IdentificationError
 
-DEFAULT_WINDOW = 0.25       # s
-DEFAULT_THRESHOLD = 50.0    # chi-square statistic (4 dof: p ~ 4e-10 per window)
-DEFAULT_MIN_Z = 8.0         # standard deviations of the mass change
-DEFAULT_MIN_CHANGE = 0.2    # kg
+DEFAULT_WINDOW = Payload.window           # s
+DEFAULT_THRESHOLD = Payload.threshold     # chi-square statistic (4 dof: p ~ 4e-10 per window)
+DEFAULT_MIN_Z = Payload.min_z             # standard deviations of the mass change
+DEFAULT_MIN_CHANGE = Payload.min_change   # kg
 DEFAULT_MIN_FILL = 0.5      # fraction of the window needed before testing
-DEFAULT_CONFIRM = 0.1      # s the conditions must hold
+DEFAULT_CONFIRM = Payload.confirm         # s the conditions must hold
 DEFAULT_RECENT = 0.05      # s: the latest sub-window that must show the change alone
 DETERMINED = 0.25           # the window must know the mass change to this * min_change
 

@@ -151,4 +151,4 @@ def _assign(target: Any, name: str, current: Any, value: Any, path: str) -> None
 
 def _is_sequence_field(target: Any, name: str) -> bool:
     types = getattr(type(target), 'get_fields_and_field_types', None)
-    return bool(types) and types().get(name, '').startswith('sequence')
+    return types is not None and types().get(name, '').startswith('sequence')

@@ -19,6 +19,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
+from identification_node.config import PayloadTolerance
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (SOLVERS, Body, ConsistencyOptions,
                                                         ConsistentSolver, pseudo_inertia)
@@ -35,7 +36,8 @@ QUANTITIES = ('mass',) + tuple(f'com.{k}' for k in COM_KEYS) + tuple(
     f'inertia.{k}' for k in INERTIA_KEYS)
 _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 # Quantities with a standard deviation above these are reported "not excited" (no value).
-DEFAULT_TOLERANCE = {'mass': 0.02, 'com': 0.005, 'inertia': 0.002}   # kg, m, kg m^2
+DEFAULT_TOLERANCE = {'mass': PayloadTolerance.mass, 'com': PayloadTolerance.com,   # kg, m,
+                     'inertia': PayloadTolerance.inertia}                  # kg m^2
 PSEUDO_INERTIA_EPS = 1e-9   # J(phi) - eps 1 >= 0 (at most; kg m^2): consistent but free to be tiny
 
 
@@ -219,7 +221,7 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     for solver in SOLVERS:
         options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0)
         result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
-        if result.ok:
+        if result.phi is not None:   # result.ok
             return result.phi
         status = result.status
     raise IdentificationError(f'payload consistency solve failed: {status}')
@@ -280,8 +282,8 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
                            consistent, float(vals[0]), vals[1:4], vals[4:])
 
 
-def payload_parameters(mass: float, com: Sequence[float], inertia: Sequence[float]
-                       ) -> np.ndarray:
+def payload_parameters(mass: float, com: Sequence[float] | np.ndarray,
+                       inertia: Sequence[float] | np.ndarray) -> np.ndarray:
     """10 parameters about the frame origin from mass (kg), com (3,) m and the inertia about
     the com (6,) kg m^2 (INERTIA_KEYS order): a user-given payload."""
     c = np.asarray(com, dtype=float)
@@ -394,7 +396,7 @@ def urdf_with_payload(urdf: str, estimate: PayloadEstimate, name: str = PAYLOAD_
         inertial = ET.SubElement(link, 'inertial')
         ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
         ET.SubElement(inertial, 'mass', value=f'{m:.9g}')
-        ET.SubElement(inertial, 'inertia', **{
+        ET.SubElement(inertial, 'inertia', {
             k: f'{Ic[a, b]:.9g}' for k, (a, b) in zip(INERTIA_KEYS, _SYM)})
     joint = ET.SubElement(root, 'joint', name=f'{name}_joint', type='fixed')
     ET.SubElement(joint, 'parent', link=estimate.link)

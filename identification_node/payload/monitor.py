@@ -30,6 +30,7 @@ from typing import Mapping
 
 import numpy as np
 
+from identification_node.config import Payload, Smoother
 from identification_node.errors import IdentificationError
 from identification_node.estimation.residuals import MIN_BLOCKS, ResidualStatistics
 from identification_node.model.robot import RobotModel
@@ -44,7 +45,7 @@ from identification_node.pipeline.signals import (FixedLagSmoother, half_window_
 ARM_ESTIMATE = 'estimate'   # payload.arm: the node's running estimate, taken at each reset
 NOISE_FLOOR = 1e-4   # N m: the smallest noise standard deviation a joint is weighted by
 DETECTOR_COLUMNS = 4  # m, mx, my, mz
-DEFAULT_CUTOFF = 20.0   # Hz: the monitor's smoother (delay ~ 0.7 / cutoff s at any rate)
+DEFAULT_CUTOFF = Payload.cutoff   # Hz: the monitor's smoother (delay ~ 0.7 / cutoff s)
 DERIVATIVE_BAND = 4.0  # the derivatives' smoother's cut-off over the low-pass's
 ARM_RESIDUAL_RATIO = 4.0   # a fit's residual this many times the noise: the arm is not known
 
@@ -52,15 +53,15 @@ ARM_RESIDUAL_RATIO = 4.0   # a fit's residual this many times the noise: the arm
 @dataclass
 class MonitorConfig:
     """Settings of the payload monitor (node parameters ``payload.*``)."""
-    fit_time: float = 1.0        # s of samples after a change for the first fit
-    settle: float = 0.1          # s after a detection before samples are used (the pick)
-    refresh: float = 5.0         # s between refits while the payload stays
+    fit_time: float = Payload.fit_time   # s of samples after a change for the first fit
+    settle: float = Payload.settle       # s after a detection before samples are used
+    refresh: float = Payload.refresh     # s between refits while the payload stays
     window: float = DEFAULT_WINDOW
     threshold: float = DEFAULT_THRESHOLD
     min_change: float = DEFAULT_MIN_CHANGE
     min_z: float = DEFAULT_MIN_Z
     confirm: float = DEFAULT_CONFIRM
-    max_gap: float = 0.05
+    max_gap: float = Smoother.max_gap
     batch: float = 0.02          # s of samples gathered per run (numpy calls cost per run)
     cutoff: float = DEFAULT_CUTOFF   # Hz, -3 dB cut-off of the monitor's own smoother
     order: int = 3               # its polynomial order
@@ -148,7 +149,7 @@ class PayloadMonitor:
         """s: how far the detector's samples lag the newest input (the smoother's half
         window; NaN before the first samples). A change is declared ``confirm`` s and a
         fraction of ``window`` after that."""
-        if self.smoother is None:
+        if self.smoother is None or self.derivatives is None:   # made together
             return math.nan
         return self.smoother.delay(self.rate) + self.derivatives.delay(self.rate)
 
@@ -244,7 +245,8 @@ class PayloadMonitor:
             self._epoch_ns = int(ns[0])
         if self.smoother is None:
             self._make_smoother(ns)
-        elif int(ns[0]) <= self._last_ns:   # a restarted stream
+        elif self._last_ns is not None and int(ns[0]) <= self._last_ns:   # a restarted stream
+            assert self.derivatives is not None   # made with the smoother
             self.smoother.reset()
             self.derivatives.reset()
             self._tail = (np.empty(0), np.empty((0, self.robot.dof)))
@@ -253,6 +255,7 @@ class PayloadMonitor:
             if len(ns) == 0:
                 return []
         self._last_ns = int(ns[-1])
+        assert self.smoother is not None and self.derivatives is not None   # made above
         t = (ns - self._epoch_ns) * 1e-9
         n = self.robot.dof
         tc, x, xd, xdd = self.derivatives.push_checked(t, np.hstack([q, tau]))
@@ -359,6 +362,7 @@ class PayloadMonitor:
         return j
 
     def _watching(self, t, Yp, r, i: int, events: list) -> int:
+        assert self.current is not None   # watching: the segment's payload is known
         if self._noise is None:   # a given payload, and no noise level known yet
             return self._noise_level(t, Yp, r, i)
         e = r[i:] - Yp[i:] @ self.current.phi
@@ -391,6 +395,7 @@ class PayloadMonitor:
         j = i + int(np.searchsorted(t[i:], self._fit_due, side='left'))
         self._stats.add(Yp[i:j], r[i:j])
         if j < len(t):
+            assert self.current is not None   # the given payload (called while watching)
             self._set_noise(self.current.phi)
             self._stats = ResidualStatistics(10, self.robot.dof, self._block)
         return j
@@ -436,6 +441,7 @@ class PayloadMonitor:
         var = self._noise_variance(est.phi)
         est = fit_payload(ne, var, self.attach.link, tol)
         self._set_noise(est.phi)
+        assert self._noise is not None   # set just now
         noise = self.torque_noise() ** 2
         ok = np.isfinite(noise) & (noise > 0)
         if ok.any():

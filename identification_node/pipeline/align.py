@@ -72,6 +72,7 @@ class CurrentAlignment:
             self.pending, self._seen = Samples.empty(self.dof), np.empty(0)
             return self._with_torque(s, None, None)
         cur = self.currents
+        assert cur.currents is not None and cur.theta is not None and cur.used is not None
         newest_cur = cur.stamps[-1] if len(cur) else -math.inf
         if flush:
             decided = np.ones(len(s), dtype=bool)

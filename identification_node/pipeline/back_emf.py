@@ -45,14 +45,15 @@ class BackEmfStream:
         self.currents = Intake(self.counters)
         self.voltages = Intake(self.counters)
         n = converter.dof
-        self._js = (np.zeros(0, dtype=np.int64), np.zeros((0, n)), np.zeros((0, n)))
+        self._js: tuple[np.ndarray, ...] = (np.zeros(0, dtype=np.int64), np.zeros((0, n)),
+                                            np.zeros((0, n)))
         self._cur, self._volt = _empty(n, True), _empty(n, True)
         self.equations = NormalEquations.zeros(3, n)
         self._speed_sq, self.samples = np.zeros(n), 0
         self._velocity = True
 
     # -- records to arrays --------------------------------------------------------------------
-    def _joint_arrays(self, records: list) -> tuple:
+    def _joint_arrays(self, records: list) -> list:
         names = self.converter.joint_names
         parts = []
         for r in stack_records(records):

@@ -1,27 +1,36 @@
-"""The pipeline's settings; their defaults are the node parameters' (settings.PARAMETERS)."""
+"""The pipeline's settings; their defaults are the node parameters' (config.py)."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
+from identification_node.config import default
 from identification_node.errors import IdentificationError
 from identification_node.estimation.robust import RobustSettings
 from identification_node.model.plausibility import PlausibilitySettings
 from identification_node.model.torque import JointTorqueConfig
-from identification_node.settings import CONFIG_FIELD_PARAMETERS, PARAMETERS
+
+# PipelineConfig fields whose parameter has another name.
+CONFIG_FIELD_PARAMETERS = {
+    'forgetting': 'forgetting_factor', 'half_window': 'smoother.half_window',
+    'smoother_order': 'smoother.order', 'max_gap': 'smoother.max_gap',
+    'cutoff': 'smoother.cutoff', 'auto_seconds': 'smoother.auto_seconds',
+    'velocity': 'velocity_source', 'offset_warn': 'time_offset.warn',
+    'offset_refuse': 'time_offset.refuse',
+    'offset_seconds': 'time_offset.seconds', 'offset_search': 'time_offset.search'}
 
 
-def _default(name: str):
+def _default(name: str) -> Any:
     """The default of the node parameter behind PipelineConfig field ``name``."""
-    value = PARAMETERS[CONFIG_FIELD_PARAMETERS.get(name, name)][0]
+    value = default(CONFIG_FIELD_PARAMETERS.get(name, name))
     return tuple(value) if isinstance(value, list) else value
 
 
 @dataclass
 class PipelineConfig:
     """Settings of the pipeline (the node's ROS parameters map onto these fields, see
-    settings.CONFIG_FIELD_PARAMETERS for those named otherwise)."""
+    CONFIG_FIELD_PARAMETERS for those named otherwise)."""
     torque: Mapping[str, JointTorqueConfig] = field(default_factory=dict)
     forgetting: float = _default('forgetting')
     half_window: int = _default('half_window')

@@ -202,9 +202,11 @@ class IdentificationPipeline:
         elif len(outputs) == 1:
             result = outputs[0]
         else:
-            result = PipelineOutput(*(np.concatenate(a) for a in zip(*(
-                (o.stamps_ns, o.q, o.qd, o.qdd, o.measured, o.predicted) for o in outputs))))
+            stamps_ns, q, qd, qdd, measured, predicted = (np.concatenate(a) for a in zip(*(
+                (o.stamps_ns, o.q, o.qd, o.qdd, o.measured, o.predicted) for o in outputs)))
+            result = PipelineOutput(stamps_ns, q, qd, qdd, measured, predicted)
         if len(s):
+            assert s.tau is not None   # the input stages give samples with their torques
             result.inputs = InputSamples(self.samples.counters.stamps_ns(s.stamps), s.q, s.qd,
                                          s.tau)
         return result
@@ -212,8 +214,9 @@ class IdentificationPipeline:
     def _use(self, r) -> PipelineOutput:
         """Rows (rows.Rows) checked, predicted and given to the estimator."""
         est = self.estimator
-        if est.half_window != self.row_builder.half_window:
-            est.set_smoother(self.row_builder.half_window, self.config.smoother_order)
+        half_window = self.row_builder.half_window   # None while the smoother is chosen
+        if half_window is not None and est.half_window != half_window:
+            est.set_smoother(half_window, self.config.smoother_order)
         if len(r.t) == 0:
             return PipelineOutput.empty(self.robot.dof)
         predicted = r.rows[:, :, :self.base.num_base] @ est.theta

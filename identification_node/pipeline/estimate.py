@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -33,6 +34,8 @@ from identification_node.estimation.robust import InnovationGate
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.rows import near_reversal
 from identification_node.pipeline.signals import smoothing_noise_gain
+
+_T = TypeVar('_T')
 
 # What the numerical update may raise on absurd data: caught, the estimator rolled back.
 PROVISIONAL_HALF_WINDOW = 10   # samples: residual blocks before the smoother is chosen
@@ -335,7 +338,7 @@ class OnlineEstimate:
                          self.rls.num_samples, condition, self.config)
 
 
-def _state(obj: object) -> object:
+def _state(obj: _T) -> _T:
     """A copy of ``obj`` to roll back to: its attributes, arrays copied (the estimators
     update some in place)."""
     saved = copy.copy(obj)

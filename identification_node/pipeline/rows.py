@@ -318,6 +318,7 @@ class RowBuilder:
     def _count_edges(self, restart: bool = False) -> None:
         """All that went in and did not come out, but the newest half window (the delay);
         on a restart all of it."""
+        assert self.choice is not None   # counted once the smoother is chosen
         waiting = self._in - self._out
         lost = waiting if restart else max(waiting - self.choice.half_window, 0)
         self.smoother_edge += lost
@@ -331,6 +332,7 @@ class RowBuilder:
             for s in self._held[1:]:
                 held = held.concat(s)
             self._held = [held] if len(held) else []
+            assert held.tau is not None   # the rows' samples carry their torques
             plan = plan_smoother(self.robot, self.base, held.stamps, held.q, held.qd,
                                  held.tau, self.order, self.max_gap, self.cutoff,
                                  self.auto_seconds, self.weights, flush,
@@ -386,6 +388,8 @@ class RowBuilder:
             self.choice.rate = _rate(s.stamps)
         if len(s) == 0:
             return self._empty()
+        # chosen by now (or returned above); the rows' samples carry their torques
+        assert self.choice is not None and s.tau is not None
         n = self.robot.dof
         x = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
         if self._smoother is None:

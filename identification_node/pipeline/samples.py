@@ -6,7 +6,7 @@ nanosecond for spans of days); per-joint arrays follow the robot's joint order (
 """
 from __future__ import annotations
 
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -41,8 +41,10 @@ class Samples:
     def _arrays(self) -> list:
         return [getattr(self, name) for name in self.__slots__]
 
-    def _map(self, fn) -> Samples:
-        return Samples(*[None if a is None else fn(a) for a in self._arrays()])
+    def _map(self, fn: Callable[[np.ndarray], np.ndarray]) -> Samples:
+        stamps, q, qd, eff, *optional = self._arrays()   # the first four are never None
+        return Samples(fn(stamps), fn(q), fn(qd), fn(eff),
+                       *[None if a is None else fn(a) for a in optional])
 
     def select(self, mask: np.ndarray) -> Samples:
         return self._map(lambda a: a[mask])
@@ -58,8 +60,9 @@ class Samples:
             return other
         if len(other.stamps) == 0:
             return self
-        merged = Samples(*[None if a is None else np.concatenate([a, b])
-                           for a, b in zip(self._arrays(), other._arrays())])
+        pairs = list(zip(self._arrays(), other._arrays()))   # the first four never None
+        merged = Samples(*[np.concatenate([a, b]) for a, b in pairs[:4]],
+                         *[None if a is None else np.concatenate([a, b]) for a, b in pairs[4:]])
         if self.currents is not None and other.stamps[0] < self.stamps[-1]:
             # Current messages may interleave: keep the buffer sorted by stamp (both parts are
             # sorted, so only when they overlap).

@@ -214,7 +214,7 @@ class FixedLagSmoother:
         self._t = np.zeros(0)
         self._x = np.zeros((0, self.num_channels))
 
-    def _empty(self) -> tuple[np.ndarray, ...]:
+    def _empty(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         z = np.zeros((0, self.num_channels))
         return np.zeros(0), z, z.copy(), z.copy()
 
@@ -268,7 +268,8 @@ class FixedLagSmoother:
                            if uniform else self._fit(T, X, run[i:i + block]))
         if len(out) == 1:
             return out[0]
-        return tuple(np.concatenate(parts) for parts in zip(*out))
+        t_c, x_c, xd_c, xdd_c = (np.concatenate(parts) for parts in zip(*out))
+        return t_c, x_c, xd_c, xdd_c
 
     @property
     def _block(self) -> int:
@@ -294,7 +295,8 @@ class FixedLagSmoother:
                  else self._fit(t, x, starts[i:i + self._block])[1:]
                  for i in range(0, starts.size, self._block)] or [
                      (np.zeros((0, x.shape[1])),) * 3]
-        return tuple(np.concatenate(p) for p in zip(*parts))
+        value, first, second = (np.concatenate(p) for p in zip(*parts))
+        return value, first, second
 
     def _fit_at_uniform(self, t: np.ndarray, x: np.ndarray, starts: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

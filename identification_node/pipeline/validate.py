@@ -44,7 +44,7 @@ class Counters:
         self.missing_joints: set[str] = set()
         self.missing_current_joints: set[str] = set()
 
-    def reject(self, reason: str, count: int = 1) -> None:
+    def reject(self, reason: str, count: int | np.integer = 1) -> None:
         self.rejected[reason] += int(count)
 
     def seconds(self, stamps_ns) -> np.ndarray:
@@ -56,6 +56,7 @@ class Counters:
 
     def stamps_ns(self, seconds: np.ndarray) -> np.ndarray:
         """Seconds since the epoch back to int64 ns."""
+        assert self.epoch_ns is not None   # set by the stream's first stamps (seconds)
         return self.epoch_ns + np.round(seconds * 1e9).astype(np.int64)
 
 
@@ -130,7 +131,7 @@ class JointStateValidator:
 
     def __call__(self, b: JointStateRecord) -> Samples:
         """One block (rows sharing names and layout) validated; rejects counted."""
-        n, M = self.robot.dof, len(b.stamp_ns)
+        n, M = self.robot.dof, np.size(b.stamp_ns)
         self.counters.received += M
         if M == 0:
             return Samples.empty(n)
@@ -159,11 +160,12 @@ class JointStateValidator:
                 self.counters.missing_joints.update(
                     j for j in self.robot.joint_names if j not in names)
             return Samples.empty(n)
+        assert idx is not None and not isinstance(idx, str)   # no reason: the columns
         nan = np.full((M, n), np.nan) if not (vel and eff) else None
         s = Samples(self.counters.seconds(b.stamp_ns),
                     np.asarray(b.position, dtype=float)[:, idx],
-                    np.asarray(b.velocity, dtype=float)[:, idx] if vel else nan,
-                    np.asarray(b.effort, dtype=float)[:, idx] if eff else nan)
+                    np.asarray(b.velocity, dtype=float)[:, idx] if vel or nan is None else nan,
+                    np.asarray(b.effort, dtype=float)[:, idx] if eff or nan is None else nan)
         finite = np.isfinite(s.q).all(axis=1)
         if self.velocity_measured:
             finite &= np.isfinite(s.qd).all(axis=1)
@@ -221,10 +223,11 @@ class CurrentValidator:
 
     def __call__(self, records: list) -> Samples:
         n = self.robot.dof
-        parts = []
+        parts: list[tuple[np.ndarray, ...]] = []
         for b in stack_records(records):
-            M, k = len(b.stamp_ns), len(b.names)
+            M, k = np.size(b.stamp_ns), len(b.names)
             eff, pos = b.effort.shape[1], b.position.shape[1]
+            layout: tuple | str
             if not k or not eff:
                 layout = 'empty'
             elif k > self.max_names:
@@ -248,7 +251,8 @@ class CurrentValidator:
             theta = np.full((M, n), np.nan)
             if pos:
                 theta[:, angle_joints] = np.asarray(b.position, dtype=float)[:, angle_cols]
-            part = (self.counters.seconds(b.stamp_ns), cur.reshape(M, n, 3), theta)
+            part: tuple[np.ndarray, ...] = (self.counters.seconds(b.stamp_ns),
+                                            cur.reshape(M, n, 3), theta)
             # an electrical angle is NaN where not given, but never infinite
             finite = np.isfinite(values).all(axis=1) & ~np.isinf(theta).any(axis=1)
             if not finite.all():

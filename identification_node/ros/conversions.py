@@ -8,7 +8,7 @@ import math
 import threading
 import time
 from functools import partial
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence, cast
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -112,7 +112,8 @@ class PolledSubscription:
         self._last_seq: int | None = None
         self._gaps = self._reported = 0     # written by poll's / the executor's thread
         create = partial(node.create_subscription, msg_type, topic,
-                         lambda raw: handle([raw]), qos, raw=True,
+                         lambda raw: handle([raw]),  # type: ignore[list-item]  # raw=True: bytes
+                         qos, raw=True,
                          callback_group=PolledGroup(events=message_lost_event), **kwargs)
         self.events = False
         if message_lost_event:
@@ -172,10 +173,11 @@ class PolledSubscription:
             self.handle(messages)
         return len(messages)
 
-    def _count_gaps(self, numbers: list[int | None]) -> None:
-        self.sequence_numbers = numbers[0] is not None
+    def _count_gaps(self, taken: list[int | None]) -> None:
+        self.sequence_numbers = taken[0] is not None
         if not self.sequence_numbers:
             return
+        numbers = cast('list[int]', taken)   # the middleware numbers every message or none
         if self._last_seq is not None:
             numbers = [self._last_seq] + numbers
         self._last_seq = numbers[-1]

@@ -113,7 +113,7 @@ class DriveGainOutputs:
         return self._gains
 
     def parameters(self) -> list[Parameter]:
-        used = {g.joint: g.value for g in self._refresh() if g.used}
+        used = {g.joint: g.value for g in self._refresh() if g.used and g.value is not None}
         return [Parameter(PREFIX + j, value=float(used.get(j, UNKNOWN))) for j in self.joints]
 
     def diagnostics(self) -> dict:

@@ -66,13 +66,14 @@ class EstimateOutputs:
         self._publish_lock = threading.Lock()
 
     def publish_snapshot(self, job: Snapshot,
-                         solve: Callable[[tuple], ConsistentEstimate]) -> Outcome:
-        """Solve (physical consistency) with ``solve``, publish and, if asked, save ``job``:
-        the answer to the requests it covers."""
+                         solve: Callable[[tuple, bool], ConsistentEstimate]) -> Outcome:
+        """Solve (physical consistency) with ``solve(equations, wait)`` (a save waits for the
+        solver process's start-up), publish and, if asked, save ``job``: the answer to the
+        requests it covers."""
         if job.error:
             return Outcome(error=job.error)
         est = job.estimate
-        consistent = None if job.equations is None else solve(job.equations)
+        consistent = None if job.equations is None else solve(job.equations, job.save)
         values = self.publish(est, consistent)
         outcome = Outcome(estimate=json.dumps(plain({
             'names': est.names, 'values': values.tolist(),
@@ -122,8 +123,10 @@ class EstimateOutputs:
         with self._publish_lock:
             self.params.publish(msg)
             self.parameters.set(params)   # one parameter event, one snapshot
-            # The URDF topic is latched: rebuild it only when new samples changed the estimate.
-            version = (est.num_samples, self.payload.version if self.payload else 0)
+            # The URDF topic is latched: rebuild it only when new samples or the solve changed
+            # the estimate.
+            version = (est.num_samples, self.payload.version if self.payload else 0,
+                       phi_c is not None)
             if est.num_samples and version != self._urdf_samples and self.robot.kind == 'urdf':
                 self._urdf_samples = version
                 with self._lock:

@@ -51,7 +51,8 @@ from identification_node.ros.service_requests import (Commands, Outcome, Request
                                                       ServiceThread, Snapshot)
 from identification_node.ros.solver_worker import ConsistencyWorker
 from identification_node.ros.spin import PeriodicThread, run_node
-from identification_node.settings import PARAMETERS, Settings
+from identification_node.config import PARAMETERS
+from identification_node.settings import Settings
 
 __all__ = ['INPUT_QOS', 'IdentificationNode', 'main']
 

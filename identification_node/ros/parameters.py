@@ -1,7 +1,7 @@
 """The node's parameters: its settings, its outputs, and the settings that may change while it
 runs.
 
-- Settings (settings.PARAMETERS): declared typed and ranged (``parameter_descriptor``),
+- Settings (config.PARAMETERS): declared typed and ranged (``parameter_descriptor``),
   read-only unless RUNTIME has them.
 - Outputs (OutputParameters): ``base_parameter_names`` and per base parameter
   ``estimate.<name>``, ``estimate_stddev.<name>``, ``estimate_unconstrained.<name>`` (and
@@ -29,9 +29,10 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from identification_node.config import descriptor
 from identification_node.errors import IdentificationError
 from identification_node.model.plausibility import PlausibilityBounds
-from identification_node.settings import EMPTY_LISTS, RANGES, Settings, element_type
+from identification_node.settings import Settings
 
 __all__ = ['ESTIMATE_PREFIX', 'RUNTIME', 'STDDEV_PREFIX', 'UNCONSTRAINED_PREFIX',
            'OutputParameters', 'RuntimeParameters', 'apply', 'declare_settings',
@@ -50,26 +51,22 @@ _ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARR
 
 
 def parameter_descriptor(name: str, default: Any, text: str) -> ParameterDescriptor:
-    """The typed descriptor of a settings table entry (read-only unless RUNTIME has it), with
-    its range from settings.RANGES. Lists with an empty default, or which may be empty
-    (settings.EMPTY_LISTS), stay dynamically typed (Settings checks them): rclpy declares a
-    typed parameter without a value uninitialized, which its parameter services then fail to
-    report, and types an empty list as bytes."""
-    d = ParameterDescriptor(description=text, read_only=name not in RUNTIME)
-    if isinstance(default, list):
-        if default and name not in EMPTY_LISTS:
-            d.type = _ARRAY_TYPES[element_type(name, default)].value
-        else:
-            d.dynamic_typing = True
-        return d
-    d.type = _TYPES[type(default)]
-    bounds = RANGES.get(name)
-    if bounds is not None and type(default) is int:
-        d.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
-                                        step=0)]
-    elif bounds is not None:
-        d.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
-                                                     to_value=float(bounds[1]), step=0.0)]
+    """The rclpy descriptor of a settings table entry: config.descriptor's type and range,
+    read-only unless RUNTIME has it."""
+    spec = descriptor(name, default, text)
+    d = ParameterDescriptor(description=spec.description, read_only=name not in RUNTIME)
+    if spec.type is None:
+        d.dynamic_typing = True
+    elif spec.array:
+        d.type = _ARRAY_TYPES[spec.type].value
+    else:
+        d.type = _TYPES[spec.type]
+    if spec.range is not None and spec.type is int:
+        d.integer_range = [IntegerRange(from_value=int(spec.range[0]),
+                                        to_value=int(spec.range[1]), step=0)]
+    elif spec.range is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=spec.range[0],
+                                                     to_value=spec.range[1], step=0.0)]
     return d
 
 
@@ -170,7 +167,7 @@ class OutputParameters:
 
 
 class RuntimeParameters:
-    """The node's settings: ``settings`` as declared (settings.PARAMETERS), then as changed
+    """The node's settings: ``settings`` as declared (config.PARAMETERS), then as changed
     at run time once ``watch`` is called (RUNTIME names, see the module doc)."""
 
     def __init__(self, node: Node, table: dict[str, tuple[Any, str]]):

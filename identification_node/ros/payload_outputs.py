@@ -83,6 +83,7 @@ def stddev_message(est: PayloadEstimate, stamp: float) -> InertiaStamped:
 def change_text(e: PayloadEvent) -> str:
     """'mass 2.001 +- 0.004 kg (change +2.001 +- 0.005 kg)' of a fit event."""
     p = e.payload
+    assert p is not None   # a fit event's
     sd = p.stddev['mass']
     text = (f'mass {p.mass:.4g} +- {sd:.2g} kg' if 'mass' in p.excited
             else 'mass not excited')

@@ -220,6 +220,7 @@ class BagPlayer:
     def _publish_clock(self, t_ns: int) -> None:
         msg = self._clock_cls()
         msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
+        assert self._clock_pub is not None   # called only when publishing a clock
         self._clock_pub.publish(msg)
 
     def play(self) -> PlayStats:
@@ -261,7 +262,7 @@ class BagPlayer:
                 hi = t_ns
                 stats.per_topic[topic] += 1
                 stats.published += 1
-            if lo is not None:
+            if lo is not None and hi is not None:   # set together
                 stats.bag_time += (hi - lo) * 1e-9
             if self._clock_pub is not None and not self._stop.is_set():
                 self._publish_clock(end_ns)
@@ -270,7 +271,7 @@ class BagPlayer:
             if not self.loop:
                 break
         stats.interrupted = self._stop.is_set()
-        if first is not None:
+        if first is not None and last is not None:   # set together
             stats.wall_time = last - first
         return stats
 

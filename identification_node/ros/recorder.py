@@ -53,7 +53,7 @@ class BagRecorder:
     def __init__(self, node: Node, out: str | Path, topics: Iterable[str],
                  storage: str = 'mcap', *, overwrite: bool = False) -> None:
         self.node = node
-        self.requested = []
+        self.requested: list[str] = []
         for topic in topics:
             try:
                 name = node.resolve_topic_name(topic)

@@ -18,8 +18,10 @@ reason.
 from __future__ import annotations
 
 import contextlib
+import re
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -37,6 +39,11 @@ POLL_IDLE = 0.02        # s between polls once none came for a while
 # rmw_fastrtps refuses a response while the caller's reply reader is not matched yet (a new
 # client's first call, discovery slow on a busy machine): it is sent again for this long.
 RESEND_FOR = 10.0
+# rclpy does not raise when the middleware refuses a response (RCL_RET_TIMEOUT): it warns and
+# drops it. Raised instead, for the calls of this module only (the warning is attributed to
+# the frame that called the binding), so that it is sent again.
+_REFUSED = ('error', re.compile(r'failed to send response \(timeout\)', re.I), RuntimeWarning,
+            re.compile(re.escape(__name__) + r'\Z'), 0)
 Reply = Callable[[Any], None]
 
 
@@ -79,7 +86,7 @@ class ServiceThread:
             self._thread.join()
 
     def _reply(self, srv: Any, header: Any) -> Reply:
-        done = []
+        done: list[bool] = []
 
         def reply(response: Any) -> None:
             if done:
@@ -129,7 +136,7 @@ class ServiceThread:
         now = time.monotonic()
         for srv, response, header, first in out:
             try:
-                srv.send_response(response, header)
+                _send_response(srv, response, header)
                 self.answered += 1
             except Exception as exc:   # noqa: BLE001 - not matched yet, vanished, shut down
                 if first is None or now - first < RESEND_FOR:
@@ -140,6 +147,19 @@ class ServiceThread:
             with self._outbox_lock:
                 self._outbox[:0] = again
         return len(out) - len(again)
+
+
+def _send_response(srv: Any, response: Any, header: Any) -> None:
+    """``srv.send_response``, but raising RuntimeWarning when the middleware refuses the
+    response (rclpy only warns)."""
+    if warnings.filters[:1] != [_REFUSED]:  # first, whatever was put before it since
+        warnings.filterwarnings(_REFUSED[0], _REFUSED[1].pattern, _REFUSED[2],
+                                _REFUSED[3].pattern)
+    if not isinstance(response, srv.srv_type.Response):
+        raise TypeError(f'a {srv.srv_type.__name__} response expected, got '
+                        f'{type(response).__name__}')
+    with srv.handle:
+        srv.handle.service_send_response(response, header.request_id)
 
 
 def failed(response: Any, text: str) -> Any:

@@ -46,6 +46,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+from identification_node.config import PARAMETERS, PER_JOINT, coerce, flatten
 from identification_node.errors import IdentificationError
 from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectories import Trajectory, load_trajectory
@@ -58,7 +59,7 @@ from identification_node.payload.fit import read_payload_changes, true_parameter
 from identification_node.ros.conversions import publish_joint_states, time_msg, wait_for_all_acked
 from identification_node.ros.parameters import declare_settings
 from identification_node.ros.spin import run_node
-from identification_node.settings import PARAMETERS, PER_JOINT, Settings, coerce, flatten
+from identification_node.settings import Settings
 
 MAX_BATCH = 20      # samples per catch-up batch
 LINGER = 0.5        # s the process stays up after the acks, for best-effort samples in flight
@@ -276,7 +277,8 @@ class SimulatedArmNode(Node):
         self._pub_volt = (self.create_publisher(JointState, 'motor_voltages', SENSOR_QOS)
                           if v['publish_voltages'] else None)
         self._volt_rng = np.random.default_rng([v['seed'], 1])
-        self._last = None   # (t, q, qd, tau) of the last sample: di/dt across batches
+        # (t, q, qd, tau) of the last sample: di/dt across batches
+        self._last: tuple[np.ndarray, ...] | None = None
         self._pub_clock = (self.create_publisher(Clock, '/clock', SENSOR_QOS)
                            if v['publish_clock'] else None)
         self._sample_pubs = [p for p in (self._pub_js, self._pub_cur, self._pub_volt)
@@ -397,8 +399,10 @@ class SimulatedArmNode(Node):
         di/dt is continuous across batches)."""
         arrays = (b.t, b.q, b.qd, b.tau)
         if self._last is not None:
-            arrays = tuple(np.concatenate([p, a]) for p, a in zip(self._last, arrays))
+            t, q, qd, tau = (np.concatenate([p, a]) for p, a in zip(self._last, arrays))
+            arrays = (t, q, qd, tau)
         self._last = tuple(a[-1:] for a in (b.t, b.q, b.qd, b.tau))
+        assert self.setup.drives is not None   # the node's setup always has its drives
         volts = self.setup.drives.voltages(self.setup.converter, *arrays,
                                            self.setup.values['noise.voltage_std'],
                                            self._volt_rng)[-len(b):]

@@ -34,7 +34,9 @@ class SolverProcess:
     """A ConsistentSolver in a child process of its own (spawned), with ``solve`` as the
     solver's: the node's processing thread never waits for the GIL while it solves. A child
     that dies or overruns ``time_limit`` (+ STARTUP_GRACE for the first solve, which builds the
-    problem) is stopped and the solve reported failed; the next one starts a new child."""
+    problem) is stopped and the solve reported failed; the next one starts a new child.
+    ``ready`` tells, without waiting, whether the child has built its problem: on a busy
+    machine that takes tens of seconds, which a caller need not wait for."""
 
     STARTUP_GRACE = 60.0   # s: spawn, imports and the problem's canonicalisation
     GRACE = 10.0           # s over the solver's own time limit
@@ -45,7 +47,7 @@ class SolverProcess:
         self.options.validate()
         self._args = (base, np.asarray(phi_prior, dtype=float), list(bodies), self.options)
         self._process = self._conn = None
-        self._started = False
+        self._ready = False     # the child has built its problem (its first message)
         # start and close come from different threads (the node's solve worker and its
         # shutdown): a child being started is never terminated half made
         self._lock = threading.Lock()
@@ -82,21 +84,37 @@ class SolverProcess:
                 if main:
                     signal.signal(signal.SIGINT, sigint)
             child.close()
-            self._started = False
+            self._ready = False
             return self._conn
+
+    def ready(self) -> bool:
+        """Whether the child has built its problem, so that ``solve`` waits for the solve
+        only (never blocks; False before ``start``)."""
+        with self._lock:
+            if not self._ready and self._conn is not None:
+                try:
+                    if self._conn.poll(0):
+                        self._conn.recv()   # ('ready', error): an error is told by solve
+                        self._ready = True
+                except (EOFError, OSError):
+                    self._ready = True      # ended: solve reports it and starts another
+            return self._ready
 
     def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
               ) -> ConsistentEstimate:
         start = time.perf_counter()
         conn = self.start()
-        wait = self.options.time_limit + (self.GRACE if self._started else self.STARTUP_GRACE)
+        wait = self.options.time_limit + (self.GRACE if self._ready else self.STARTUP_GRACE)
+        deadline = time.monotonic() + wait
         try:
             conn.send((equations, weights))
-            if conn.poll(wait):
+            kind = 'ready'
+            while kind == 'ready' and conn.poll(max(deadline - time.monotonic(), 0.0)):
                 kind, value = conn.recv()
-                self._started = True
-                if kind == 'ok':
-                    return value
+                self._ready = True
+            if kind == 'ok':
+                return value
+            if kind == 'error':
                 status = f'solver_error: {value}'
             else:
                 status = 'time_limit'
@@ -120,8 +138,9 @@ class SolverProcess:
 
 
 def _serve(conn, base, phi_prior, bodies, options) -> None:
-    """The child of SolverProcess: build the solver, then answer (equations, weights) with
-    ('ok', ConsistentEstimate) or ('error', message) until None or the pipe closes. It runs
+    """The child of SolverProcess: build the solver, say ('ready', error), then answer
+    (equations, weights) with ('ok', ConsistentEstimate) or ('error', message) until None or
+    the pipe closes. It runs
     at a lower priority (nice +NICE) than the node, whose 1 kHz processing comes first.
     SIGINT is ignored (see SolverProcess.start): the parent ends it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -131,6 +150,10 @@ def _serve(conn, base, phi_prior, bodies, options) -> None:
         solver = ConsistentSolver(base, phi_prior, bodies, options)
     except Exception as exc:  # noqa: BLE001 - reported to the parent with every request
         error = f'{type(exc).__name__}: {exc}'
+    try:
+        conn.send(('ready', error))
+    except (EOFError, OSError):
+        return
     while True:
         try:
             request = conn.recv()
@@ -190,11 +213,15 @@ class ConsistencyWorker:
                     self._jobs.append(job)
             self._job_ready.notify()
 
-    def solve(self, equations: tuple) -> ConsistentEstimate:
+    def solve(self, equations: tuple, wait: bool = True) -> ConsistentEstimate:
         """The consistent estimate of ``equations`` ((NormalEquations, weights)); a failure
-        is logged when it differs from the last one."""
+        is logged when it differs from the last one. Unless ``wait``, status 'starting' (the
+        unconstrained estimate goes out) while the solver process still builds its problem."""
         solver = self._solver_instance()
         with self._solver_lock:
+            if not wait and not solver.ready():
+                return ConsistentEstimate('starting', None, None,
+                                          np.full(self._base.num_base, np.inf), 0.0)
             result = solver.solve(*equations)
         self.consistent = result
         if not result.ok and result.status != self._solver_failure and self._running:

@@ -213,6 +213,7 @@ def decode_rows(rows: np.ndarray, decoder: JointStateDecoder
     while k < len(rows):
         raw = rows[k].tobytes()
         spans: list = []
+        record: JointStateRecord | IdentificationError | None
         try:
             record = decoder._fast(raw, spans) if raw[:2] == b'\x00\x01' else None
         except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
@@ -314,7 +315,9 @@ def _joint_state_layout(names: tuple[str, ...], counts: tuple[int, int, int]
                         ) -> tuple[np.ndarray, list]:
     """CDR of a JointState with zero stamp and arrays of ``counts`` zeros, as uint8, and the
     (byte offset, count) of its three arrays."""
-    template = encode_joint_state(0.0, names, *(np.zeros(c) for c in counts))
+    n_position, n_velocity, n_effort = counts
+    template = encode_joint_state(0.0, names, np.zeros(n_position), np.zeros(n_velocity),
+                                  np.zeros(n_effort))
     spans: list = []
     JointStateDecoder()._fast(template, spans)
     return np.frombuffer(template, np.uint8), spans
@@ -340,6 +343,6 @@ def encode_joint_states(stamps_ns: np.ndarray, names: Sequence[str],
     head = rows[:, 4:12].view('<u4')
     head[:, 0], head[:, 1] = np.divmod(stamps, 1_000_000_000)  # sec as int32 bits
     for a, (offset, count) in zip(arrays, spans):
-        if count:
+        if a is not None and count:
             rows[:, offset:offset + 8 * count] = a.view(np.uint8)
     return [row.tobytes() for row in rows]
