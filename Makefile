@@ -16,7 +16,7 @@ $(STAMP): setup.py setup.cfg package.xml
 	touch $(STAMP)
 
 lint: $(STAMP)
-	$(PY) -m flake8 identification_node test bench launch setup.py
+	$(PY) -m flake8 identification_node test bench launch examples setup.py
 
 # Everything, the ROS and slow tests included (`pytest -m "not ros and not slow"`: the core).
 test: lint

@@ -54,7 +54,7 @@ def reset_peak() -> int:
 
 
 def warm_up() -> None:
-    import identification_node.offline.fleet  # noqa: F401
+    import identification_node.fleet.fleet  # noqa: F401
 
 
 def cluster(workers: int):
@@ -68,7 +68,7 @@ def cluster(workers: int):
 
 
 def entries(bag: Path, count: int, folder: Path) -> list:
-    from identification_node.offline.fleet import FleetEntry
+    from identification_node.fleet.fleet import FleetEntry
 
     out = []
     for k in range(count):
@@ -82,7 +82,7 @@ def entries(bag: Path, count: int, folder: Path) -> list:
 def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, float, int]:
     """(wall s, map wall s: until the last map task is back, CPU s of the workers, samples
     used) of one fleet run."""
-    from identification_node.offline.fleet import run_fleet
+    from identification_node.fleet.fleet import run_fleet
 
     client = cluster(workers)
     mapped = []
@@ -109,7 +109,7 @@ def timed_run(workers: int, fleet_entries: list) -> tuple[float, float, float, i
 
 def peak_memory(bag: Path) -> tuple[float, float]:
     """(RSS before, peak RSS above it) of a fresh worker mapping ``bag``, MiB."""
-    from identification_node.offline.fleet import FleetEntry, MapTask, run_task
+    from identification_node.fleet.fleet import FleetEntry, MapTask, run_task
 
     client = cluster(1)
     try:
@@ -127,24 +127,25 @@ def peak_memory(bag: Path) -> tuple[float, float]:
 
 
 def solve_times(bag: Path, repeat: int) -> tuple[float, float]:
-    """(s, s): fleet.identification of the runs' 3 groups (two periods of 2 bags, the total
+    """(s, s): segments.identification of the runs' 3 groups (two periods of 2 bags, the total
     of 4) with a new consistent solver per group, and with one solver for all (run_fleet's),
     best of ``repeat`` alternating, in this process (the client)."""
-    from identification_node.offline import fleet
+    from identification_node.fleet import fleet
+    from identification_node.replay import segments
 
     entry = fleet.FleetEntry(str(bag), 'crs', 'p', config=str(CONFIG))
     stats = fleet.run_task(fleet.MapTask(entry))
     groups = [stats + stats, stats + stats, stats + stats + stats + stats]
     settings = fleet.entry_settings(entry)
     robot = fleet.entry_robot(entry, settings)
-    fleet.identification(stats, settings, robot)    # imports, caches
+    segments.identification(stats, settings, robot)    # imports, caches
     best = [float('inf'), float('inf')]
     for _ in range(repeat):
         for k in (0, 1):
             start = time.perf_counter()
-            solver = fleet.consistent_solver(settings, robot) if k else None
+            solver = segments.consistent_solver(settings, robot) if k else None
             for g in groups:
-                fleet.identification(g, settings, robot, solver=solver)
+                segments.identification(g, settings, robot, solver=solver)
             best[k] = min(best[k], time.perf_counter() - start)
     return best[0], best[1]
 

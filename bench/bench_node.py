@@ -47,7 +47,7 @@ def publisher(rate: float, seconds: float, warmup: float, currents: bool) -> Non
     from sensor_msgs.msg import JointState
 
     from identification_node.model.robot import load_robot
-    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
     from identification_node.model.torque import TorqueConverter
     from identification_node.excitation.trajectories import FourierTrajectory
 

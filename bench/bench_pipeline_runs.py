@@ -66,7 +66,7 @@ def main() -> None:
 
     from identification_node.excitation.trajectories import FourierTrajectory
     from identification_node.model.robot import load_robot
-    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
     from identification_node.model.torque import JointTorqueConfig
     from identification_node.pipeline import IdentificationPipeline, PipelineConfig
     from identification_node.wire.cdr import encode_joint_states

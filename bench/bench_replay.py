@@ -8,7 +8,7 @@ once per sample count and cached in bench/.cache/ (gitignored).
 (a) ours: ``identify_bag`` with config/crs_a465.yaml (measured torque, fv and fc identified),
     the estimate read at the end.
 (a') ours on every core (``--workers N``, default the machine's cores; 1: not run): the same
-    settings through offline/parallel.py, the bag's 60 s segments in N processes (fork),
+    settings through replay/parallel.py, the bag's 60 s segments in N processes (fork),
     their statistics merged (``identify BAG --workers N``).
 (b) naive, as a user would write it: rosbags AnyReader deserializing every message, joints
     reordered by name, qdd = np.gradient(qd, t) over the whole arrays, pinocchio
@@ -54,7 +54,7 @@ def make_bag(samples: int) -> Path:
     from identification_node.bags.writer import BagWriter
     from identification_node.cli.simulate import true_parameters
     from identification_node.excitation.trajectories import load_trajectory
-    from identification_node.model.simulation import SensorNoise, simulate_kinematic
+    from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
     from identification_node.settings import Settings, read_parameter_file
     from identification_node.wire.cdr import JOINT_STATE
 
@@ -79,7 +79,7 @@ def make_bag(samples: int) -> Path:
 
 def run_ours(bag: Path) -> tuple[int, np.ndarray]:
     """Offline identification through the live pipeline; (samples used, base estimate)."""
-    from identification_node.offline.replay import identify_bag
+    from identification_node.replay.stream import identify_bag
     from identification_node.settings import Settings, read_parameter_file
 
     settings = Settings.from_dict(read_parameter_file(CONFIG))
@@ -91,7 +91,7 @@ def run_ours(bag: Path) -> tuple[int, np.ndarray]:
 
 def run_parallel(bag: Path, workers: int) -> tuple[int, np.ndarray]:
     """ours through identify --workers N's path; (messages, base estimate)."""
-    from identification_node.offline.parallel import parallel_identify
+    from identification_node.replay.parallel import parallel_identify
     from identification_node.settings import Settings, read_parameter_file
 
     settings = Settings.from_dict(read_parameter_file(CONFIG))
@@ -198,7 +198,7 @@ def main() -> None:
         return _rss_child(args.rss[0], Path(args.rss[1]))
     bag, half = make_bag(args.samples), make_bag(args.samples // 2)
     run_ours(make_bag(2000))  # imports and caches outside the measurements
-    from identification_node.offline.parallel import default_workers
+    from identification_node.replay.parallel import default_workers
     workers = default_workers() if args.workers is None else args.workers
     runs = {name: (fn, bag) for name, fn in PIPELINES.items()}
     if workers > 1:

@@ -30,7 +30,7 @@ from arms import ARMS, arm_urdf  # noqa: E402
 from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
 from identification_node.model.identifiability import BaseParameters  # noqa: E402
 from identification_node.model.robot import load_robot  # noqa: E402
-from identification_node.model.simulation import SensorNoise, simulate_kinematic  # noqa: E402
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic  # noqa: E402
 from recordings import joint_state_bag  # noqa: E402
 
 RATES = (100.0, 250.0, 500.0, 1000.0, 2000.0)

@@ -40,9 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from identification_node.bags.writer import BagWriter  # noqa: E402
 from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
 from identification_node.model.robot import load_robot  # noqa: E402
-from identification_node.model.simulation import SensorNoise, simulate_kinematic  # noqa: E402
-from identification_node.offline.identification import (  # noqa: E402
-    offline_identify, replay_identify)
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic  # noqa: E402
+from identification_node.batch.solve import offline_identify  # noqa: E402
+from identification_node.replay.stream import replay_identify  # noqa: E402
 from identification_node.settings import Settings  # noqa: E402
 
 FRICTION = {   # per joint fv (N m s/rad), fc (N m), fo (N m): a geared arm's sizes

@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT / 'test'))
 from arms import arm_urdf  # noqa: E402
 from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
 from identification_node.model.robot import load_robot  # noqa: E402
-from identification_node.model.simulation import SensorNoise, simulate_kinematic  # noqa: E402
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic  # noqa: E402
 from identification_node.settings import Settings  # noqa: E402
 from identification_node.wire.records import JointStateRecord  # noqa: E402
 

@@ -75,3 +75,13 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 def atomic_write_yaml(path: str | os.PathLike, data: object) -> Path:
     """YAML dump of plain Python data (lists, dicts, floats), written atomically."""
     return atomic_write_text(path, yaml.safe_dump(data, sort_keys=False))
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Render the matplotlib figure ``fig`` to PNG at ``path`` atomically (100 dpi)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    with atomic_file(path, 'wb') as f:
+        fig.savefig(f, format='png', dpi=100)
+    return path

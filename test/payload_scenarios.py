@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from identification_node.excitation.trajectories import FourierTrajectory
-from identification_node.model.simulation import SensorNoise, SimResult, measure
+from identification_node.simulation.simulator import SensorNoise, SimResult, measure
 from identification_node.payload.fit import PayloadChange, true_parameter_changes
 from identification_node.payload.monitor import PayloadMonitor, monitor_from_settings
 from identification_node.settings import Settings

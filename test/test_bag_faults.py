@@ -110,7 +110,7 @@ def test_one_corrupt_message_is_counted_and_skipped(tmp_path, capsys, measured_b
     assert known.sum() >= len(sd) // 2
     assert np.all(np.abs(est - ref)[known] < 0.1 * sd[known] + 1e-12), (est - ref) / sd
     # the batch method reads the same way
-    from identification_node.offline.identification import read_samples
+    from identification_node.batch.samples import read_samples
     from identification_node.settings import Settings
     settings = Settings.from_dict({'robot': 'mit_dd_arm'})
     samples = read_samples(bad, settings, settings.load_robot())

@@ -11,7 +11,7 @@ import pytest
 from std_srvs.srv import Trigger
 
 from identification_node.estimation.consistency import ConsistentSolver, pipeline_equations
-from identification_node.offline.replay import identify_bag
+from identification_node.replay.stream import identify_bag
 from identification_node.settings import Settings, read_parameter_file
 from ros_helpers import wait_for
 from test_bags import BAGS, true_base_parameters

@@ -18,8 +18,8 @@ from identification_node.cli import main
 from identification_node.estimation.consistency import ConsistentSolver, pipeline_equations
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
-from identification_node.offline.replay import identify_bag
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
+from identification_node.replay.stream import identify_bag
 from identification_node.settings import Settings, read_parameter_file
 from identification_node.wire.cdr import JOINT_STATE
 

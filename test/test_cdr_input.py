@@ -8,7 +8,7 @@ from identification_node.bags.writer import make_joint_state
 from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.wire.cdr import (JOINT_STATE, JointStateDecoder,
                                           decode_joint_state_reference, decode_joint_states,

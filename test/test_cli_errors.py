@@ -119,7 +119,7 @@ def test_a_window_past_the_bags_end(capsys):
              '--start', 'after the end of the bag')
     with open_bag(BAG) as bag:
         span = bag.duration
-    from identification_node.offline.windows import TimeWindow
+    from identification_node.bags.windows import TimeWindow
     with open_bag(BAG) as bag:   # an end far past the bag: the bag's end
         assert TimeWindow(0.5, 1e300).bounds_ns(str(BAG), bag.start_ns, bag.end_ns) == (
             bag.start_ns + 500_000_000, bag.end_ns + 1)

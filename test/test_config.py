@@ -16,7 +16,7 @@ from identification_node.estimation.consistency import ConsistencyOptions
 from identification_node.estimation.robust import RobustSettings
 from identification_node.model.plausibility import PlausibilitySettings
 from identification_node.model.torque import JointTorqueConfig
-from identification_node.offline.identification import BatchOptions
+from identification_node.batch.rows import BatchOptions
 from identification_node.payload.fit import DEFAULT_TOLERANCE
 from identification_node.payload.monitor import MonitorConfig
 from identification_node.pipeline import PipelineConfig

@@ -11,7 +11,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
 from identification_node.excitation.trajectories import FourierTrajectory
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.ros.diagnostics import NOT_DETERMINED, NOT_EXCITED, plain, vector
 from ros_helpers import RELIABLE, Collector, diagnostic_values, joint_state_msgs, wait_for
 

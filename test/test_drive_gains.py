@@ -14,8 +14,8 @@ from identification_node.estimation.drive_gains import (DriveGain, back_emf_equa
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.drive import DriveModel, emf_shape, motor_speed
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import simulate_kinematic
-from identification_node.offline.drive_gains import back_emf_from_bag
+from identification_node.simulation.simulator import simulate_kinematic
+from identification_node.batch.drive_gains import back_emf_from_bag
 from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.settings import Settings, read_parameter_file
 from arms import ARMS, arm_urdf

@@ -73,7 +73,7 @@ def _arm_runs():
     from identification_node.excitation.trajectories import FourierTrajectory
     from identification_node.model.drive import DriveModel
     from identification_node.model.robot import load_robot
-    from identification_node.model.simulation import ArmSimulator, SensorNoise
+    from identification_node.simulation.simulator import ArmSimulator, SensorNoise
     from identification_node.model.torque import JointTorqueConfig, TorqueConverter
     from identification_node.payload.fit import PayloadChange, true_parameter_changes
     robot = load_robot(str(arm_urdf('ur5')))

@@ -13,8 +13,8 @@ from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
-from identification_node.offline.effort_semantics import gravity_check
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
+from identification_node.results.effort_semantics import gravity_check
 from identification_node.wire.cdr import JOINT_STATE
 
 pytestmark = pytest.mark.slow

@@ -20,7 +20,7 @@ from identification_node.excitation.trajectories import (FourierTrajectory, Fram
                                                          load_trajectory)
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.wire.cdr import JOINT_TRAJECTORY
 
 FINE = 20001  # kinematic check points over one period

@@ -16,7 +16,7 @@ import pytest
 from identification_node.bags.reader import iter_joint_states, open_bag
 from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
-from identification_node.cli.identify import result_document
+from identification_node.results.documents import result_document
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistentSolver
 from identification_node.estimation.residuals import ResidualStatistics
@@ -24,8 +24,10 @@ from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.offline import fleet
-from identification_node.offline.identification import make_consistent, replay_identify
+from identification_node.fleet import fleet
+from identification_node.replay import segments
+from identification_node.replay.stream import replay_identify
+from identification_node.results.identification import make_consistent
 from identification_node.settings import Settings
 from test_offline import simulate, write_bag
 
@@ -182,8 +184,8 @@ def test_residual_statistics_of_two_recordings_add_with_their_blocks_apart():
 
 def test_one_bag_statistics_give_identify(fleet_dir, robot, settings):
     bag = fleet_dir / 'bags/arm_a_day1_0'
-    stats = fleet.bag_statistics(bag, settings, robot)
-    doc = result_document(fleet.identification(stats, settings, robot))
+    stats = segments.bag_statistics(bag, settings, robot)
+    doc = result_document(segments.identification(stats, settings, robot))
     ref = make_consistent(replay_identify(bag, settings, robot), settings.consistency_options())
     assert_same_as_identify(doc, result_document(ref))
 
@@ -197,15 +199,15 @@ def test_merged_statistics_give_identify_of_the_concatenated_bags(fleet_dir, rob
                                   'robust': {'enabled': False}})
     bags = [fleet_dir / f'bags/arm_b_{p}_{k}' for p in PERIODS[:2] for k in range(2)]
     # one smoother for all, chosen on the first bag, as identify on the concatenation does
-    one = fleet.pinned(settings, fleet.bag_smoother(bags[0], settings, robot))
-    merged = sum((fleet.bag_statistics(b, one, robot) for b in bags[1:]),
-                 fleet.bag_statistics(bags[0], one, robot))
-    doc = result_document(fleet.identification(merged, settings, robot,
-                                               physical_consistency=False))
+    one = segments.pinned(settings, segments.bag_smoother(bags[0], settings, robot))
+    merged = sum((segments.bag_statistics(b, one, robot) for b in bags[1:]),
+                 segments.bag_statistics(bags[0], one, robot))
+    doc = result_document(segments.identification(merged, settings, robot,
+                                                  physical_consistency=False))
     ref = replay_identify(concatenated(bags, tmp_path / 'cat', robot), settings, robot)
     assert ref.pipeline.smoother.half_window == one['smoother.half_window']
     with pytest.raises(IdentificationError, match='different smoothers'):
-        merged + fleet.bag_statistics(bags[0], fleet.pinned(settings, (
+        merged + segments.bag_statistics(bags[0], segments.pinned(settings, (
             ('smoother.half_window', one['smoother.half_window'] + 1),)), robot)
     assert ref.pipeline.restarts == 3
     # (identify holds the first bag back for the smoother's choice, so its rows enter the
@@ -220,10 +222,10 @@ def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, t
     settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
                                   'robust': {'enabled': False}})
     bags = [fleet_dir / f'bags/arm_b_{PERIODS[0]}_{k}' for k in range(2)]
-    one = fleet.pinned(settings, fleet.bag_smoother(bags[0], settings, robot))
-    merged = fleet.bag_statistics(bags[0], one, robot) + fleet.bag_statistics(
+    one = segments.pinned(settings, segments.bag_smoother(bags[0], settings, robot))
+    merged = segments.bag_statistics(bags[0], one, robot) + segments.bag_statistics(
         bags[1], one, robot)
-    ident = fleet.identification(merged, settings, robot)
+    ident = segments.identification(merged, settings, robot)
     doc = result_document(ident)
     assert doc['consistency_solver']['status'] == 'optimal' and doc['links']
     options = settings.consistency_options()
@@ -242,8 +244,8 @@ def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, t
                                atol=1e-9 * np.abs(ref_doc['unconstrained_estimate']).max())
     assert set(doc) == set(ref_doc)
     assert not np.allclose(doc['estimate'], doc['unconstrained_estimate'], rtol=1e-6)
-    plain = result_document(fleet.identification(merged, settings, robot,
-                                                 physical_consistency=False))
+    plain = result_document(segments.identification(merged, settings, robot,
+                                                    physical_consistency=False))
     assert plain['estimate'] == plain['unconstrained_estimate'] == doc['unconstrained_estimate']
     assert plain['consistency_solver']['status'] == 'disabled'
 
@@ -267,7 +269,7 @@ def test_segments_give_the_whole_bag_and_identify(long_bag, robot):
 
     settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
                                   'robust': {'enabled': False}})
-    whole = fleet.bag_statistics(long_bag, settings, robot)
+    whole = segments.bag_statistics(long_bag, settings, robot)
     assert whole.residuals.blocks >= 100   # the long-run variance is in use (>= 10 blocks)
     ref = result_document(make_consistent(replay_identify(long_bag, settings, robot),
                                           settings.consistency_options()))
@@ -275,7 +277,7 @@ def test_segments_give_the_whole_bag_and_identify(long_bag, robot):
     for cuts in ([None, None], [None, 2 * RESIDUAL_GRID, None],
                  [None] + [k * RESIDUAL_GRID for k in range(1, 5)] + [None],
                  [None, 5 * RESIDUAL_GRID, None]):     # a segment after the bag's end: empty
-        parts = [fleet.bag_statistics(long_bag, settings, robot, a, b)
+        parts = [segments.bag_statistics(long_bag, settings, robot, a, b)
                  for a, b in zip(cuts, cuts[1:])]
         merged = sum(parts[1:], parts[0])
         assert merged.used == whole.used and merged.messages == whole.messages
@@ -283,7 +285,7 @@ def test_segments_give_the_whole_bag_and_identify(long_bag, robot):
         assert merged.residuals.count == whole.residuals.count
         A, B = merged.normal_equations.augmented, whole.normal_equations.augmented
         np.testing.assert_allclose(A, B, rtol=1e-11, atol=1e-13 * np.abs(B).max())
-        docs.append(result_document(fleet.identification(merged, settings, robot)))
+        docs.append(result_document(segments.identification(merged, settings, robot)))
     for doc in docs:
         assert_same_identification(doc, docs[0])
         assert_same_as_identify(doc, ref)    # the consistent estimate to solver tolerance
@@ -297,15 +299,16 @@ def test_segments_give_the_whole_bag_and_identify(long_bag, robot):
 def test_a_cut_off_the_grid_moves_only_the_residual_blocks(long_bag, robot, settings):
     """Cut elsewhere, the segments still give the whole bag's rows and estimate; only the
     block partition, and with it the long-run variance, differs (hence the grid)."""
-    whole = fleet.bag_statistics(long_bag, settings, robot)
+    whole = segments.bag_statistics(long_bag, settings, robot)
     cuts = [None, whole.first_ns + 61_234_567_891, None]
-    parts = [fleet.bag_statistics(long_bag, settings, robot, a, b) for a, b in zip(cuts, cuts[1:])]
+    parts = [segments.bag_statistics(long_bag, settings, robot, a, b)
+             for a, b in zip(cuts, cuts[1:])]
     merged = parts[0] + parts[1]
     A, B = merged.normal_equations.augmented, whole.normal_equations.augmented
     np.testing.assert_allclose(A, B, rtol=1e-11, atol=1e-13 * np.abs(B).max())
     assert merged.residuals.blocks == whole.residuals.blocks - 1
-    a = fleet.identification(merged, settings, robot, physical_consistency=False)
-    b = fleet.identification(whole, settings, robot, physical_consistency=False)
+    a = segments.identification(merged, settings, robot, physical_consistency=False)
+    b = segments.identification(whole, settings, robot, physical_consistency=False)
     np.testing.assert_allclose(a.theta, b.theta, rtol=1e-9, atol=1e-9 * np.abs(b.theta).max())
     assert not np.allclose(a.stddev, b.stddev, rtol=1e-6)
 
@@ -315,16 +318,16 @@ def test_the_solve_seam_takes_normal_equations_and_gives_the_estimate(
     """Another solve (here: the model's own parameters) plugs in with one call; residuals
     are then those of its estimate."""
     bag = fleet_dir / 'bags/arm_b_day1_0'
-    stats = fleet.bag_statistics(bag, settings, robot)
+    stats = segments.bag_statistics(bag, settings, robot)
     seen = []
 
     def model_solve(equations):
         seen.append(equations)
         return fleet_base(robot, settings).to_base(robot.phi_model)
 
-    doc = result_document(fleet.identification(stats, settings, robot, solve=model_solve,
-                                               physical_consistency=False))
-    assert len(seen) == 1 and isinstance(seen[0], fleet.NormalEquations)
+    doc = result_document(segments.identification(stats, settings, robot, solve=model_solve,
+                                                  physical_consistency=False))
+    assert len(seen) == 1 and isinstance(seen[0], NormalEquations)
     np.testing.assert_array_equal(values(doc)[0], fleet_base(robot, settings).to_base(
         robot.phi_model))
     ref = result_document(replay_identify(bag, settings, robot))
@@ -338,10 +341,10 @@ def fleet_base(robot, settings):
 
 def test_statistics_of_other_robots_do_not_merge(fleet_dir, robot, settings):
     other = load_robot('mit_dd_arm', extras=['fv'])
-    a = fleet.bag_statistics(fleet_dir / 'bags/arm_a_day1_0', settings, robot)
-    b = fleet.bag_statistics(fleet_dir / 'bags/arm_a_day1_1',
-                             Settings.from_dict({'robot': 'mit_dd_arm', 'extras': ['fv']}),
-                             other)
+    a = segments.bag_statistics(fleet_dir / 'bags/arm_a_day1_0', settings, robot)
+    b = segments.bag_statistics(fleet_dir / 'bags/arm_a_day1_1',
+                                Settings.from_dict({'robot': 'mit_dd_arm', 'extras': ['fv']}),
+                                other)
     with pytest.raises(IdentificationError, match='different robot models'):
         a + b
     # in a fleet run: the bag of the other model is reported, the rest reduced
@@ -356,7 +359,7 @@ def test_forgetting_is_refused(fleet_dir, robot):
     s = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
                             'forgetting_factor': 0.999})
     with pytest.raises(IdentificationError, match='forgetting_factor 1'):
-        fleet.bag_statistics(fleet_dir / 'bags/arm_a_day1_0', s, robot)
+        segments.bag_statistics(fleet_dir / 'bags/arm_a_day1_0', s, robot)
 
 
 # -- manifest -----------------------------------------------------------------------------------
@@ -497,12 +500,12 @@ def check_fleet_document(doc, root, robot, settings, tmp_path):
         firsts.setdefault(e.robot, e.bag)
     assert set(doc['smoothers']) == set(firsts)
     for name, bag in firsts.items():
-        assert doc['smoothers'][name] == dict(fleet.bag_smoother(bag, settings, robot))
+        assert doc['smoothers'][name] == dict(segments.bag_smoother(bag, settings, robot))
     # per robot and period: identify of the same data (the two bags one after the other)
     # through the robot's smoother
     for (name, period), bags in groups.items():
         ref = replay_identify(concatenated(bags, tmp_path / f'{name}_{period}', robot),
-                              fleet.pinned(settings, tuple(doc['smoothers'][name].items())),
+                              segments.pinned(settings, tuple(doc['smoothers'][name].items())),
                               robot)
         make_consistent(ref, settings.consistency_options())
         assert_same_as_identify(doc['robots'][name][period], result_document(ref))

@@ -11,7 +11,7 @@ from sensor_msgs.msg import JointState
 from arms import arm_urdf
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import PIN_ORDER, load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.ros.link_outputs import inertia_stamped, topic_token
 from ros_helpers import LATCHED, RELIABLE, Collector, joint_state_msgs, stamp_ns, wait_for
 

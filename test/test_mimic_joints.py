@@ -101,7 +101,7 @@ def test_panda_with_hand_identifies_out_of_the_box(panda_bags, capsys):
 
 def test_fingers_in_the_bag_are_named_as_locked(tmp_path):
     from identification_node.bags.writer import BagWriter
-    from identification_node.offline.replay import mimic_warning
+    from identification_node.replay.stream import mimic_warning
     from identification_node.wire.cdr import JOINT_STATE
     robot = load_robot(arm_urdf('panda'))
     for n in (7, 9):

@@ -17,8 +17,9 @@ from identification_node.estimation.model_terms import (MIN_CORRELATION, ModelTe
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
-from identification_node.offline.identification import offline_identify, replay_identify
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
+from identification_node.batch.solve import offline_identify
+from identification_node.replay.stream import replay_identify
 from identification_node.settings import Settings
 
 FV = np.array([0.5, 0.3, 0.1])      # N m s/rad, per joint of the MIT arm

@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor  # noqa: F401  (rclpy type registration)
 from rclpy.event_handler import UnsupportedEventTypeError
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
@@ -28,14 +27,13 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import SetBool, Trigger
 
-from identification_node.controller_client import IdentifiedModel
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (ConsistencyOptions, ConsistentSolver,
                                                         pipeline_equations)
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.model.torque import TorqueConverter
 from identification_node.pipeline import REJECT_REASONS
 from identification_node.ros import conversions
@@ -602,7 +600,19 @@ def test_mit_arm_converges_to_the_truth(mit):
     print('\nMIT', report, re.findall(r'took .*', mit.sim_log))
 
 
+def controller_client():
+    """examples/controller_client.py, the example controller-side client (not in the
+    package)."""
+    import importlib.util
+    path = Path(__file__).resolve().parents[1] / 'examples' / 'controller_client.py'
+    spec = importlib.util.spec_from_file_location('controller_client', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_controller_client_feedforward(ros, mit):
+    IdentifiedModel = controller_client().IdentifiedModel
     target = '/mit_measured'
     est = get_estimate(ros, target)     # also refreshes the estimate parameters
     model = IdentifiedModel.from_node(ros.client, target)

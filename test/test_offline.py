@@ -16,16 +16,19 @@ from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
-from identification_node.offline import identification as offline
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
+from identification_node.batch import rows as batch
 from identification_node.pipeline.signals import half_window_for_cutoff
-from identification_node.offline.identification import (BagSamples, BatchOptions, Stream,
-                                                        fourier_fit, identify_samples,
-                                                        offline_identify, read_samples, validate)
-from identification_node.offline.replay import identify_bag
+from identification_node.batch.rows import BatchOptions, fourier_fit
+from identification_node.batch.samples import BagSamples, Stream, read_samples
+from identification_node.batch.solve import identify_samples, offline_identify
+from identification_node.replay.stream import identify_bag
 from identification_node.pipeline.signals import central_derivatives, zero_phase_lowpass
 from identification_node.settings import Settings, read_parameter_file
 from test_bags import BAGS, true_base_parameters
+from identification_node.replay.validation import bag_error
+from identification_node.replay.stream import replay_identify
+from identification_node.replay.validation import evaluation_settings
 
 REPO = Path(__file__).resolve().parents[1]
 NOISE = np.array([0.8, 0.4, 0.2])      # N m, per joint of the MIT arm
@@ -244,9 +247,9 @@ def test_filtered_rows_are_the_parallel_filtered_regressor(mit, mit_settings, mo
     traj = FourierTrajectory.random(mit, period=4.0, seed=1)
     t, q, qd, tau = simulate(mit, traj, 3.0)
     base = mit_settings.build(mit).base
-    monkeypatch.setattr(offline, 'CHUNK', 300)       # many chunks with overlaps
-    info, rows = offline.batch_rows(samples_of(t, q, qd, tau), mit_settings, mit, base,
-                                    BatchOptions(cutoff=15.0, decimation=10))
+    monkeypatch.setattr(batch, 'CHUNK', 300)       # many chunks with overlaps
+    info, rows = batch.batch_rows(samples_of(t, q, qd, tau), mit_settings, mit, base,
+                                  BatchOptions(cutoff=15.0, decimation=10))
     rows = list(rows)
     assert len(rows) > 5 and info['rows'] == sum(len(r) for r in rows)
     stamps = np.concatenate([r.stamps_ns for r in rows])
@@ -314,13 +317,13 @@ def test_validation_error_is_close_to_training_and_grows_with_wrong_parameters(
         validation_bags, mit, mit_settings, method):
     train = validation_bags['train']
     ident = (offline_identify(train, mit_settings, mit) if method == 'batch'
-             else offline.replay_identify(train, mit_settings, mit))
-    trained = validate(ident, train, mit_settings, training=True).relative_error
-    same = validate(ident, validation_bags['test'], mit_settings)
-    wrong = validate(ident, validation_bags['wrong'], mit_settings)
+             else replay_identify(train, mit_settings, mit))
+    trained = bag_error(ident, train, mit_settings, training=True).relative_error
+    same = bag_error(ident, validation_bags['test'], mit_settings)
+    wrong = bag_error(ident, validation_bags['wrong'], mit_settings)
     # every sample but the smoother's first and last half windows, whatever the method (the
     # smoother the fit used: the bag is processed as the training bag was)
-    half = offline.evaluation_settings(mit_settings, ident).build(mit).row_builder.half_window
+    half = evaluation_settings(mit_settings, ident).build(mit).row_builder.half_window
     assert same.num_samples == 4000 - 2 * half
     # Another motion has other torques: the relative errors are alike, not equal ...
     assert np.all((same.relative_error > 0.4 * trained) & (same.relative_error < 2.5 * trained))
@@ -368,7 +371,7 @@ def test_validation_bag_of_another_robot_is_refused(validation_bags, tmp_path, m
 
 def test_rls_identification_matches_the_replay(validation_bags, mit, mit_settings):
     bag = validation_bags['train']
-    ident = offline.replay_identify(bag, mit_settings, mit)
+    ident = replay_identify(bag, mit_settings, mit)
     est = identify_bag(bag, mit_settings, mit).pipeline.estimate()
     np.testing.assert_array_equal(ident.theta, est.values)
     np.testing.assert_array_equal(ident.stddev, est.stddev)

@@ -11,7 +11,7 @@ from identification_node.fileio import atomic_write_text
 from identification_node.model.robot import load_robot
 from identification_node.model.urdf_export import (consistency_problems, identified_urdf,
                                                    link_inertia)
-from identification_node.offline.results import save_results
+from identification_node.results.documents import save_results
 from identification_node.settings import Settings, read_parameter_file
 
 REPO = Path(__file__).resolve().parents[1]

@@ -194,10 +194,10 @@ def test_installed_scripts_print_help(install, site_packages, tmp_path):
 def test_importing_the_package_leaves_the_process_environment_alone(tmp_path):
     """A controller importing controller_client (and so the package) keeps its environment;
     the package's programs set theirs in their entry points (programs.py)."""
-    code = ('import os, identification_node.controller_client, identification_node.pipeline; '
+    code = ('import os, controller_client, identification_node.pipeline; '
             "print(os.environ.get('OPENBLAS_NUM_THREADS'))")
     env = {k: v for k, v in os.environ.items() if k != 'OPENBLAS_NUM_THREADS'}
-    env['PYTHONPATH'] = str(ROOT)
+    env['PYTHONPATH'] = os.pathsep.join([str(ROOT), str(ROOT / 'examples')])
     proc = subprocess.run([sys.executable, '-c', code], cwd=tmp_path, capture_output=True,
                           text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr

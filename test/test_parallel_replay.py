@@ -1,4 +1,4 @@
-"""One bag on several cores (offline/parallel.py, ``identify --workers``): its 60 s segments
+"""One bag on several cores (replay/parallel.py, ``identify --workers``): its 60 s segments
 streamed in worker processes and merged give the serial run's estimate and stddev (robust gate
 off), or say how many samples the segments' gates held back (gate on)."""
 import json
@@ -10,8 +10,8 @@ import yaml
 from identification_node.cli import main
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.offline.parallel import parallel_identify, segments
-from identification_node.offline.identification import replay_identify
+from identification_node.replay.parallel import parallel_identify, segments
+from identification_node.replay.stream import replay_identify
 from identification_node.settings import Settings
 from test_offline import simulate, write_bag
 

@@ -13,7 +13,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.excitation.trajectories import load_trajectory
 from identification_node.model.robot import PIN_ORDER, load_robot
-from identification_node.model.simulation import ArmSimulator, SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import ArmSimulator, SensorNoise, simulate_kinematic
 from identification_node.payload.fit import (INERTIA_KEYS, PayloadChange, QUANTITIES, attachment,
                                              fit_payload, frame_transform, given_payload,
                                              payload_regressor, pseudo_inertia,

@@ -149,7 +149,7 @@ def test_arm_from_the_running_estimate_taken_at_reset(ros):
     from identification_node.payload.fit import PayloadChange, true_parameter_changes
     from identification_node.wire.records import JointStateRecord
     from identification_node.ros.node import IdentificationNode
-    from identification_node.model.simulation import simulate_kinematic
+    from identification_node.simulation.simulator import simulate_kinematic
     from identification_node.excitation.trajectories import load_trajectory
     node = ros.add(IdentificationNode('payload_arm', context=ros.context, parameter_overrides=[
         P('robot', value=URDF), P('payload.enabled', value=True),

@@ -9,7 +9,7 @@ from identification_node.estimation.robust import RobustSettings
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.pipeline import signals

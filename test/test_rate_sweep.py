@@ -24,7 +24,7 @@ import pytest
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.settings import Settings
 from identification_node.wire.records import JointStateRecord
 

@@ -7,7 +7,8 @@ import pytest
 
 from identification_node.bags.reader import iter_joint_state_blocks, iter_joint_states
 
-from identification_node.offline import replay
+from identification_node.bags import feed
+from identification_node.replay import stream as replay
 from identification_node.settings import Settings, read_parameter_file
 
 REPO = Path(__file__).resolve().parents[1]
@@ -31,11 +32,11 @@ def test_block_reading_equals_message_by_message(monkeypatch, batch):
     bag = REPO / 'bags' / 'crs_a465_fourier'
     calls = []
     blocks = iter_joint_state_blocks
-    monkeypatch.setattr(replay, 'iter_joint_state_blocks',
+    monkeypatch.setattr(feed, 'iter_joint_state_blocks',
                         lambda *a: calls.append(1) or blocks(*a))
     fast, fast_out = _run(bag, settings, batch)
     assert calls
-    monkeypatch.setattr(replay, 'iter_joint_state_blocks', _one_by_one)
+    monkeypatch.setattr(feed, 'iter_joint_state_blocks', _one_by_one)
     slow, slow_out = _run(bag, settings, batch)
     assert fast.messages == slow.messages == 10001
     assert [len(o.stamps_ns) for o in fast_out] == [len(o.stamps_ns) for o in slow_out]

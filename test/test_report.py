@@ -12,15 +12,17 @@ from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
-from identification_node.offline.identification import (BatchOptions, SeriesSampler,
-                                                        offline_identify, replay_identify,
-                                                        validate)
-from identification_node.offline.report import (check_writable, convergence_figure_data,
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
+from identification_node.batch.rows import BatchOptions
+from identification_node.batch.solve import offline_identify
+from identification_node.replay.stream import replay_identify
+from identification_node.results.identification import SeriesSampler
+from identification_node.results.report import (check_writable, convergence_figure_data,
                                                 is_mit_arm, write_report)
 from identification_node.pipeline.signals import (FixedLagSmoother, central_derivatives,
                                                   period_average, zero_phase_lowpass)
 from identification_node.settings import Settings, read_parameter_file
+from identification_node.replay.validation import bag_error
 
 REPO = Path(__file__).resolve().parents[1]
 CRS = REPO / 'bags' / 'crs_a465_fourier'
@@ -48,7 +50,7 @@ def crs_bag_arrays(crs_settings):
 def crs_batch(crs_settings):
     robot = crs_settings.load_robot()
     ident = offline_identify(CRS, crs_settings, robot)
-    return ident, validate(ident, CRS, crs_settings)
+    return ident, bag_error(ident, CRS, crs_settings)
 
 
 def assert_png(path):
@@ -59,7 +61,7 @@ def assert_png(path):
 @pytest.mark.slow
 def test_report_files_and_tables(crs_batch, crs_settings, crs_bag_arrays, tmp_path):
     ident, validation = crs_batch
-    training = validate(ident, CRS, crs_settings, training=True)
+    training = bag_error(ident, CRS, crs_settings, training=True)
     report = write_report(tmp_path / 'rep', ident, [validation], training)
     figures = ('torque', 'convergence', 'estimates', 'validation')
     assert set(report.files) == {'report', *figures}

@@ -12,7 +12,7 @@ from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.plausibility import PlausibilityBounds, PlausibilitySettings
 from identification_node.model.robot import BUNDLED_DIR, load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.wire.cdr import encode_joint_states

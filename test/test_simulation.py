@@ -9,8 +9,8 @@ import pytest
 from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import FourierTrajectory, QuinticMoves
 from identification_node.model.robot import load_robot
-from identification_node.model.simulation import (ArmSimulator, SensorNoise, default_converter,
-                                                  simulate_kinematic)
+from identification_node.simulation.simulator import (ArmSimulator, SensorNoise, default_converter,
+                                                      simulate_kinematic)
 
 CRS_URDF = Path(__file__).resolve().parents[1] / 'identification_node' / 'robots' / \
     'crs_a465.urdf'
@@ -230,7 +230,7 @@ def test_simulate_verb_seeds_the_motion_and_shows_its_defaults(tmp_path, capsys)
     import yaml
 
     from identification_node.cli import main
-    from identification_node.offline.identification import read_samples
+    from identification_node.batch.samples import read_samples
     from identification_node.settings import Settings
 
     def positions(seed: int, *more: str):

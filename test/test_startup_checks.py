@@ -17,7 +17,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.prior import safe_prior
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import BUNDLED_DIR, load_robot
-from identification_node.model.simulation import SensorNoise, simulate_kinematic
+from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.model.urdf_export import (consistency_problems, identified_urdf,
                                                    link_inertia)
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig

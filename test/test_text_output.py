@@ -12,8 +12,8 @@ import pytest
 
 from arms import arm_urdf
 from identification_node.cli import main
-from identification_node.cli.identify import ABOUT_ZERO
-from identification_node.offline import report
+from identification_node.results.text import ABOUT_ZERO
+from identification_node.results import report
 
 TORQUE_STD = 0.2
 
@@ -94,7 +94,7 @@ def test_report_noise_is_the_sensor_noise_and_smoother_in_words(ur5_run):
 
 def _captured(monkeypatch, make):
     figs = []
-    monkeypatch.setattr(report, '_save', lambda fig, path: figs.append(fig) or path)
+    monkeypatch.setattr(report, 'save_figure', lambda fig, path: figs.append(fig) or path)
     make()
     return figs[0]
 

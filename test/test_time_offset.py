@@ -14,7 +14,7 @@ from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.pipeline.time_offset import estimate_offset
 from identification_node.settings import Settings, read_parameter_file
-from identification_node.offline.replay import identify_bag
+from identification_node.replay.stream import identify_bag
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT / 'bags' / 'mit_exciting'

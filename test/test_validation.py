@@ -1,4 +1,4 @@
-"""Honest validation (offline/validation.py, identify --validate/--start/--end/--predictions):
+"""Honest validation (replay/validation.py, identify --validate/--start/--end/--predictions):
 the torque error against the raw torque of every sample with valid motion, checked against
 numpy on the simulated truth, the predictions files, windows and report permissions."""
 import csv
@@ -16,11 +16,13 @@ from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.fileio import atomic_write_text
 from identification_node.model.robot import load_robot
-from identification_node.offline.identification import offline_identify, validate
-from identification_node.offline.predictions import PredictionsWriter
-from identification_node.offline.validation import evaluate, relative_error
-from identification_node.offline.windows import TimeWindow
+from identification_node.batch.solve import offline_identify
+from identification_node.results.predictions import PredictionsWriter
+from identification_node.replay.validation import evaluate
+from identification_node.results.torque_error import relative_error
+from identification_node.bags.windows import TimeWindow
 from identification_node.settings import Settings
+from identification_node.replay.validation import bag_error
 
 RATE = 500.0
 DURATION = 3.0
@@ -134,7 +136,7 @@ def test_validation_of_an_identification_on_several_bags(bags, robot, settings, 
     ident = offline_identify(bags['a'][0], settings, robot)
     half = settings.build(robot).row_builder.half_window
     for bag, sim in bags.values():
-        v = validate(ident, bag, settings)
+        v = bag_error(ident, bag, settings)
         count, stacked, per_joint = expected(sim, TimeWindow(), half)
         assert v.num_samples == count
         # the estimate predicts about as well as the truth: the error is the noise's

@@ -22,7 +22,7 @@ import argparse
 import json
 import sys
 
-from identification_node.cli.identify import _table
+from identification_node.results.text import text_table
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +59,7 @@ def format_fleet(doc: dict) -> str:
         rows = [tuple(['samples'] + [str(d['num_samples']) for d in docs])]
         for i, p in enumerate(docs[0]['base_parameters']):
             rows.append(tuple([p['name']] + [_pm(d['base_parameters'][i]) for d in docs]))
-        lines += [f'{robot} ({len(periods)} period(s); SI units):'] + _table(
+        lines += [f'{robot} ({len(periods)} period(s); SI units):'] + text_table(
             tuple(['parameter'] + list(periods)), rows) + ['']
     lines.append(f"flags (> {doc['sigma']:g} standard deviations):" if doc['flags']
                  else 'flags: none')
@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
     from pathlib import Path
 
-    from identification_node.offline import fleet
+    from identification_node.fleet import fleet
     from identification_node.errors import IdentificationError
 
     if not args.sigma > 0:
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise IdentificationError(f'--workers must be >= 1, got {args.workers}')
     if args.report:
-        from identification_node.offline.report import check_writable
+        from identification_node.results.report import check_writable
         check_writable(args.report)
     source = Path(args.manifest)
     if source.is_dir():
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     result.failed[:0] = failed
     doc = fleet.fleet_document(result, args.sigma)
     if args.report:
-        from identification_node.offline.fleet_report import write_fleet_report
+        from identification_node.fleet.report import write_fleet_report
         doc['report'] = {k: str(p) for k, p in write_fleet_report(args.report, doc).items()}
     if args.json:
         print(json.dumps(doc, indent=2))

@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from identification_node.model.identifiability import BaseParameters
     from identification_node.payload.fit import (attachment, read_payload_changes,
                                                  true_parameter_changes)
-    from identification_node.model.simulation import ArmSimulator, SensorNoise
+    from identification_node.simulation.simulator import ArmSimulator, SensorNoise
     from identification_node.model.torque import TorqueConverter
     from identification_node.excitation.trajectories import load_trajectory
 

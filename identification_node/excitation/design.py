@@ -920,7 +920,7 @@ def plot_excitation(framed: FramedTrajectory, limits: ExcitationLimits, path: st
     atomically."""
     from matplotlib.figure import Figure
 
-    from identification_node.offline.report import _save
+    from identification_node.fileio import save_figure
 
     t = sample_times(framed, rate)
     motion = framed.sample(t)
@@ -956,4 +956,4 @@ def plot_excitation(framed: FramedTrajectory, limits: ExcitationLimits, path: st
                  f'{t1 - t0:.1f} s, ramp out {framed.duration - t1:.1f} s; limits dashed, '
                  f'with {100 * margin:g} % margin dotted', fontsize='medium')
     fig.tight_layout(rect=(0.0, 0.0, 1.0, 0.98))
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))

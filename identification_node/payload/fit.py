@@ -154,19 +154,25 @@ class PayloadEstimate:
 
     def document(self) -> dict:
         """The ``payload`` object of the JSON output: values and stddev, null where the motion
-        did not excite a quantity (named in ``not_excited``)."""
+        did not excite a quantity (named in ``not_excited``); ``fitted``: the same for every
+        quantity with a finite stddev, within the tolerance or not (kg, m, kg m^2, link
+        frame; null where the data do not determine it)."""
         vals = dict(zip(QUANTITIES, self.values().tolist()))
 
-        def pick(source: dict, q: str):
-            v = source[q]
-            return float(v) if q in self.excited and math.isfinite(v) else None
-        doc = {'link': self.link, 'mass': pick(vals, 'mass'),
-               'com': [pick(vals, f'com.{k}') for k in COM_KEYS],
-               'inertia': [pick(vals, f'inertia.{k}') for k in INERTIA_KEYS],
-               'stddev': {'mass': pick(self.stddev, 'mass'),
-                          'com': [pick(self.stddev, f'com.{k}') for k in COM_KEYS],
-                          'inertia': [pick(self.stddev, f'inertia.{k}') for k in INERTIA_KEYS]},
+        def values(which) -> dict:
+            def pick(source: dict, q: str):
+                v = source[q]
+                return float(v) if which(q) and math.isfinite(v) else None
+            return {'mass': pick(vals, 'mass'),
+                    'com': [pick(vals, f'com.{k}') for k in COM_KEYS],
+                    'inertia': [pick(vals, f'inertia.{k}') for k in INERTIA_KEYS],
+                    'stddev': {'mass': pick(self.stddev, 'mass'),
+                               'com': [pick(self.stddev, f'com.{k}') for k in COM_KEYS],
+                               'inertia': [pick(self.stddev, f'inertia.{k}')
+                                           for k in INERTIA_KEYS]}}
+        doc = {'link': self.link, **values(lambda q: q in self.excited),
                'excited': list(self.excited), 'not_excited': self.not_excited,
+               'fitted': values(lambda q: math.isfinite(self.stddev[q])),
                'num_samples': int(self.num_samples), 'physically_consistent': self.consistent}
         if not self.excited:
             doc['status'] = 'not excited'

@@ -11,8 +11,9 @@ segments of constant payload:
 - *fitting*: after the start (or a change, once ``settle`` s have passed), ``fit_time`` s of
   samples are gathered and the payload fitted (payload.fit_payload); then
 - *watching*: the residual of arm plus payload goes to the change detector
-  (change_detection.WindowedGLR), and its samples, once older than the detector's window
-  (so none from after a change), refine the segment's fit every ``refresh`` s. A detection
+  (change_detection.WindowedGLR), and its samples, once older than the latest a change
+  is declared after its onset (2 ``window`` + ``confirm``: so none from after a change),
+  refine the segment's fit every ``refresh`` s. A detection
   ends the segment at the estimated onset and starts *fitting* again.
 
 The torque noise is measured too (raw torque minus its smoothed value, at the window
@@ -378,7 +379,10 @@ class PayloadMonitor:
             self.current, self._given = None, False
             self._new_segment(found.onset, found.stamp, self.config.settle)
             return stop
-        self._flush(float(t[-1]) - self.config.window, inclusive=True)
+        # a change is declared up to about window + confirm after its onset (later when
+        # small or noisy): samples join the fit only once older than twice that window
+        self._flush(float(t[-1]) - 2.0 * self.config.window - self.config.confirm,
+                    inclusive=True)
         if float(t[-1]) >= self._next_refresh and not self._given:
             # refits come at doubling intervals up to ``refresh``: a first fit from a short
             # motion may leave directions unexcited that the next seconds determine

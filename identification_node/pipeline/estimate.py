@@ -8,7 +8,7 @@ larger of the white raw noise that explains the smoothed residual
 (signals.smoothing_noise_gain) and, once there are enough blocks, the residual's long-run
 variance (ResidualStatistics' block sums); see ``noise_variance``. The blocks restart at every
 RESIDUAL_GRID of the stamps, so a bag cut there into segments has its blocks
-(offline/fleet.py).
+(replay/segments.py).
 
 Before an update, samples whose rows would overflow are dropped ('regressor_overflow') and,
 once the estimate has converged and predicts new samples, the robust gate (robust.py) holds

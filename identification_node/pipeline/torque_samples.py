@@ -1,7 +1,7 @@
 """Stages 1-4 composed: queued inputs to validated samples with joint torque, in stamp order.
 
 intake (decode) -> validate -> stamp order -> current alignment -> torque. The streaming
-pipeline smooths and estimates what comes out; batch identification (offline.read_samples)
+pipeline smooths and estimates what comes out; batch identification (batch/samples.py)
 collects it. Both run exactly this.
 """
 from __future__ import annotations

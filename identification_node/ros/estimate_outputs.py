@@ -30,9 +30,9 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistentEstimate
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
-from identification_node.offline.results import plain, snapshot_document, write_results
 from identification_node.payload.fit import urdf_with_payload
 from identification_node.pipeline import EstimateReport
+from identification_node.results.documents import plain, snapshot_document, write_results
 from identification_node.ros.link_outputs import LinkOutputs
 from identification_node.ros.parameters import (ESTIMATE_PREFIX, STDDEV_PREFIX,
                                                 UNCONSTRAINED_PREFIX, OutputParameters)

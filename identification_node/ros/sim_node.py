@@ -52,7 +52,7 @@ from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectories import Trajectory, load_trajectory
 from identification_node.model.drive import DriveModel
 from identification_node.model.robot import RobotModel
-from identification_node.model.simulation import ArmSimulator, SensorNoise, SimResult
+from identification_node.simulation.simulator import ArmSimulator, SensorNoise, SimResult
 from identification_node.model.torque import TorqueConverter
 from identification_node.model.urdf_export import consistency_problems
 from identification_node.payload.fit import read_payload_changes, true_parameter_changes

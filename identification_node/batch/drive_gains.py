@@ -9,19 +9,23 @@ import os
 import numpy as np
 import yaml
 
+from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.bags.reader import iter_joint_state_blocks, open_bag
+from identification_node.batch.rows import BatchOptions, auto_cutoff, batch_rows
+from identification_node.batch.samples import read_samples
 from identification_node.errors import IdentificationError
 from identification_node.estimation.drive_gains import (DriveGain, known_payload_gains,
                                                         mark_used, payload_equations)
 from identification_node.model.robot import RobotModel
 from identification_node.model.torque import TorqueConverter
-from identification_node.offline.identification import (BatchOptions, auto_cutoff, batch_rows,
-                                                        read_samples)
-from identification_node.offline.replay import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.payload.fit import (PayloadChange, attachment, read_payload_changes,
                                              with_payload)
 from identification_node.pipeline.back_emf import BackEmfStream
 from identification_node.settings import Settings
+
+__all__ = ['MOTOR_VOLTAGES', 'configured_gains', 'converter_of', 'back_emf_from_bag',
+           'read_known_payload', 'known_payload_from_bags', 'settings_with_gains',
+           'identify_drive_gains', 'used_gains']
 
 MOTOR_VOLTAGES = '/motor_voltages'
 

@@ -22,13 +22,20 @@ from pathlib import Path
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.fileio import atomic_file, atomic_write_text, writable_directory
+from identification_node.fileio import atomic_write_text, save_figure, writable_directory
 from identification_node.model.identifiability import BaseParameters, format_expression
 from identification_node.model.papers import MIT_TABLE1, MIT_TABLE3
 from identification_node.model.robot import LINK_PARAMS, RobotModel
-from identification_node.offline.identification import Identification, TorqueSeries
-from identification_node.offline.replay import Checkpoint
-from identification_node.offline.validation import BagError
+from identification_node.results.identification import Checkpoint, Identification, TorqueSeries
+from identification_node.results.torque_error import BagError
+
+__all__ = ['REPORT_FILE', 'TORQUE_FIGURE', 'CONVERGENCE_FIGURE', 'VALIDATION_FIGURE',
+           'ESTIMATES_FIGURE', 'PERCENTILES', 'WORST', 'Report', 'check_writable',
+           'torque_figure_data', 'convergence_figure_data', 'estimates_figure_data', 'COLOURS',
+           'plot_torque', 'plot_convergence', 'plot_estimates', 'number_text',
+           'markdown_table', 'is_mit_arm', 'paper_table3_rows', 'base_parameter_table',
+           'standard_parameter_table', 'combination_table', 'error_table', 'markdown',
+           'smoother_words', 'validation_figure', 'write_report']
 
 REPORT_FILE = 'report.md'
 TORQUE_FIGURE = 'torque.png'
@@ -105,16 +112,6 @@ def estimates_figure_data(ident: Identification) -> dict:
 
 
 # -- figures --------------------------------------------------------------------------------------
-def _save(fig, path: Path) -> Path:
-    """Render ``fig`` to PNG at ``path`` atomically."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    FigureCanvasAgg(fig)
-    with atomic_file(path, 'wb') as f:
-        fig.savefig(f, format='png', dpi=100)
-    return path
-
-
 # measured: light and wide beneath; identified and model: saturated, distinct hues on top
 COLOURS = {'measured': '0.72', 'identified': 'tab:blue', 'model': 'tab:orange',
            'residual': 'tab:purple'}
@@ -148,7 +145,7 @@ def plot_torque(data: dict, path: str | os.PathLike, title: str, xlabel: str = '
     axes[0].set_title(title)
     axes[-1].set_xlabel(xlabel)
     fig.tight_layout()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def plot_convergence(data: dict, path: str | os.PathLike) -> Path:
@@ -183,7 +180,7 @@ def plot_convergence(data: dict, path: str | os.PathLike) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize='x-small', ncol=5 if ax is middle else 3, loc='upper right')
     fig.tight_layout()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def plot_estimates(data: dict, path: str | os.PathLike) -> Path:
@@ -208,17 +205,17 @@ def plot_estimates(data: dict, path: str | os.PathLike) -> Path:
     ax.grid(alpha=0.3, axis='x')
     ax.legend(fontsize='small', loc='lower right')
     fig.tight_layout()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 # -- tables ---------------------------------------------------------------------------------------
-def _fmt(x: float | None, digits: int = 6) -> str:
+def number_text(x: float | None, digits: int = 6) -> str:
     if x is None or not np.isfinite(x):
         return 'inf' if x is not None and np.isinf(x) else '-'
     return f'{x:.{digits}g}'
 
 
-def _table(header: list[str], rows: list[list[str]], text: int = 1) -> list[str]:
+def markdown_table(header: list[str], rows: list[list[str]], text: int = 1) -> list[str]:
     """Markdown table; the first ``text`` columns left-aligned, the numbers right-aligned."""
     out = ['| ' + ' | '.join(header) + ' |', '|' + '|'.join(
         ['---'] * text + ['---:'] * (len(header) - text)) + '|']
@@ -250,10 +247,11 @@ def paper_table3_rows(base: BaseParameters, theta: np.ndarray, covariance: np.nd
 
 def base_parameter_table(ident: Identification) -> list[str]:
     b = ident.base
-    rows = [[f'`{n}`', e, _fmt(v), _fmt(s, 3), _fmt(r, 3), _fmt(m)] for n, e, v, s, r, m in zip(
-        b.names, b.expressions, ident.estimate, ident.stddev, ident.rel_stddev, ident.theta_model)]
-    return _table(['base parameter', 'expression', 'estimate', 'stddev', 'rel. stddev (%)',
-                   'model'], rows, text=2)
+    rows = [[f'`{n}`', e, number_text(v), number_text(s, 3), number_text(r, 3), number_text(m)]
+            for n, e, v, s, r, m in zip(b.names, b.expressions, ident.estimate, ident.stddev,
+                                        ident.rel_stddev, ident.theta_model)]
+    return markdown_table(['base parameter', 'expression', 'estimate', 'stddev',
+                           'rel. stddev (%)', 'model'], rows, text=2)
 
 
 def standard_parameter_table(ident: Identification) -> list[str]:
@@ -268,29 +266,29 @@ def standard_parameter_table(ident: Identification) -> list[str]:
     unidentifiable, combined = set(b.unidentifiable), set(b.combined)
 
     def cell(name: str) -> str:
-        v = _fmt(phi[robot.param_index(name)], 5)
+        v = number_text(phi[robot.param_index(name)], 5)
         if name in alone:
-            return f'{v} ({_fmt(ident.rel_stddev[alone[name]], 2)} %)'
+            return f'{v} ({number_text(ident.rel_stddev[alone[name]], 2)} %)'
         return v + ('\\*' if name in unidentifiable else ' +' if name in combined else '')
 
     rows = [[p] + [cell(f'{link}.{p}') for link in robot.link_names] for p in LINK_PARAMS]
-    out = _table(['parameter'] + list(robot.link_names), rows)
+    out = markdown_table(['parameter'] + list(robot.link_names), rows)
     if robot.extras:
-        out += [''] + _table(['joint'] + list(robot.extras), [
+        out += [''] + markdown_table(['joint'] + list(robot.extras), [
             [j] + [cell(f'{j}.{e}') for e in robot.extras] for j in robot.joint_names])
     return out
 
 
 def combination_table(ident: Identification) -> list[str]:
     """Table 3 style: every base parameter that regroups several standard parameters."""
-    rows = [[f'`{n}`', e, _fmt(v), _fmt(s, 3), _fmt(m)]
+    rows = [[f'`{n}`', e, number_text(v), number_text(s, 3), number_text(m)]
             for n, e, t, v, s, m in zip(ident.base.names, ident.base.expressions,
                                         ident.base.terms, ident.estimate, ident.stddev,
                                         ident.theta_model) if len(t) > 1]
     if not rows:
         return ['Every base parameter is a single standard parameter.']
-    return _table(['base parameter', 'combination', 'estimated', 'stddev', 'model'], rows,
-                  text=2)
+    return markdown_table(['base parameter', 'combination', 'estimated', 'stddev', 'model'],
+                          rows, text=2)
 
 
 # -- the report -----------------------------------------------------------------------------------
@@ -303,10 +301,10 @@ def error_table(errors: list[tuple[str, BagError]], joints: list[str]) -> list[s
         for label, err in (('identified', e.errors['estimate']),
                            ('model (URDF/CAD)', e.errors['model']),
                            ('identified, smoothed torque', e.smoothed['estimate'])):
-            rows.append([what, label, _fmt(err.stacked, 4)]
-                        + [_fmt(v, 4) for v in err.per_joint])
-    return _table(['bag', 'prediction', 'stacked (%)'] + [f'{j} (%)' for j in joints], rows,
-                  text=2)
+            rows.append([what, label, number_text(err.stacked, 4)]
+                        + [number_text(v, 4) for v in err.per_joint])
+    return markdown_table(['bag', 'prediction', 'stacked (%)'] + [f'{j} (%)' for j in joints],
+                          rows, text=2)
 
 
 def _span(e: BagError) -> str:
@@ -360,14 +358,16 @@ def markdown(ident: Identification, validations: list[BagError] | tuple = (),
     lines += [f'On the {ident.processing} rows fitted (filtered torque); torque noise: the '
               'std of the raw minus the smoothed torque, divided by sqrt(1 - the smoother\'s '
               'white-noise gain):', '']
-    lines += _table(['joint', 'relative error, identified (%)', 'relative error, model (%)',
-                     'residual rms (N m)', 'torque noise std (N m)'], [
-        [j, _fmt(e, 4), _fmt(m, 4), _fmt(r, 4), _fmt(s, 4)] for j, e, m, r, s in zip(
+    lines += markdown_table([
+        'joint', 'relative error, identified (%)', 'relative error, model (%)',
+        'residual rms (N m)', 'torque noise std (N m)'], [
+        [j, number_text(e, 4), number_text(m, 4), number_text(r, 4), number_text(s, 4)]
+        for j, e, m, r, s in zip(
             robot.joint_names, ident.relative_error(), ident.relative_error(ident.theta_model),
             ident.residual_rms, noise)])
     lines += ['', '## Excitation and convergence', '',
               f'- excitation condition number (information matrix of the rows fitted): '
-              f'{_fmt(ident.condition_number, 4)}',
+              f'{number_text(ident.condition_number, 4)}',
               f"- converged: {'yes' if ident.converged else 'no'}", '']
     if CONVERGENCE_FIGURE in figures:
         lines += [f'![convergence]({CONVERGENCE_FIGURE})', '',
@@ -391,11 +391,12 @@ def markdown(ident: Identification, validations: list[BagError] | tuple = (),
               'standard parameters (Table 3 style).', ''] + combination_table(ident)
     if is_mit_arm(robot):
         rows = paper_table3_rows(ident.base, ident.estimate, ident.covariance, ident.theta_model)
-        lines += ['', '### An, Atkeson, Hollerbach (1986), Table 3', ''] + _table(
+        lines += ['', '### An, Atkeson, Hollerbach (1986), Table 3', ''] + markdown_table(
             ['combination', 'identified', 'stddev', 'model (Table 1)', 'paper CAD',
              'paper estimate'],
-            [[r['combination'], _fmt(r['identified'], 5), _fmt(r['stddev'], 3),
-              _fmt(r['model'], 5), _fmt(r['paper_cad'], 5), _fmt(r['paper_estimate'], 5)]
+            [[r['combination'], number_text(r['identified'], 5), number_text(r['stddev'], 3),
+              number_text(r['model'], 5), number_text(r['paper_cad'], 5),
+              number_text(r['paper_estimate'], 5)]
              for r in rows])
     problems = ident.consistency_problems()
     solver = ident.consistent
@@ -431,7 +432,7 @@ def _plain(v) -> str:
     if isinstance(v, (list, tuple)):
         return ', '.join(_plain(x) for x in v)
     if isinstance(v, float):
-        return _fmt(v, 4)
+        return number_text(v, 4)
     return str(v)
 
 

@@ -16,6 +16,10 @@ from identification_node.model.urdf_export import (consistency_problems, identif
                                                    link_inertia)
 from identification_node.pipeline import EstimateReport, IdentificationPipeline
 
+__all__ = ['ESTIMATE_FILE', 'URDF_FILE', 'estimate_document', 'snapshot_document',
+           'parameters_document', 'solver_document', 'save_results', 'write_results', 'plain',
+           'result_document', 'consistency_errors', 'saved_document']
+
 ESTIMATE_FILE = 'estimate.yaml'
 URDF_FILE = 'identified.urdf'
 
@@ -145,3 +149,96 @@ def plain(x):
     if isinstance(x, np.bool_):
         return bool(x)
     return x
+
+
+def result_document(result, validations=(), training=None) -> dict:
+    """The ``--json`` object of an identification (results.identification.Identification, or the
+    replay.ReplayResult of the streaming pipeline), with the torque errors on the training
+    bag and on the validation bags (validation.BagError) when given."""
+    from identification_node.results.identification import Identification, from_replay
+    from identification_node.results.documents import parameters_document, plain
+    from identification_node.model.urdf_export import consistency_problems
+
+    ident = result if isinstance(result, Identification) else from_replay(result)
+    robot, base = ident.robot, ident.base
+    problems = ident.consistency_problems()
+    unexcited = ident.unexcited
+    # parameters in an unexcited direction: the data say nothing about them, so no estimate
+    blind = {name for _, names in unexcited for name in names}
+    params = parameters_document(robot, base, ident.theta, ident.stddev, ident.consistent,
+                                 ident.covariance)
+    doc = {
+        'bag': ident.bag, 'robot': robot.name, 'joints': robot.joint_names,
+        'method': ident.method, 'processing': ident.details,
+        'num_samples': ident.num_samples, 'messages': ident.messages,
+        'base_parameters': [
+            {'name': n, 'expression': e, 'terms': t,
+             'estimate': None if n in blind else float(v),
+             'unconstrained_estimate': None if n in blind else float(u),
+             'stddev': None if n in blind else float(s),
+             'rel_stddev': None if n in blind else float(r), 'model': float(m),
+             'excited': n not in blind}
+            for n, e, t, v, u, s, r, m in zip(base.names, base.expressions, base.terms,
+                                              ident.estimate, ident.theta, ident.stddev,
+                                              ident.rel_stddev, ident.theta_model)],
+        'estimate': ident.estimate.tolist(),
+        'unconstrained_estimate': ident.theta.tolist(),
+        'stddev': ident.stddev.tolist(),
+        'consistency_solver': params['consistency_solver'],
+        'links': params['links'],
+        'standard_parameters': params['standard_parameters'],
+        'relative_error': dict(zip(robot.joint_names, ident.relative_error(
+            ident.estimate).tolist())),
+        'unconstrained_relative_error': dict(zip(robot.joint_names,
+                                                 ident.relative_error().tolist())),
+        'model_relative_error': dict(zip(robot.joint_names, ident.relative_error(
+            ident.theta_model).tolist())),
+        'residual_rms': dict(zip(robot.joint_names, ident.residual_rms.tolist())),
+        'noise_std': dict(zip(robot.joint_names, np.sqrt(ident.noise_variance).tolist())),
+        'condition_number': ident.condition_number,
+        'excited': not unexcited,
+        'unexcited_directions': [text for text, _ in unexcited],
+        'converged': ident.converged and not unexcited,
+        'smoother_delay_samples': (ident.pipeline.smoother.half_window
+                                   if ident.pipeline is not None
+                                   and ident.pipeline.smoother is not None else None),
+        'smoother': (ident.pipeline.smoother.document() if ident.pipeline is not None
+                     and ident.pipeline.smoother is not None else None),
+        'rejected': ident.rejected,
+        'excluded_equations': ident.details.get('excluded_per_joint', {}),
+        'warnings': list(ident.warnings),
+        'physically_consistent': not problems, 'consistency_problems': problems,
+        'errors': consistency_errors(params['consistency_solver'], problems),
+        'model_consistency_problems': consistency_problems(robot, robot.phi_model),
+        'convergence': [{'num_samples': c.num_samples, 'estimate': np.asarray(c.values).tolist(),
+                         'stddev': np.asarray(c.stddev).tolist()} for c in ident.history],
+    }
+    if training is not None:
+        doc['training_error'] = training.document()
+    if validations:
+        doc['validation'] = [v.document() for v in validations]
+    return plain(doc)
+
+
+def consistency_errors(solver: dict, problems: list[str]) -> list[str]:
+    """The errors of a solve (results.solver_document) whose estimate is not physically
+    consistent although asked to be: none when it is, or when consistency is disabled."""
+    if solver['status'] == 'disabled' or not problems:
+        return []
+    tried = '; '.join(solver['attempts']) or solver['status']
+    return [f'the physically consistent solve failed ({tried}): the estimate given is the '
+            'unconstrained one, NOT physically consistent: ' + '; '.join(problems[:3])]
+
+
+def saved_document(ident) -> dict:
+    """estimate.yaml of an identification: what the node's ~/save writes."""
+    from identification_node.results.documents import parameters_document, plain
+
+    doc = parameters_document(ident.robot, ident.base, ident.theta, ident.stddev,
+                              ident.consistent, ident.covariance)
+    doc.update({'bag': ident.bag, 'method': ident.method, 'num_samples': ident.num_samples,
+                'condition_number': ident.condition_number, 'converged': ident.converged,
+                'residual_rms': dict(zip(ident.robot.joint_names,
+                                         ident.residual_rms.tolist())),
+                'rejected': ident.rejected})
+    return plain(doc)

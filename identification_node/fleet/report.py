@@ -8,8 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from identification_node.fileio import atomic_write_text
-from identification_node.offline.report import _fmt, _save, _table
+from identification_node.fileio import atomic_write_text, save_figure
+from identification_node.results.report import markdown_table, number_text
+
+__all__ = ['FRICTION', 'MAIN_INERTIAL', 'trend_data', 'plot_trend', 'write_fleet_report']
 
 FRICTION = ('.fv', '.fc', '.fo', '.Ia')
 MAIN_INERTIAL = 6          # inertial combinations plotted per robot: the best determined
@@ -49,7 +51,7 @@ def plot_trend(data: dict, columns: list[int], path: str | os.PathLike, title: s
     axes[-1].set_xlabel('period')
     axes[0].set_title(title)
     fig.tight_layout()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def write_fleet_report(directory: str | os.PathLike, doc: dict) -> dict[str, Path]:
@@ -65,10 +67,10 @@ def write_fleet_report(directory: str | os.PathLike, doc: dict) -> dict[str, Pat
         safe = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in robot)
         lines += [f'## {robot}', '']
         rows = [['samples'] + [str(d['num_samples']) for d in periods.values()]] + [
-            [name] + [f'{_fmt(e, 6)} ± {_fmt(s, 2)}'
+            [name] + [f'{number_text(e, 6)} ± {number_text(s, 2)}'
                       for e, s in zip(data['estimate'][:, i], data['stddev'][:, i])]
             for i, name in enumerate(data['names'])]
-        lines += _table(['parameter (SI)'] + data['periods'], rows, text=1) + ['']
+        lines += markdown_table(['parameter (SI)'] + data['periods'], rows, text=1) + ['']
         for kind, columns in (('friction', data['friction']), ('inertial', data['inertial'])):
             if not columns:
                 continue
@@ -79,7 +81,7 @@ def write_fleet_report(directory: str | os.PathLike, doc: dict) -> dict[str, Pat
             lines += [f'![{title}]({path.name})', '']
     lines += ['## Flags', '']
     if doc['flags']:
-        lines += _table(['robot', 'kind', 'period', 'parameter', 'change (sigma)'], [
+        lines += markdown_table(['robot', 'kind', 'period', 'parameter', 'change (sigma)'], [
             [f['robot'], f['kind'], str(f['period'] or '-'), f['parameter'],
              f"{f['change_sigma']:.1f}"] for f in doc['flags']], text=4)
     else:

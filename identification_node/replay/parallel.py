@@ -1,11 +1,11 @@
 """One bag on every core: its segments streamed through the node's pipeline in parallel
 processes and their statistics merged, as fleet.py merges bags.
 
-The bag is cut where fleet cuts a long bag (fleet.plan_tasks: at multiples of
+The bag is cut where fleet cuts a long bag (segments.grid_segments: at multiples of
 estimate.RESIDUAL_GRID, where the residual blocks restart); each segment's pipeline is fed a
 margin of the bag on either side and keeps only the rows centred inside it
-(fleet.bag_statistics), so its rows are the serial run's. The smoother is chosen once, as the
-serial run chooses it (fleet.chosen_smoother), and pinned in every segment. The normal equations
+(segments.bag_statistics), so its rows are the serial run's. The smoother is chosen once, as the
+serial run chooses it (segments.chosen_smoother), and pinned in every segment. The normal equations
 and residual statistics add (BagStatistics.__add__), so the estimate, covariance and noise of
 the merge are those of the serial run.
 
@@ -29,13 +29,16 @@ import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
+from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.model.robot import RobotModel
-from identification_node.offline.fleet import (BagStatistics, FleetEntry, MapTask,
-                                               bag_statistics, chosen_smoother,
-                                               identification, pinned, plan_tasks)
-from identification_node.offline.replay import JOINT_STATES, MOTOR_CURRENTS, Checkpoint
 from identification_node.pipeline.estimate import RESIDUAL_GRID
+from identification_node.replay.segments import (BagSegment, BagStatistics, bag_statistics,
+                                                 chosen_smoother, grid_segments, identification,
+                                                 pinned)
+from identification_node.results.identification import Checkpoint
 from identification_node.settings import Settings
+
+__all__ = ['default_workers', 'segments', 'parallel_identify']
 
 
 def default_workers() -> int:
@@ -65,17 +68,18 @@ def _segment(job: _Job) -> BagStatistics:
                           job.joint_states, job.motor_currents)
 
 
-def segments(bag: str | os.PathLike, workers: int) -> list[MapTask]:
+def segments(bag: str | os.PathLike, workers: int) -> list[BagSegment]:
     """The segments of ``bag`` for ``workers`` processes: cut at multiples of RESIDUAL_GRID,
     about as many segments as workers (at least one grid cell each); one task when the bag
     spans fewer than two grid cells."""
     from identification_node.bags.reader import open_bag
 
     with open_bag(bag) as reader:
-        span = max(reader.end_ns - reader.start_ns, 0)
+        start, end = reader.start_ns, reader.end_ns
+    span = max(end - start, 0)
     cells = max(1, -(-span // RESIDUAL_GRID))
     per = max(1, cells // max(workers, 1))
-    return plan_tasks([FleetEntry(str(bag), '', '')], per * RESIDUAL_GRID * 1e-9)
+    return grid_segments(start, end, per * RESIDUAL_GRID * 1e-9)
 
 
 def parallel_identify(bag: str | os.PathLike, settings: Settings, robot: RobotModel,

@@ -17,6 +17,9 @@ from identification_node.estimation.model_terms import MIN_CORRELATION
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 
+__all__ = ['MIN_SLOPE', 'MIN_SHARE', 'MIN_ROWS', 'gravity_check', 'gravity_warning',
+           'training_gravity_warning']
+
 MIN_SLOPE = 0.5         # identified gravity below half the URDF's: effort without gravity?
 MIN_SHARE = 0.25        # joints whose gravity RMS is at least this share of the largest one
 MIN_ROWS = 100          # fewer rows: no judgement

@@ -18,6 +18,9 @@ import pinocchio as pin
 from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import Trajectory, match_joints
 
+__all__ = ['DEFAULT_BANDWIDTH', 'DEFAULT_DAMPING', 'SensorNoise', 'SimResult',
+           'default_converter', 'measure', 'ArmSimulator', 'simulate_kinematic']
+
 DEFAULT_BANDWIDTH = 25.0   # rad/s, closed-loop natural frequency of the default gains
 DEFAULT_DAMPING = 1.0      # damping ratio of the default gains
 _CHUNK = 2048              # samples per regressor block in simulate_kinematic

@@ -17,9 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from identification_node.bags.writer import BagWriter, check_replaceable
-from identification_node.wire.cdr import JOINT_STATE, encode_joint_states
 from identification_node.errors import IdentificationError
 from identification_node.fileio import atomic_file
+from identification_node.wire.cdr import JOINT_STATE, encode_joint_states
+
+__all__ = ['prediction_paths', 'check_predictions', 'PredictionsWriter']
 
 
 def prediction_paths(out: str | os.PathLike) -> tuple[Path | None, Path]:

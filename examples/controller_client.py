@@ -6,7 +6,7 @@ units). A controller reads them with the standard GetParameters service and comp
 feedforward joint torque with the same robot model::
 
     import rclpy
-    from identification_node.controller_client import IdentifiedModel
+    from controller_client import IdentifiedModel      # this file, on the Python path
 
     rclpy.init()
     node = rclpy.create_node('my_controller')

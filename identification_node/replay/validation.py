@@ -16,100 +16,26 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from identification_node.bags.reader import open_bag
+from identification_node.bags.feed import (JOINT_STATES, MOTOR_CURRENTS, ROBOT_DESCRIPTION,
+                                           check_usable, feed_bag, input_topics)
+from identification_node.bags.reader import open_bag, read_string_topic
+from identification_node.bags.windows import TimeWindow
 from identification_node.errors import IdentificationError
-from identification_node.model.identifiability import BaseParameters
-from identification_node.model.robot import RobotModel
-from identification_node.offline.replay import (JOINT_STATES, MOTOR_CURRENTS, check_usable,
-                                                feed_bag, input_topics)
-from identification_node.offline.windows import TimeWindow
+from identification_node.model.identifiability import BaseParameters, sample_motion
+from identification_node.model.robot import RobotModel, load_robot
 from identification_node.pipeline import IdentificationPipeline
-from identification_node.pipeline.signals import smoothing_noise_gain
+from identification_node.pipeline.signals import half_window_for_cutoff, smoothing_noise_gain
+from identification_node.results.identification import Identification, SERIES_POINTS
+from identification_node.results.torque_error import BagError, ErrorSums
 from identification_node.settings import Settings
 
+__all__ = ['BATCH', 'evaluate', 'check_same_robot', 'parameter_sets', 'evaluation_settings',
+           'bag_error']
+
 BATCH = 1000   # messages per processing batch
-
-
-@dataclass
-class TorqueError:
-    """Relative error (percent): ``stacked`` over all joints, ``per_joint`` (n,)."""
-    stacked: float
-    per_joint: np.ndarray
-
-
-def relative_error(measured: np.ndarray, predicted: np.ndarray) -> TorqueError:
-    """100 ||measured - predicted|| / ||measured|| of (N, n) torques, stacked and per joint."""
-    sums = ErrorSums(np.shape(measured)[1], 1)
-    sums.add(measured, np.asarray(predicted)[None])
-    return sums.error(0)
-
-
-class ErrorSums:
-    """Sums of squares for the relative errors of k predictions of n joint torques."""
-
-    def __init__(self, n: int, k: int):
-        self.reference = np.zeros(n)        # sum tau^2 per joint
-        self.residual = np.zeros((k, n))    # sum (tau - tau_hat)^2 per prediction and joint
-        self.count = 0
-
-    def add(self, measured: np.ndarray, predicted: np.ndarray) -> None:
-        """measured (N, n), predicted (k, N, n)."""
-        measured = np.asarray(measured, dtype=float)
-        self.reference += np.einsum('ij,ij->j', measured, measured)
-        r = measured[None] - np.asarray(predicted, dtype=float)
-        self.residual += np.einsum('kij,kij->kj', r, r)
-        self.count += len(measured)
-
-    def error(self, k: int) -> TorqueError:
-        """The relative errors of prediction k (inf where the reference is 0, 0 if both)."""
-        with np.errstate(divide='ignore', invalid='ignore'):
-            joint = np.where(self.residual[k] == 0, 0.0,
-                             100.0 * np.sqrt(self.residual[k] / self.reference))
-            stacked = (0.0 if self.residual[k].sum() == 0 else
-                       100.0 * np.sqrt(self.residual[k].sum() / self.reference.sum()))
-        return TorqueError(float(stacked), joint)
-
-
-@dataclass
-class BagError:
-    """Torque errors of several parameter vectors on one bag (``errors`` name -> TorqueError,
-    against the raw torque; ``smoothed``: the same against the smoothed torque), over
-    ``num_samples`` samples; ``series``: a subsample (stamps ns, raw torque, base regressor
-    rows, positions) for plots and checks."""
-    bag: str
-    joints: list[str]
-    num_samples: int
-    errors: dict[str, TorqueError]
-    smoothed: dict[str, TorqueError]
-    window: TimeWindow | None = None
-    series: object | None = None       # identification.TorqueSeries
-    rejected: dict = field(default_factory=dict)
-    # per joint std of the torque sensor's noise (N m): of raw minus smoothed torque, whose
-    # white-noise variance is (1 - gain) of the raw one (the smoother's centre weight is its
-    # gain, signals.smoothing_noise_gain); nan where unknown
-    noise_std: np.ndarray | None = None
-
-    @property
-    def relative_error(self) -> np.ndarray:
-        """Per-joint error of the estimate (percent)."""
-        return self.errors['estimate'].per_joint
-
-    def document(self) -> dict:
-        """JSON-ready: per parameter set the stacked and per-joint errors (percent)."""
-        def one(e: TorqueError) -> dict:
-            return {'stacked': e.stacked, 'per_joint': dict(zip(self.joints,
-                                                                e.per_joint.tolist()))}
-        return {'bag': self.bag, 'num_samples': self.num_samples,
-                'window_s': None if self.window is None or self.window.whole
-                else self.window.describe(),
-                'reference': 'raw torque (measured, or converted from currents), every '
-                             'sample the smoother gives motion for',
-                **{k: one(e) for k, e in self.errors.items()},
-                'smoothed_torque': {k: one(e) for k, e in self.smoothed.items()}}
 
 
 def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
@@ -120,7 +46,7 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     """The torque errors of each base parameter vector of ``thetas`` (name -> (b,)) on the
     bag's samples in ``window``. ``predictions`` (predictions.PredictionsWriter) receives the
     raw torque and the prediction of ``thetas[predict]`` per sample, under ``label``."""
-    from identification_node.offline.identification import (SERIES_POINTS, SeriesSampler,
+    from identification_node.results.identification import (SERIES_POINTS, SeriesSampler,
                                                             TorqueSeries)
     names = list(thetas)
     Theta = np.array([thetas[k] for k in names], dtype=float).T         # (b, k)
@@ -188,3 +114,76 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                     TorqueSeries(kept['stamps_ns'], kept['measured'], kept['regressor'],
                                  origin, kept['q']),
                     {k: v for k, v in counters.rejected.items() if v}, noise_std)
+
+
+# -- validation on a held-out bag ---------------------------------------------------------------
+def check_same_robot(bag: str | os.PathLike, robot: RobotModel, role: str = 'validation'
+                     ) -> None:
+    """IdentificationError when the bag's /robot_description is not ``robot`` (its identified
+    joints missing, or other kinematics: the regressor differs at random motions); ``role``
+    names the bag in the message (validation, training)."""
+    with open_bag(bag) as reader:
+        xml = read_string_topic(reader, ROBOT_DESCRIPTION)
+    if not xml:
+        return
+    try:
+        other = load_robot(xml, robot.joint_names, extras=robot.extras,
+                           coulomb_velocity=robot.coulomb_velocity)
+    except IdentificationError as exc:
+        raise IdentificationError(f'{role} bag {bag} is of another robot than '
+                                  f'{robot.name} ({exc})') from None
+    q, qd, qdd = sample_motion(robot, 20, seed=7)
+    Y, Z = robot.regressor(q, qd, qdd), other.regressor(q, qd, qdd)
+    if Y.shape != Z.shape or not np.allclose(Y, Z, rtol=1e-6, atol=1e-9 * np.abs(Y).max()):
+        raise IdentificationError(
+            f'{role} bag {bag} describes another robot: its {ROBOT_DESCRIPTION} '
+            f'({other.name}) gives other dynamics than {robot.name} for the joints '
+            f'{robot.joint_names}')
+
+
+def parameter_sets(ident: Identification) -> dict[str, np.ndarray]:
+    """The base parameter vectors whose torque errors are reported: the estimate (the
+    consistent one when solved), the unconstrained one and the model's own."""
+    return {'estimate': ident.estimate, 'unconstrained': ident.theta,
+            'model': ident.theta_model}
+
+
+def evaluation_settings(settings: Settings, ident: Identification) -> Settings:
+    """``settings`` with the smoother ``ident`` was fitted with, for evaluating it on a bag
+    (processed as the training bag was, not with a window chosen on itself): its pipeline's
+    choice, or the half window of a batch fit's cut-off at the bag's rate; unchanged when the
+    settings fix the half window."""
+    if settings['smoother.half_window']:
+        return settings
+    choice = None if ident.pipeline is None else ident.pipeline.smoother
+    if choice is not None:
+        half = int(choice.half_window)
+    elif ident.details.get('cutoff_hz') and ident.details.get('rate_hz'):
+        half = half_window_for_cutoff(float(ident.details['cutoff_hz']),
+                                      float(ident.details['rate_hz'][0]),
+                                      settings['smoother.order'])
+    else:
+        return settings
+    return Settings({**settings.values, 'smoother.half_window': half},
+                    settings.given | {'smoother.half_window'})
+
+
+def bag_error(ident: Identification, bag: str | os.PathLike, settings: Settings,
+              window: TimeWindow | None = None, joint_states: str = JOINT_STATES,
+              motor_currents: str = MOTOR_CURRENTS, predictions=None,
+              label: str = 'validation', series_points: int = SERIES_POINTS,
+              training: bool = False) -> BagError:
+    """Torque errors of ``ident``'s parameter sets on ``bag`` (validation.evaluate: raw
+    torque, every sample with valid motion), its messages in ``window`` only; ``training``:
+    the bag the estimate was fitted to (its robot not checked again)."""
+    if window is not None and not isinstance(window, TimeWindow):
+        raise TypeError(f'window must be a TimeWindow, not {type(window).__name__}')
+    if not training:
+        check_same_robot(bag, ident.robot)
+    try:
+        return evaluate(bag, evaluation_settings(settings, ident), ident.robot, ident.base,
+                        parameter_sets(ident), window, joint_states, motor_currents,
+                        predictions, label, series_points)
+    except IdentificationError as exc:
+        raise IdentificationError(f'{"training" if training else "validation"} bag: {exc}'
+                                  ) from None

@@ -1,0 +1,1 @@
+"""Batch identification of a whole bag: samples, filtered rows, periodic averaging, the solve."""

@@ -1,0 +1,1 @@
+"""Fleet identification: many bags of many robots, reduced per robot and period."""

@@ -1,1 +1,0 @@
-"""Identification of recorded bags: batch and replay, validation, reports, fleet."""

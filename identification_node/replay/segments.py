@@ -1,0 +1,300 @@
+"""Sufficient statistics of a bag or of a segment of it (BagStatistics), streamed through the
+node's pipeline, and the Identification of merged statistics (fleet.py's module doc has
+the method). Units SI; stamps int64 ns."""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
+from identification_node.errors import IdentificationError
+from identification_node.estimation.consistency import ConsistentSolver
+from identification_node.estimation.normal_equations import NormalEquations
+from identification_node.estimation.residuals import ResidualStatistics
+from identification_node.estimation.rls import RecursiveLeastSquares
+from identification_node.model.robot import RobotModel
+from identification_node.pipeline import IdentificationPipeline
+from identification_node.pipeline.estimate import RESIDUAL_GRID
+from identification_node.replay.stream import identify_bag
+from identification_node.results.identification import Checkpoint, ReplayResult
+from identification_node.settings import Settings
+
+__all__ = ['SMOOTHER', 'model_key', 'BagStatistics', 'segment_margin_ns', 'pinned',
+           'bag_smoother', 'chosen_smoother', 'bag_statistics', 'Solve', 'solve_unconstrained',
+           'identification', 'consistent_solver', 'BagSegment', 'grid_segments']
+
+SMOOTHER = ('smoother.half_window', 'smoother.cutoff')   # BagStatistics.smoother
+
+
+def model_key(robot: RobotModel) -> str:
+    """Hash of what the statistics depend on: description, identified joints and extras."""
+    text = '\n'.join([robot.description or robot.name, ','.join(robot.joint_names),
+                      ','.join(robot.extras), repr(robot.coulomb_velocity)])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# -- map: one bag or segment to its statistics ----------------------------------------------------
+@dataclass
+class BagStatistics:
+    """Sufficient statistics of the rows of some bags (or segments): per-joint normal
+    equations of the weighted rows [Yb | tau] (as RecursiveLeastSquares.normal_equations),
+    residual sums over samples and blocks, samples in the estimator, the pipeline's counters,
+    the first and last row stamps (ns), and the model they belong to (model_key)."""
+    bags: tuple
+    model: str
+    normal_equations: NormalEquations
+    residuals: ResidualStatistics
+    num_samples: int
+    used: int
+    messages: int
+    received: int
+    rejected: dict
+    excluded_rows: int
+    restarts: int
+    first_ns: int | None
+    last_ns: int | None
+    smoother: tuple = ()     # (parameter, value) pairs of the smoother the rows went through
+
+    def __add__(self, other: BagStatistics) -> BagStatistics:
+        if self.model != other.model:
+            raise IdentificationError(
+                f'bags {self.bags[0]} and {other.bags[0]} are of different robot models '
+                '(description, joints or extras): their statistics do not merge')
+        if self.smoother != other.smoother:
+            raise IdentificationError(
+                f'bags {self.bags[0]} and {other.bags[0]} went through different smoothers '
+                f'({dict(self.smoother)}, {dict(other.smoother)}): their statistics do not '
+                'merge exactly')
+        stamps = [s for s in (self.first_ns, other.first_ns) if s is not None]
+        lasts = [s for s in (self.last_ns, other.last_ns) if s is not None]
+        return BagStatistics(
+            tuple(dict.fromkeys(self.bags + other.bags)), self.model,
+            self.normal_equations + other.normal_equations, self.residuals + other.residuals,
+            self.num_samples + other.num_samples, self.used + other.used,
+            self.messages + other.messages, self.received + other.received,
+            {k: self.rejected.get(k, 0) + other.rejected.get(k, 0)
+             for k in {**self.rejected, **other.rejected}},
+            self.excluded_rows + other.excluded_rows, self.restarts + other.restarts,
+            min(stamps) if stamps else None, max(lasts) if lasts else None, self.smoother)
+
+
+class _SegmentPipeline(IdentificationPipeline):
+    """The pipeline fed only the samples within ``margin_ns`` of [start_ns, stop_ns) (None:
+    open), keeping the rows centred inside it; ``messages`` counts those inside."""
+
+    def __init__(self, robot, config, base, start_ns: int | None, stop_ns: int | None,
+                 margin_ns: int):
+        super().__init__(robot, config, base)
+        lo = -2 ** 62 if start_ns is None else start_ns
+        hi = 2 ** 62 if stop_ns is None else stop_ns
+        self._window = (lo, hi)
+        self._feed = (lo - margin_ns, hi + margin_ns)
+        self.messages = 0
+        self.row_builder = _WindowRows(self.row_builder, self.samples.counters, lo, hi)
+
+    def _keep(self, stamps_ns) -> np.ndarray:
+        self.messages += int(np.count_nonzero(_inside(stamps_ns, *self._window)))
+        return _inside(stamps_ns, *self._feed)
+
+    def add_joint_state(self, record) -> None:
+        if self._keep(record.stamp_ns):
+            super().add_joint_state(record)
+
+    def add_currents(self, record) -> None:
+        if self._keep(record.stamp_ns):
+            super().add_currents(record)
+
+    def add_joint_states(self, block) -> None:
+        keep = self._keep(np.asarray(block.stamp_ns))
+        if keep.all():
+            super().add_joint_states(block)
+        elif keep.any():
+            super().add_joint_states(type(block)(np.asarray(block.stamp_ns)[keep], block.names,
+                                                 *(np.asarray(a)[keep] for a in block[2:])))
+
+
+class _WindowRows:
+    """A RowBuilder keeping only the rows centred in [lo, hi) ns (stamps of ``counters``)."""
+
+    def __init__(self, rows, counters, lo: int, hi: int):
+        self._rows, self._counters, self._window = rows, counters, (lo, hi)
+
+    def __getattr__(self, name: str):   # the smoother's choice, counters: the RowBuilder's
+        return getattr(self._rows, name)
+
+    def reset(self) -> None:
+        self._rows.reset()
+
+    def drain(self, measured_velocity: bool):
+        r = self._rows.drain(measured_velocity)
+        return None if r is None else self._inside(r)
+
+    def __call__(self, *args, **kwargs):
+        return self._inside(self._rows(*args, **kwargs))
+
+    def _inside(self, r):
+        if len(r.t):
+            keep = _inside(self._counters.stamps_ns(r.t), *self._window)
+            if not keep.all():
+                r = type(r)(*(a[keep] for a in r))
+        return r
+
+
+def _inside(stamps_ns, lo: int, hi: int):
+    return (stamps_ns >= lo) & (stamps_ns < hi)
+
+
+def segment_margin_ns(settings: Settings) -> int:
+    """Samples on either side a segment needs: the smoother's half window can span
+    half_window * max_gap, currents wait hold_time, alignment reaches align_tolerance."""
+    v = settings.values
+    return int(math.ceil((v['smoother.half_window'] * v['smoother.max_gap'] + v['hold_time']
+                          + v['align_tolerance']) * 1e9)) + 1
+
+
+def pinned(settings: Settings, smoother: tuple) -> Settings:
+    """``settings`` with smoother parameters ((name, value) pairs, bag_smoother) set."""
+    if not smoother:
+        return settings
+    return Settings({**settings.values, **dict(smoother)},
+                    settings.given | {k for k, _ in smoother})
+
+
+def bag_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                 joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS
+                 ) -> tuple:
+    """The smoother parameters the pipeline of ``settings`` uses on ``bag`` (as identify):
+    () when they fix the half window, else the half window and cut-off it chooses (the bag
+    read until chosen)."""
+    choice = chosen_smoother(bag, settings, robot, joint_states, motor_currents)
+    return () if choice is None else (('smoother.half_window', int(choice.half_window)),
+                                      ('smoother.cutoff', float(choice.cutoff)))
+
+
+def chosen_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                    joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS):
+    """The smoother (rows.SmootherChoice) the pipeline of ``settings`` chooses on ``bag``, the
+    bag read until chosen; None when the settings fix the half window."""
+    if settings['smoother.half_window']:
+        return None
+    pipeline = settings.build(robot)
+    identify_bag(bag, settings, robot, joint_states, motor_currents, checkpoints=1,
+                 pipeline=pipeline, until=lambda p: p.smoother is not None)
+    return pipeline.smoother
+
+
+def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
+                   start_ns: int | None = None, stop_ns: int | None = None,
+                   joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS
+                   ) -> BagStatistics:
+    """The sufficient statistics of a bag's rows through the node's pipeline, or of the rows
+    with header stamps in [start_ns, stop_ns) (a segment; None: open). Needs forgetting 1
+    (forgotten statistics do not merge). Settings that leave the smoother to be chosen get
+    the one the whole bag chooses (bag_smoother); statistics of bags merge only with one
+    smoother: pin theirs (``pinned``) to the first bag's, as run_fleet does."""
+    if settings['forgetting_factor'] != 1.0:
+        raise IdentificationError(
+            f"fleet identification needs forgetting_factor 1 (got "
+            f"{settings['forgetting_factor']}): forgotten statistics do not add up")
+    smoother = bag_smoother(bag, settings, robot, joint_states, motor_currents)
+    settings = pinned(settings, smoother)
+    pipeline = settings.build(robot)
+    segment = start_ns is not None or stop_ns is not None
+    if segment:
+        pipeline = _SegmentPipeline(robot, pipeline.config, pipeline.base, start_ns, stop_ns,
+                                    segment_margin_ns(settings))
+    span: list[int] = []     # first and last row stamps
+
+    def stamps(out) -> None:
+        if len(out.stamps_ns):
+            span[:] = [span[0] if span else int(out.stamps_ns[0]), int(out.stamps_ns[-1])]
+
+    try:
+        result = identify_bag(bag, settings, robot, joint_states, motor_currents,
+                              checkpoints=1, on_output=stamps, pipeline=pipeline)
+        messages = result.messages
+    except IdentificationError:
+        if not segment or pipeline.used:   # a segment may hold no rows (a gap)
+            raise
+        messages = 0
+    rls = pipeline.rls
+    if segment:   # the margins' messages are counted by their own segments
+        messages = pipeline.messages
+    # an estimator without rows knows no joints yet: the zero sums of this robot's instead
+    equations = (rls.normal_equations() if rls.num_samples else
+                 NormalEquations.zeros(pipeline.base.num_base, robot.dof))
+    return BagStatistics(
+        (str(bag),), model_key(robot), equations, pipeline.residuals,
+        int(rls.num_samples), int(pipeline.used), int(messages), int(pipeline.received),
+        {k: v for k, v in pipeline.rejected.items() if v}, int(pipeline.excluded_rows),
+        int(pipeline.restarts), *(span or (None, None)),
+        smoother=smoother or tuple((k, settings[k]) for k in SMOOTHER))
+
+
+# -- solve ----------------------------------------------------------------------------------------
+Solve = Callable[[NormalEquations], np.ndarray]
+
+
+def solve_unconstrained(equations: NormalEquations) -> np.ndarray:
+    """The base parameters minimising sum_j ||tau_j - Y_j theta||^2 over merged normal
+    equations, as the streaming estimator solves them. THE SEAM: a physically consistent
+    solve with the same signature (normal equations in, base parameters out) replaces it
+    (``solve=`` of identification and run_fleet); the covariance stays the information's.
+    The physically consistent estimate is solved after it (identification), as identify's."""
+    return RecursiveLeastSquares.from_normal_equations(equations, 0).theta
+
+
+def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
+                   label: str | None = None, solve: Solve = solve_unconstrained,
+                   physical_consistency: bool = True, solver: ConsistentSolver | None = None):
+    """The Identification of merged statistics, as ``identify`` gives for their bags
+    streamed one after another (one stream each): the physically consistent estimate
+    too unless ``physical_consistency`` is False or ``settings`` turn it off (``solver``:
+    consistent_solver's for this robot, re-used across its groups)."""
+    from identification_node.results.identification import from_replay, make_consistent
+
+    if stats.model != model_key(robot):
+        raise IdentificationError(f'statistics of {stats.bags[0]} are not of {robot.name}')
+    settings = pinned(settings, stats.smoother)
+    pipeline = settings.build(robot)
+    ne = stats.normal_equations
+    rls = RecursiveLeastSquares.from_normal_equations(ne, stats.num_samples, theta=solve(ne))
+    pipeline.restore(rls, stats.residuals, stats.used, stats.received, stats.rejected,
+                     stats.excluded_rows, stats.restarts, stats.last_ns)
+    est = pipeline.estimate()
+    history = [Checkpoint(est.num_samples, est.stamp, est.values, est.stddev)]
+    ident = from_replay(ReplayResult(label or ', '.join(stats.bags), pipeline, stats.messages,
+                                     history))
+    return make_consistent(ident, settings.consistency_options() if physical_consistency
+                           else None, solver)
+
+
+def consistent_solver(settings: Settings, robot: RobotModel) -> ConsistentSolver | None:
+    """The physically consistent solver of a robot's groups (None: switched off in
+    ``settings``): made once, so its problem is canonicalised once, not per group."""
+    options = settings.consistency_options()
+    return (None if options is None else
+            ConsistentSolver.for_robot(robot, settings.build(robot).base, options))
+
+
+@dataclass(frozen=True)
+class BagSegment:
+    """A time segment [start_ns, stop_ns) of a bag's log time (None: open-ended)."""
+    start_ns: int | None
+    stop_ns: int | None
+
+
+def grid_segments(start_ns: int, end_ns: int, segment_seconds: float) -> list[BagSegment]:
+    """The segments of a bag logged from ``start_ns`` to ``end_ns``: ``segment_seconds``
+    rounded to a multiple of the residual grid (estimate.RESIDUAL_GRID, 60 s) and cut at
+    multiples of it, where the residual blocks restart, so the segments' statistics merge to
+    the whole bag's exactly; the first and last open-ended, so every row belongs to one."""
+    step = max(1, round(segment_seconds * 1e9 / RESIDUAL_GRID)) * RESIDUAL_GRID
+    cuts = list(range((start_ns // step + 1) * step, end_ns, step))
+    bounds = [None] + cuts + [None]
+    return [BagSegment(a, b) for a, b in zip(bounds[:-1], bounds[1:])]

@@ -1,0 +1,2 @@
+"""The outcome of an identification: the Identification, its documents,
+text, report and predictions."""

@@ -1,0 +1,1 @@
+"""Simulated arms: motion, dynamics and sensor noise for bags and tests."""
