@@ -112,7 +112,8 @@ def run_relay(rate: float, seconds: float, warmup: float) -> None:
     import rclpy
     from sensor_msgs.msg import JointState
 
-    from identification_node.ros.node import INPUT_QOS, OUTPUT_QOS
+    from identification_node.ros.effort_outputs import OUTPUT_QOS
+    from identification_node.ros.node import INPUT_QOS
 
     node = rclpy.create_node('identification_node')
     pub = node.create_publisher(JointState, '~/predicted_effort', OUTPUT_QOS)

@@ -17,8 +17,7 @@ import yaml
 
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (Body, ConsistencyOptions,
-                                                        ConsistentSolver,
-                                                        SolverProcess, from_pseudo_inertia,
+                                                        ConsistentSolver, from_pseudo_inertia,
                                                         pseudo_inertia, robot_bodies)
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.estimation.normal_equations import NormalEquations
@@ -27,6 +26,7 @@ from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
+from identification_node.ros.solver_worker import SolverProcess
 
 REGION = 0.99   # the confidence region the prior chooses in (stated: the default may change)
 

@@ -130,7 +130,7 @@ def test_known_payload_segments_of_the_pipeline_output_recover_the_gains():
 def taken(node) -> bool:
     """Whether the node's processing thread has taken every sample put into its pipeline
     (the smoother's choice made, nothing queued nor waiting for its currents)."""
-    with node._lock:
+    with node.lock:
         p = node.pipeline
         return not (p.pending or p.choosing or len(p.samples.alignment.pending))
 
@@ -168,7 +168,7 @@ def test_known_payload_service_marks_the_segment_in_the_node(ros):
             assert res.successful, res.reason
             before = dict(segments.samples)
             js, cur = _records(robot, sim, 30.0 * k, np)
-            with node._lock:
+            with node.lock:
                 node.pipeline.add_joint_states(js)
                 node.pipeline.add_currents(cur)
             kind = 'loaded' if k == 0 else 'free'

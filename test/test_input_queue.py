@@ -70,8 +70,8 @@ def test_node_drops_beyond_input_queue_bytes_while_processing_stalls(ros):
     diag = Collector(ros, DiagnosticArray, '/diagnostics')
     pub = ros.client.create_publisher(JointState, '/bounded/js', RELIABLE)
     assert wait_for(lambda: pub.get_subscription_count(), 10)
-    source = node._inputs[0]
-    with node._lock:
+    source = node.inputs[0]
+    with node.lock:
         for raw in wide_messages(60):
             pub.publish(raw)
         assert wait_for_all_acked([pub], 30)     # the receiving thread took them all

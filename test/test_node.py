@@ -357,7 +357,7 @@ def test_effort_topics_are_published_only_to_subscribers(ros):
     node = start_node(ros, 'lazy', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
                                     'process_period': 0.01, 'smoother.half_window': 10}, 'lazy')
     published = {'predicted': 0, 'measured': 0}
-    for key, pub in (('predicted', node._pub_predicted), ('measured', node._pub_measured)):
+    for key, pub in (('predicted', node.efforts.predicted), ('measured', node.efforts.measured)):
         def counting(raw, key=key, publish=pub.publish):
             published[key] += 1
             publish(raw)
@@ -365,7 +365,7 @@ def test_effort_topics_are_published_only_to_subscribers(ros):
     got = Collector(ros, JointState, '/lazy/predicted_effort')
     sender = ros.client.create_publisher(JointState, '/lazy/joint_states', RELIABLE)
     assert wait_for(lambda: sender.get_subscription_count()
-                    and node._pub_predicted.get_subscription_count(), 10)
+                    and node.efforts.predicted.get_subscription_count(), 10)
     n, names = 200, node.robot.joint_names
     stamps = 10**9 + np.arange(n) * 10**6
     rng = np.random.default_rng(3)
@@ -390,7 +390,7 @@ def test_automatic_smoother_is_chosen_after_5_s_of_motion_and_reported(ros, diag
     got = Collector(ros, JointState, '/auto/predicted_effort')
     sender = ros.client.create_publisher(JointState, '/auto/joint_states', RELIABLE)
     assert wait_for(lambda: sender.get_subscription_count()
-                    and node._pub_predicted.get_subscription_count(), 10)
+                    and node.efforts.predicted.get_subscription_count(), 10)
     traj = FourierTrajectory.random(node.robot, harmonics=4, period=10.0, seed=2)
     n = 7000
     sim = simulate_kinematic(node.robot, None, traj, np.arange(n) / 1000.0,
@@ -817,7 +817,7 @@ def test_qos_overrides_apply_to_their_own_subscription_only(ros):
     node = start_node(ros, 'qos_one', {
         'robot': 'mit_dd_arm', 'torque_source': ['three_phase'], 'kt': [1.0],
         'qos_overrides./qos_one/joint_states.subscription.reliability': 'reliable'}, 'qos_one')
-    js, cur = (source.subscription.qos_profile.reliability for source in node._inputs)
+    js, cur = (source.subscription.qos_profile.reliability for source in node.inputs)
     assert (js, cur) == (ReliabilityPolicy.RELIABLE, ReliabilityPolicy.BEST_EFFORT)
     assert INPUT_QOS.reliability == ReliabilityPolicy.BEST_EFFORT
     ros.remove(node)
@@ -855,8 +855,8 @@ def test_parameters_are_typed_and_ranged_by_the_settings_table(ros):
     """Each parameter's descriptor has the type of its default in config.PARAMETERS and the
     range of config.RANGES; the values given are the node's (its settings agree)."""
     from rcl_interfaces.msg import ParameterType
-    from identification_node.ros.runtime_parameters import RUNTIME
     from identification_node.config import EMPTY_LISTS, PARAMETERS, RANGES
+    from identification_node.ros.parameters import RUNTIME
     node = start_node(ros, 'typed', {'robot': 'mit_dd_arm', 'forgetting_factor': 0.95,
                                      'joints': ['joint2', 'joint1'], 'extras': []}, 'typed')
     try:
@@ -907,7 +907,7 @@ def test_solver_time_out_publishes_the_projected_estimate(ros, diag):
     q, qd, qdd = FourierTrajectory.random(robot, period=4.0, seed=3).sample(t)
     tau = robot.inverse_dynamics(q, qd, qdd) + 0.01 * np.random.default_rng(4).standard_normal(
         q.shape)
-    with node._lock:     # straight into the pipeline, as its processing thread would
+    with node.lock:     # straight into the pipeline, as its processing thread would
         node.pipeline.add_joint_states(JointStateRecord(
             (1_000_000_000 + 1_000_000 * np.arange(len(t))).astype(np.int64),
             tuple(robot.joint_names), q, qd, tau))

@@ -135,7 +135,7 @@ def test_failing_callbacks_are_counted_and_services_answer(ros):
     assert not res.success and 'LinAlgError: Eigenvalues did not converge' in res.message
     assert node.callback_errors['estimate'] >= 1
     # a failing timer callback is counted too
-    assert node._guarded(node._publish_diagnostics)() is None
+    assert node.errors.guarded(node._publish_diagnostics)() is None
     assert node.callback_errors['publish_diagnostics'] == 1
     ros.remove(node)
 

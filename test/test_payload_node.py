@@ -159,7 +159,7 @@ def test_arm_from_the_running_estimate_taken_at_reset(ros):
         truth = true_parameter_changes(robot, robot.phi_model, [PayloadChange(0, None, 2.0)])
         sim = simulate_kinematic(robot, truth[0][1], load_trajectory('fourier', robot),
                                  np.arange(2000) / 1000.0)
-        with node._lock:   # an arm estimate that differs from the model's own
+        with node.lock:   # an arm estimate that differs from the model's own
             node.pipeline.add_joint_states(JointStateRecord(
                 np.round(sim.t * 1e9).astype(np.int64), tuple(robot.joint_names), sim.q,
                 sim.qd, sim.tau))

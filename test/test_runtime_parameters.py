@@ -6,8 +6,8 @@ import pytest
 from rclpy.parameter import Parameter
 
 from identification_node.model.robot import load_robot
-from identification_node.ros.runtime_parameters import RUNTIME
 from identification_node.config import PARAMETERS
+from identification_node.ros.parameters import RUNTIME
 
 pytestmark = pytest.mark.ros
 

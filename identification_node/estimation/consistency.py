@@ -40,10 +40,6 @@ consistent estimate (the caller then keeps the unconstrained one and says so as 
 """
 from __future__ import annotations
 
-import multiprocessing
-import os
-import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -61,7 +57,6 @@ EXTRA_SCALE = 1e-2         # s_k floor of the per-joint columns' regulariser (SI
 NONNEGATIVE = ('fv', 'fc', 'Ia')
 SOLVERS = ('CLARABEL', 'SCS')
 PROJECTION = 'projection'   # method of the last resort
-NICE = 19                  # the node's solver process: below its processing thread
 
 # phi block (10,) = _FROM_J @ vec(J) (J symmetric 4x4, row-major flattening)
 _FROM_J = np.zeros((10, 16))
@@ -490,146 +485,6 @@ def robot_bodies(robot, options: ConsistencyOptions) -> list[Body]:
                     float(options.mass_max[i]) if len(options.mass_max) else np.inf)
         bodies.append(Body(link, 10 * i, fixed, mass, com_box))
     return bodies
-
-
-class SolverProcess:
-    """A ConsistentSolver in a child process of its own (spawned), with ``solve`` as the
-    solver's: the node's processing thread never waits for the GIL while it solves. A child
-    that dies or overruns ``time_limit`` (+ STARTUP_GRACE for the first solve, which builds the
-    problem) is stopped and the solve reported failed; the next one starts a new child.
-    ``ready`` tells, without waiting, whether the child has built its problem: on a busy
-    machine that takes tens of seconds, which a caller need not wait for."""
-
-    STARTUP_GRACE = 60.0   # s: spawn, imports and the problem's canonicalisation
-    GRACE = 10.0           # s over the solver's own time limit
-
-    def __init__(self, base: BaseParameters, phi_prior: np.ndarray, bodies: Sequence[Body],
-                 options: ConsistencyOptions | None = None):
-        self.options = options or ConsistencyOptions()
-        self.options.validate()
-        self._args = (base, np.asarray(phi_prior, dtype=float), list(bodies), self.options)
-        self._process = self._conn = None
-        self._ready = False     # the child has built its problem (its first message)
-        # start and close come from different threads (the node's solve worker and its
-        # shutdown): a child being started is never terminated half made
-        self._lock = threading.Lock()
-
-    @classmethod
-    def for_robot(cls, robot, base: BaseParameters,
-                  options: ConsistencyOptions | None = None) -> SolverProcess:
-        """As ConsistentSolver.for_robot (the bodies are read here, from the robot)."""
-        options = options or ConsistencyOptions()
-        options.validate(robot.dof)
-        from identification_node.estimation.prior import safe_prior
-
-        return cls(base, safe_prior(robot)[0], robot_bodies(robot, options), options)
-
-    def start(self):
-        """Start the child (solve does when needed); it builds the problem at once. Returns
-        the connection to it."""
-        with self._lock:
-            if self._process is not None and self._process.is_alive():
-                return self._conn
-            ctx = multiprocessing.get_context('spawn')
-            self._conn, child = ctx.Pipe()
-            self._process = ctx.Process(target=_serve, args=(child, *self._args),
-                                        daemon=True, name='identification_consistency')
-            # Ctrl-C in a terminal signals the whole process group: the child is ended by its
-            # parent (close), not by SIGINT mid-import (a traceback). It inherits an ignored
-            # SIGINT, which only the main thread can set (a child started by another thread,
-            # after a time-out, is spared only once it runs _serve).
-            main = threading.current_thread() is threading.main_thread()
-            sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-            try:
-                self._process.start()
-            finally:
-                if main:
-                    signal.signal(signal.SIGINT, sigint)
-            child.close()
-            self._ready = False
-            return self._conn
-
-    def ready(self) -> bool:
-        """Whether the child has built its problem, so that ``solve`` waits for the solve
-        only (never blocks; False before ``start``)."""
-        with self._lock:
-            if not self._ready and self._conn is not None:
-                try:
-                    if self._conn.poll(0):
-                        self._conn.recv()   # ('ready', error): an error is told by solve
-                        self._ready = True
-                except (EOFError, OSError):
-                    self._ready = True      # ended: solve reports it and starts another
-            return self._ready
-
-    def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
-              ) -> ConsistentEstimate:
-        start = time.perf_counter()
-        conn = self.start()
-        wait = self.options.time_limit + (self.GRACE if self._ready else self.STARTUP_GRACE)
-        deadline = time.monotonic() + wait
-        try:
-            conn.send((equations, weights))
-            kind = 'ready'
-            while kind == 'ready' and conn.poll(max(deadline - time.monotonic(), 0.0)):
-                kind, value = conn.recv()
-                self._ready = True
-            if kind == 'ok':
-                return value
-            if kind == 'error':
-                status = f'solver_error: {value}'
-            else:
-                status = 'time_limit'
-                self.close()
-        except (EOFError, OSError, BrokenPipeError) as exc:
-            status = f'solver_error: solver process ended ({exc or type(exc).__name__})'
-            self.close()
-        b = self._args[0].num_base
-        return ConsistentEstimate(status, None, None, np.full(b, np.inf),
-                                  time.perf_counter() - start)
-
-    def close(self) -> None:
-        """Stop the child."""
-        with self._lock:
-            if self._process is None:
-                return
-            self._process.terminate()   # nothing to keep: quick, also mid-solve
-            self._process.join(timeout=1.0)
-            self._conn.close()
-            self._process = self._conn = None
-
-
-def _serve(conn, base, phi_prior, bodies, options) -> None:
-    """The child of SolverProcess: build the solver, say ('ready', error), then answer
-    (equations, weights) with ('ok', ConsistentEstimate) or ('error', message) until None or
-    the pipe closes. It runs
-    at a lower priority (nice +NICE) than the node, whose 1 kHz processing comes first.
-    SIGINT is ignored (see SolverProcess.start): the parent ends it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.nice(NICE)
-    solver, error = None, ''
-    try:
-        solver = ConsistentSolver(base, phi_prior, bodies, options)
-    except Exception as exc:  # noqa: BLE001 - reported to the parent with every request
-        error = f'{type(exc).__name__}: {exc}'
-    try:
-        conn.send(('ready', error))
-    except (EOFError, OSError):
-        return
-    while True:
-        try:
-            request = conn.recv()
-        except (EOFError, OSError):
-            return
-        if request is None:
-            return
-        if solver is None:
-            conn.send(('error', error))
-            continue
-        try:
-            conn.send(('ok', solver.solve(*request)))
-        except Exception as exc:  # noqa: BLE001 - the parent keeps the unconstrained estimate
-            conn.send(('error', f'{type(exc).__name__}: {exc}'))
 
 
 def pipeline_equations(pipeline) -> tuple[NormalEquations, float]:

@@ -19,8 +19,9 @@ from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.core import IdentificationPipeline, PipelineOutput
 from identification_node.pipeline.estimate import EstimateReport, converged
 from identification_node.pipeline.samples import Samples
+from identification_node.pipeline.status import PipelineStatus
 from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.pipeline.validate import REJECT_REASONS
 
-__all__ = ['IdentificationPipeline', 'PipelineConfig', 'PipelineOutput', 'EstimateReport',
-           'REJECT_REASONS', 'Samples', 'TorqueSamples', 'converged']
+__all__ = ['IdentificationPipeline', 'PipelineConfig', 'PipelineOutput', 'PipelineStatus',
+           'EstimateReport', 'REJECT_REASONS', 'Samples', 'TorqueSamples', 'converged']

@@ -3,7 +3,7 @@ out, one stage per module (see the package doc)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping, NamedTuple
 
 import numpy as np
@@ -18,6 +18,7 @@ from identification_node.model.robot import RobotModel
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.estimate import EstimateReport, OnlineEstimate
 from identification_node.pipeline.rows import RowBuilder, smooths_sign
+from identification_node.pipeline.status import PipelineStatus
 from identification_node.pipeline.time_offset import TimeOffsetCheck
 from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.wire.records import JointStateRecord
@@ -320,6 +321,24 @@ class IdentificationPipeline:
             stamp=self._last_output_stamp, condition_number=cond, min_eigenvalue=min_eig,
             residual_rms=self.residual_rms(),
             converged=self.estimator.converged(cond, cov), frozen=self.frozen)
+
+    def status(self) -> PipelineStatus:
+        """A snapshot of the estimate, counters and stage states (pipeline/status.py)."""
+        gate, counters = self.gate, self.samples.counters
+        choice = self.smoother
+        return PipelineStatus(
+            estimate=self.estimate(), received=self.received, used=self.used,
+            restarts=self.restarts, rejected=dict(self.rejected),
+            gate_enabled=bool(gate.settings.enabled), gate_armed=bool(gate.armed),
+            gate_suspended=bool(gate.suspended), residual_shifts=gate.shifts,
+            numerical_failures=self.numerical_failures, smoother_edge=self.smoother_edge,
+            layout_cache_bytes=self.layout_cache_bytes,
+            excluded_equations=self.excluded_equations,
+            model_term_warnings=self.model_term_warnings(),
+            missing_joints=sorted(counters.missing_joints | counters.missing_current_joints),
+            time_offset=self.time_offset.result,
+            smoother=None if choice is None else replace(choice),
+            holding=self.row_builder.holding)
 
     def standard_parameters(self) -> np.ndarray:
         """The full standard parameter vector closest to the model's own that reproduces the

@@ -19,10 +19,10 @@ node keeps its configured kt.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 
@@ -39,11 +39,13 @@ COMMAND = 'known_payload'
 
 
 class DriveGainOutputs:
-    """Drive gains of ``node`` (an IdentificationNode); ``tee`` the pipeline's input handlers
-    (back-EMF), then ``process`` in the processing thread and read ``parameters`` /
-    ``diagnostics`` under the node's lock."""
+    """Drive gains of a node: ``tee`` the pipeline's input handlers (back-EMF), then
+    ``process`` in the processing thread and read ``parameters`` / ``diagnostics`` under the
+    node's lock. ``outputs`` (parameters.OutputParameters) declares ``drive_gain.<joint>``;
+    ``subscribe(topic, handle)`` gives the node's polled input subscription."""
 
-    def __init__(self, node, settings, pipeline, services, requests):
+    def __init__(self, settings, pipeline, services, requests, outputs,
+                 subscribe: Callable[[str, Callable[[list[bytes]], None]], Any]):
         converter = pipeline.converter
         if not converter.needs_currents:
             raise IdentificationError('parameters drive_gains.*: drive gains need '
@@ -58,11 +60,9 @@ class DriveGainOutputs:
         self.error = ''
         self._gains: list[DriveGain] = []
         for j in self.joints:
-            node.declare_parameter(PREFIX + j, UNKNOWN, ParameterDescriptor(
-                description=f'identified drive gain of {j}, N m/A at the joint '
-                '(-1: not determined yet)'))
-        node._estimate_names.update(PREFIX + j for j in self.joints)
-        self.voltages = (node._subscribe('motor_voltages', self.stream.voltages.add_cdr)
+            outputs.declare(PREFIX + j, UNKNOWN, f'identified drive gain of {j}, N m/A at the '
+                            'joint (-1: not determined yet)')
+        self.voltages = (subscribe('motor_voltages', self.stream.voltages.add_cdr)
                          if self.stream is not None else None)
         if self.segments is not None:
             services.add(SetParameters, '~/drive_gains/known_payload', self._srv_known_payload)

@@ -57,7 +57,7 @@ from identification_node.model.torque import TorqueConverter
 from identification_node.model.urdf_export import consistency_problems
 from identification_node.payload.fit import read_payload_changes, true_parameter_changes
 from identification_node.ros.conversions import publish_joint_states, time_msg, wait_for_all_acked
-from identification_node.ros.node import declare_settings
+from identification_node.ros.parameters import declare_settings
 from identification_node.ros.spin import run_node
 from identification_node.settings import Settings
 
