@@ -105,7 +105,7 @@ def test_known_payload_segments_of_the_pipeline_output_recover_the_gains():
     """The node's known-payload core on the streaming pipeline's output: every gain within 1 %
     and 3 stddev."""
     from identification_node.pipeline import IdentificationPipeline, PipelineConfig
-    from identification_node.pipeline.known_payload import KnownPayloadSegments
+    from identification_node.payload.known_payload import KnownPayloadSegments
     from identification_node.payload.fit import payload_parameters
     robot, cfg, runs, np = _arm_runs()
     pipe = IdentificationPipeline(robot, PipelineConfig(torque={j: cfg

@@ -8,7 +8,7 @@
   array ixx ixy ixz iyy iyz izz, about the com) and ``link`` (string, default the last
   identified link), as ``~/payload/set`` takes them, start a segment carrying that payload;
   ``mass`` 0 ends it. The pipeline's output in and out of the segments is summed
-  (pipeline/known_payload.py).
+  (payload/known_payload.py).
 
 Outputs, at every estimate refresh: the node parameters ``drive_gain.<joint>`` (N m/A at the
 joint, K_T x gear ratio, the determined gain of least relative stddev; -1 while none is;
@@ -30,7 +30,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.drive_gains import DriveGain, mark_used
 from identification_node.payload.fit import attachment, payload_parameters
 from identification_node.pipeline.back_emf import BackEmfStream
-from identification_node.pipeline.known_payload import KnownPayloadSegments
+from identification_node.payload.known_payload import KnownPayloadSegments
 from identification_node.ros.service_requests import Outcome, failed
 
 PREFIX = 'drive_gain.'
