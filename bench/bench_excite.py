@@ -68,18 +68,21 @@ def run(case: str, maxiter: int = 200, exact: bool = False, quiet: bool = True) 
 
 def constraint_cpu(exact: bool) -> float:
     """CPU s of the Panda's collision constraints and Jacobian at the initial guess."""
-    from identification_node.excitation import design as ex
     from identification_node.excitation.criteria import _base_of
+    from identification_node.excitation.design import MARGIN
+    from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEFAULT_PERIOD,
+                                                              initial_trajectory, to_x)
     from identification_node.excitation.limits import ExcitationLimits
+    from identification_node.excitation.problem import DesignProblem
+    from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN
 
     robot, checker = _robot_and_checker('panda+collision', exact)
-    limits = ExcitationLimits.from_robot(robot).with_margin(ex.DEFAULT_LIMIT_MARGIN)
-    design = ex._Design(robot, _base_of(robot, None), limits, ex.DEFAULT_HARMONICS,
-                        ex.DEFAULT_PERIOD, 100, 'cond', None, ex.MARGIN, None, checker)
-    x = ex._to_x(ex.initial_trajectory(robot, None, limits, ex.DEFAULT_HARMONICS,
-                                       ex.DEFAULT_PERIOD, 0))
+    limits = ExcitationLimits.from_robot(robot).with_margin(DEFAULT_LIMIT_MARGIN)
+    design = DesignProblem(robot, _base_of(robot, None), limits, DEFAULT_HARMONICS,
+                           DEFAULT_PERIOD, 100, 'cond', None, MARGIN, None, checker)
+    x = to_x(initial_trajectory(robot, None, limits, DEFAULT_HARMONICS, DEFAULT_PERIOD, 0))
     c0 = time.process_time()
-    design._collision_ks(x, True)
+    design.collision_ks(x, True)
     return time.process_time() - c0
 
 

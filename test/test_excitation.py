@@ -13,11 +13,19 @@ from identification_node.estimation.batch import LeastSquares
 from identification_node.excitation.criteria import (CRITERIA, condition_number, criterion_value,
                                                      d_optimality)
 from identification_node.excitation import design as ex
+from identification_node.excitation.export import trajectory_to_joint_trajectory
+from identification_node.excitation.framing import DEFAULT_PERIODS
+from identification_node.excitation.initial_guess import (VERIFY_RATIO, fourier_basis,
+                                                          initial_trajectory, least_squares_guess,
+                                                          scale_to_limits, shrink_into_limits,
+                                                          table1_trajectory, to_x)
 from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits, limit_ratios,
                                                    load_limits)
+from identification_node.excitation.problem import DesignProblem
+from identification_node.excitation.sampled import SampledTrajectory
 from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
-                                                         SampledTrajectory, check_limits,
                                                          load_trajectory)
+from identification_node.excitation.trajectory_base import check_limits
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import load_robot
 from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
@@ -59,8 +67,8 @@ def test_fourier_basis_matches_trajectory_sample():
     rng = np.random.default_rng(3)
     traj = FourierTrajectory(rng.normal(size=(2, 4)), rng.normal(size=(2, 4)), [0.3, -1.0], 3.0)
     t = rng.uniform(0, 7, 50)
-    Bq, Bv, Ba = ex.fourier_basis(t, 4, 3.0)
-    X = ex._to_x(traj).reshape(2, -1).T
+    Bq, Bv, Ba = fourier_basis(t, 4, 3.0)
+    X = to_x(traj).reshape(2, -1).T
     for B, ref in zip((Bq, Bv, Ba), traj.sample(t)):
         np.testing.assert_allclose(B @ X, ref, atol=1e-12)
 
@@ -90,8 +98,8 @@ def test_criteria_closed_form():
 def test_design_gradients_match_finite_differences(mit, criterion):
     robot, base = mit
     limits = ExcitationLimits.from_robot(robot)
-    design = ex._Design(robot, base, limits, 3, 2.0, 40, criterion, [1.0, 2.0, 0.5], 1.0)
-    x = ex._to_x(ex.initial_trajectory(robot, None, limits, 3, 2.0, 1))
+    design = DesignProblem(robot, base, limits, 3, 2.0, 40, criterion, [1.0, 2.0, 0.5], 1.0)
+    x = to_x(initial_trajectory(robot, None, limits, 3, 2.0, 1))
     grad, J = design.gradient(x)
     cjac = design.constraint_jac(x)
     rng = np.random.default_rng(2)
@@ -108,16 +116,16 @@ def test_design_gradients_match_finite_differences(mit, criterion):
 def test_least_squares_guess_solves_the_papers_normal_equations(crs):
     robot, _ = crs
     limits = ExcitationLimits.from_robot(robot)
-    guess = ex.least_squares_guess(limits, 5, 10.0, seed=4, num_points=100)
+    guess = least_squares_guess(limits, 5, 10.0, seed=4, num_points=100)
     # regenerate the random targets: A delta - qd is orthogonal to A's columns (eq. 8)
     rng = np.random.default_rng(4)
     t = np.arange(100) * 0.1
     target = rng.uniform(-1, 1, size=(100, 6)) * limits.velocity_limits
     _, qd, _ = guess.sample(t)
-    A = ex.fourier_basis(t, 5, 10.0)[1][:, :10]
+    A = fourier_basis(t, 5, 10.0)[1][:, :10]
     np.testing.assert_allclose(A.T @ (qd - target), 0.0, atol=1e-9)
     np.testing.assert_allclose(guess.q0, 0.0)  # centres of the symmetric ranges
-    scaled = ex.scale_to_limits(guess, limits, margin=0.9)
+    scaled = scale_to_limits(guess, limits, margin=0.9)
     per = check_limits(scaled, limits, np.linspace(0, 10, FINE))['per_joint']
     tightest = np.max([per['position'], per['velocity'], per['acceleration']], axis=0)
     np.testing.assert_allclose(tightest, 0.9, rtol=1e-4)  # found on a coarser grid
@@ -127,7 +135,7 @@ def test_table1_in_our_joint_zeros(crs):
     robot, base = crs
     limits = ExcitationLimits.from_robot(robot)
     paper = FourierTrajectory.crs_table1()
-    ours = ex.table1_trajectory(robot)
+    ours = table1_trajectory(robot)
     np.testing.assert_allclose(ours.q0 - paper.q0, [0, -np.pi / 2, np.pi / 2, 0, 0, 0])
     np.testing.assert_array_equal(ours.a, paper.a)
     raw = check_limits(paper, limits)['per_joint']['position']
@@ -136,7 +144,7 @@ def test_table1_in_our_joint_zeros(crs):
     # its default accelerations (2 /s x velocity limit) hold Table I's peaks
     assert limit_ratios(ours, robot, limits)['acceleration'] < 1
     with pytest.raises(IdentificationError, match='6 joints'):
-        ex.table1_trajectory(load_robot('mit_dd_arm'))
+        table1_trajectory(load_robot('mit_dd_arm'))
 
 
 def test_limits_file_and_overrides(crs, tmp_path):
@@ -180,7 +188,7 @@ def test_mit_arm_optimisation(mit):
         assert_within_limits(res.initial, robot, limits)
         assert res.value == pytest.approx(
             criterion_value(robot, res.trajectory, criterion, base, 60))
-        assert max(res.ratios[k] for k in LIMIT_KINDS) <= ex.VERIFY_RATIO
+        assert max(res.ratios[k] for k in LIMIT_KINDS) <= VERIFY_RATIO
 
 
 @pytest.mark.parametrize('criterion', CRITERIA)
@@ -189,12 +197,12 @@ def test_crs_beats_initial_and_table1(crs, crs_results, criterion):
     res = crs_results[criterion]
     limits = ExcitationLimits.from_robot(robot)
     assert_within_limits(res.trajectory, robot, limits)
-    table1 = criterion_value(robot, ex.table1_trajectory(robot), criterion, base)
+    table1 = criterion_value(robot, table1_trajectory(robot), criterion, base)
     assert res.value < res.initial_value
     assert res.value < table1
     # the same with many more samples than the optimiser saw
     more = criterion_value(robot, res.trajectory, criterion, base, 400)
-    assert more < criterion_value(robot, ex.table1_trajectory(robot), criterion, base, 400)
+    assert more < criterion_value(robot, table1_trajectory(robot), criterion, base, 400)
 
 
 def test_crs_from_table1(crs):
@@ -203,7 +211,7 @@ def test_crs_from_table1(crs):
                                  initial='table1', margin=0.0)  # Table I fits, not with 10 %
     np.testing.assert_allclose(res.initial.a, FourierTrajectory.crs_table1().a)
     assert res.initial_value == pytest.approx(
-        criterion_value(robot, ex.table1_trajectory(robot), 'cond', base))
+        criterion_value(robot, table1_trajectory(robot), 'cond', base))
     assert res.value < res.initial_value
     assert_within_limits(res.trajectory, robot, ExcitationLimits.from_robot(robot))
 
@@ -212,12 +220,12 @@ def test_crs_from_table1(crs):
 def test_shrink_into_tight_effort_limits(crs):
     robot, _ = crs
     limits = ExcitationLimits.from_robot(robot).updated({'joint2': {'effort': 25.0}})
-    traj, scale, ratios = ex.shrink_into_limits(ex.table1_trajectory(robot), robot, limits)
-    assert 0 < scale < 1 and ratios['effort'] <= ex.VERIFY_RATIO
+    traj, scale, ratios = shrink_into_limits(table1_trajectory(robot), robot, limits)
+    assert 0 < scale < 1 and ratios['effort'] <= VERIFY_RATIO
     assert_within_limits(traj, robot, limits)
     with pytest.raises(IdentificationError, match='effort'):
-        ex.shrink_into_limits(ex.table1_trajectory(robot), robot,
-                              limits.updated({'joint2': {'effort': 1e-3}}))
+        shrink_into_limits(table1_trajectory(robot), robot,
+                           limits.updated({'joint2': {'effort': 1e-3}}))
 
 
 @pytest.mark.parametrize('criterion', CRITERIA)
@@ -228,8 +236,8 @@ def test_optimised_trajectory_identifies_better_than_random(crs, crs_results, cr
     limits = ExcitationLimits.from_robot(robot)
     beta = base.to_base(robot.phi_model)
     big = np.abs(beta) > 1e-3 * np.abs(beta).max()
-    random = ex.shrink_into_limits(FourierTrajectory.random(limits, 5, 10.0, seed=1), robot,
-                                   limits)[0]
+    random = shrink_into_limits(FourierTrajectory.random(limits, 5, 10.0, seed=1), robot,
+                                limits)[0]
     t = np.arange(1000) * 0.01
 
     def identify(traj):
@@ -251,7 +259,7 @@ def test_optimised_trajectory_identifies_better_than_random(crs, crs_results, cr
 def test_joint_trajectory_message(mit):
     robot, _ = mit
     traj = FourierTrajectory.random(ExcitationLimits.from_robot(robot), 2, 1.0, seed=0)
-    msg = ex.trajectory_to_joint_trajectory(traj, rate=50.0, periods=2)
+    msg = trajectory_to_joint_trajectory(traj, rate=50.0, periods=2)
     assert list(msg.joint_names) == robot.joint_names and len(msg.points) == 101
     t = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points])
     np.testing.assert_allclose(t, np.arange(101) / 50.0, atol=1e-9)
@@ -291,7 +299,7 @@ def test_cli_writes_yaml_csv_and_bag(crs, tmp_path, capsys):
     assert doc['limits']['joint1']['velocity'] == 1.0
     assert all(doc['limit_ratios'][k]['worst'] <= 1 for k in LIMIT_KINDS)
     framed = load_trajectory(str(out), robot)
-    assert isinstance(framed, FramedTrajectory) and framed.periods == ex.DEFAULT_PERIODS
+    assert isinstance(framed, FramedTrajectory) and framed.periods == DEFAULT_PERIODS
     traj = framed.periodic
     assert isinstance(traj, FourierTrajectory) and traj.period == 10.0
     lim = load_limits(limits, robot)

@@ -16,12 +16,15 @@ from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.excitation.criteria import _base_of, criterion_value
 from identification_node.excitation import design as ex
+from identification_node.excitation.initial_guess import initial_trajectory, to_x
+from identification_node.excitation.problem import DesignProblem
+from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN
 from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits,
                                                    estimate_parameters, limit_ratios)
 from identification_node.excitation.collision import CollisionChecker, has_collision_geometry
+from identification_node.excitation.sampled import SampledTrajectory
 from identification_node.excitation.trajectories import (FourierTrajectory, FramedTrajectory,
-                                                         SampledTrajectory, load_trajectory,
-                                                         match_joints)
+                                                         load_trajectory, match_joints)
 from identification_node.model.robot import load_robot
 
 FIXTURES = Path(__file__).resolve().parent / 'fixtures'
@@ -120,7 +123,7 @@ def test_starts_and_ends_at_rest(designs, name):
 def test_within_limits_with_margin_densely(designs, name):
     robot, res = designs[name]
     limits = ExcitationLimits.from_robot(robot)
-    keep = 1.0 - ex.DEFAULT_LIMIT_MARGIN
+    keep = 1.0 - DEFAULT_LIMIT_MARGIN
     f = res.framed
     t = dense_times(f, DENSE)
     q, qd, qdd = f.sample(t)
@@ -134,7 +137,7 @@ def test_within_limits_with_margin_densely(designs, name):
     tau = robot.rnea(q[k], qd[k], qdd[k])   # pinocchio's RNEA, not the regressor
     assert np.all(np.abs(tau) <= keep * limits.effort_limits + 1e-9)
     assert max(res.ratios[k] for k in LIMIT_KINDS) <= keep + 1e-9
-    assert res.margin == ex.DEFAULT_LIMIT_MARGIN
+    assert res.margin == DEFAULT_LIMIT_MARGIN
 
 
 @pytest.mark.parametrize('name', CASES)
@@ -248,9 +251,9 @@ def test_design_constraint_jacobian_with_torque_models_and_collisions():
     limits = ExcitationLimits.from_robot(robot).with_margin(0.1)
     base = _base_of(robot, None)
     checker = CollisionChecker(robot, floor=0.0)
-    design = ex._Design(robot, base, limits, 2, 4.0, 40, 'cond', None, 1.0,
-                        [robot.phi_model, 1.5 * robot.phi_model], checker)
-    x = ex._to_x(ex.initial_trajectory(robot, None, limits, 2, 4.0, 1))
+    design = DesignProblem(robot, base, limits, 2, 4.0, 40, 'cond', None, 1.0,
+                           [robot.phi_model, 1.5 * robot.phi_model], checker)
+    x = to_x(initial_trajectory(robot, None, limits, 2, 4.0, 1))
     c, J = design.constraint(x), design.constraint_jac(x)
     assert c.shape == (7 * 3 + 7 + checker.num_pairs,) and J.shape == (c.size, x.size)
     rng = np.random.default_rng(4)

@@ -7,7 +7,8 @@ import pinocchio as pin
 import pytest
 
 from identification_node.errors import IdentificationError
-from identification_node.excitation.trajectories import FourierTrajectory, QuinticMoves
+from identification_node.excitation.quintic_moves import QuinticMoves
+from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.simulation.simulator import (ArmSimulator, SensorNoise, default_converter,
                                                       simulate_kinematic)

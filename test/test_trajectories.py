@@ -7,9 +7,10 @@ import pytest
 import yaml
 
 from identification_node.errors import IdentificationError
-from identification_node.excitation.trajectories import (FourierTrajectory, QuinticMoves,
-                                                         SampledTrajectory, check_limits,
-                                                         load_trajectory)
+from identification_node.excitation.quintic_moves import QuinticMoves
+from identification_node.excitation.sampled import SampledTrajectory
+from identification_node.excitation.trajectories import FourierTrajectory, load_trajectory
+from identification_node.excitation.trajectory_base import check_limits
 from identification_node.model.robot import load_robot
 
 CRS_URDF = Path(__file__).resolve().parents[1] / 'identification_node' / 'robots' / \

@@ -28,7 +28,8 @@ import numpy as np
 from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.limits import _numbers
-from identification_node.excitation.trajectories import FramedTrajectory, Trajectory
+from identification_node.excitation.trajectories import FramedTrajectory
+from identification_node.excitation.trajectory_base import Trajectory
 
 CRITERIA = ('cond', 'dopt')
 DEFAULT_SAMPLES = Excitation.samples   # criterion samples over one period

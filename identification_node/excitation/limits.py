@@ -6,8 +6,8 @@ DEFAULT_LIMIT_MARGIN, 10 %; ExcitationLimits.with_margin): joint positions (with
 q0), velocities and accelerations on a grid of one period, and joint torques (inverse dynamics
 under the robot's own parameters and, when given, an estimate's) at the criterion samples.
 Each (joint, kind) is one smooth constraint on the Kreisselmeier-Steinhauser maximum of its
-ratios to the limit (see _Design); with a collision.CollisionChecker, one more per checked
-geometry pair on its distances. URDFs carry no acceleration limits: the default is
+ratios to the limit (see problem.DesignProblem); with a collision.CollisionChecker, one more
+per checked geometry pair on its distances. URDFs carry no acceleration limits: the default is
 ``DEFAULT_ACCELERATION_RATE`` (2 /s) times the velocity limit, i.e. full speed reached in 0.5 s
 (6.3 rad/s^2 on the CRS A465's first three joints; Table I's trajectory peaks at 6.1 rad/s^2);
 every limit the description lacks is recorded in ``ExcitationLimits.assumed``. Every result is
@@ -24,7 +24,8 @@ import numpy as np
 
 from identification_node.errors import IdentificationError
 from identification_node.safe_yaml import read_yaml
-from identification_node.excitation.trajectories import DEFAULT_VELOCITY, Trajectory, check_limits
+from identification_node.excitation.trajectory_base import (DEFAULT_VELOCITY, Trajectory,
+                                                            check_limits)
 
 DEFAULT_ACCELERATION_RATE = 2.0  # 1/s: default acceleration limit = rate * velocity limit
 PRISMATIC_VELOCITY = 0.5    # m/s, prismatic joints without a velocity limit
@@ -41,7 +42,7 @@ class ExcitationLimits:
     position_limits (n, 2) [lo, hi] (+-inf: none), velocity_limits (n,), acceleration_limits
     (n,) (finite, > 0), effort_limits (n,) (inf: no torque limit). ``assumed``: the limits the
     robot description did not give, {joint: {kind: value assumed (None: no limit)}}. Works with
-    :func:`~identification_node.excitation.trajectories.check_limits`.
+    :func:`~identification_node.excitation.trajectory_base.check_limits`.
     """
 
     joint_names: list[str]

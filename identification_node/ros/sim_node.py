@@ -49,7 +49,8 @@ from std_msgs.msg import String
 from identification_node.config import PARAMETERS, PER_JOINT, coerce, flatten
 from identification_node.errors import IdentificationError
 from identification_node.safe_yaml import read_yaml
-from identification_node.excitation.trajectories import Trajectory, load_trajectory
+from identification_node.excitation.trajectory_base import Trajectory
+from identification_node.excitation.trajectories import load_trajectory
 from identification_node.model.drive import DriveModel
 from identification_node.model.robot import RobotModel
 from identification_node.simulation.simulator import ArmSimulator, SensorNoise, SimResult

@@ -1,0 +1,187 @@
+"""Initial guesses of an excitation: the Fourier basis, coefficient vectors, the paper's
+least-squares guess and Table I, scaled into the limits.
+
+Coefficient vectors x hold per joint [a_1..a_H, b_1..b_H, q0] (rad/s, rad), joints in order.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from identification_node.config import Excitation
+from identification_node.errors import IdentificationError
+from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, ExcitationLimits,
+                                                   _ranges, _worst, limit_ratios)
+from identification_node.excitation.trajectories import TABLE1_PERIOD, FourierTrajectory
+
+__all__ = ['DEFAULT_HARMONICS', 'DEFAULT_PERIOD', 'INITIAL_MARGIN', 'LSQ_POINTS', 'TABLE1_OFFSET',
+           'VERIFY_RATIO', 'check_harmonics', 'fourier_basis', 'from_x', 'initial_trajectory',
+           'least_squares_guess', 'scale_motion', 'scale_to_limits', 'shrink_into_limits',
+           'table1_trajectory', 'to_x']
+
+DEFAULT_HARMONICS = Excitation.harmonics
+DEFAULT_PERIOD = Excitation.period
+LSQ_POINTS = 100            # random target velocities of the initial guess (paper: 100)
+INITIAL_MARGIN = 0.95        # the initial guess reaches this fraction of its tightest limit
+VERIFY_RATIO = 0.999        # a verified result stays below this fraction of every limit
+# Table I's joint zeros -> ours (crs_a465.urdf: arm straight up at zero), q_ours = q_paper +
+# offset. Table I moves joint 2 over [36, 148] deg and joint 3 over [-163, -10] deg: centred on
+# +90 and -90 deg, where our symmetric +-90 / +-110 deg ranges are centred on 0. With the
+# quarter-turn shifts every joint stays inside our limits; the senses of rotation are kept (the
+# paper does not state them).
+TABLE1_OFFSET = (0.0, -math.pi / 2, math.pi / 2, 0.0, 0.0, 0.0)
+
+
+def fourier_basis(t: np.ndarray, harmonics: int, period: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Matrices (N, 2H + 1) mapping one joint's coefficients [a_1..a_H, b_1..b_H, q0] to its
+    position, velocity and acceleration at times t (s), as in FourierTrajectory.sample."""
+    t = np.asarray(t, dtype=float)
+    wl = 2.0 * math.pi / period * np.arange(1, harmonics + 1)
+    S, C = np.sin(np.outer(t, wl)), np.cos(np.outer(t, wl))
+    one, zero = np.ones((t.size, 1)), np.zeros((t.size, 1))
+    return (np.hstack([S / wl, -C / wl, one]), np.hstack([C, S, zero]),
+            np.hstack([-S * wl, C * wl, zero]))
+
+
+def to_x(traj: FourierTrajectory) -> np.ndarray:
+    """The coefficient vector of ``traj``."""
+    return np.hstack([traj.a, traj.b, traj.q0[:, None]]).ravel()
+
+
+def from_x(x: np.ndarray, n: int, period: float, names: Sequence[str]) -> FourierTrajectory:
+    """The FourierTrajectory of coefficient vector ``x`` (n joints, period s)."""
+    X = np.asarray(x, dtype=float).reshape(n, -1)
+    H = (X.shape[1] - 1) // 2
+    return FourierTrajectory(X[:, :H], X[:, H:2 * H], X[:, 2 * H], period, names)
+
+
+def least_squares_guess(limits: ExcitationLimits, harmonics: int = DEFAULT_HARMONICS,
+                        period: float = DEFAULT_PERIOD, seed: int | None = 0,
+                        num_points: int = LSQ_POINTS) -> FourierTrajectory:
+    """The paper's initial guess (III.A, eq. 7-8), before scaling into the limits: per joint,
+    random target velocities, uniform within the velocity limit, at ``num_points`` equally
+    spaced instants of one period; the coefficients (a_l, b_l) solve A delta = qd by least
+    squares, A the velocity form of the series [cos(w l t), sin(w l t)].
+
+    The paper's printed A (entries s/(w l), c/(w l) and a column of ones) is the position
+    form, which cannot reproduce velocities and leaves q0 undetermined; we fit the velocity
+    form, as its text says, and put q0 at the centre of the position range (0 when unlimited).
+    """
+    H = check_harmonics(harmonics)
+    M = max(int(num_points), 2 * H)
+    rng = np.random.default_rng(seed)
+    t = np.arange(M) * (period / M)
+    _, Bv, _ = fourier_basis(t, H, period)
+    A = Bv[:, :2 * H]
+    vmax = limits.velocity_limits
+    target = rng.uniform(-1.0, 1.0, size=(M, limits.dof)) * vmax
+    coef = np.linalg.lstsq(A, target, rcond=None)[0].T  # (n, 2H)
+    return FourierTrajectory(coef[:, :H], coef[:, H:], _ranges(limits)[1], period,
+                             limits.joint_names)
+
+
+def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
+                    margin: float = INITIAL_MARGIN, num_points: int = VERIFY_POINTS
+                    ) -> FourierTrajectory:
+    """Per joint, scale the amplitudes (up or down) so the motion reaches ``margin`` of its
+    tightest kinematic limit (position range, velocity, acceleration), with q0 centring the
+    excursion in the position range (unchanged for joints without position limits)."""
+    unit = FourierTrajectory(traj.a, traj.b, np.zeros(traj.dof), traj.period)
+    q, qd, qdd = unit.sample(np.linspace(0.0, traj.period, num_points))
+    limited, centre, half = _ranges(limits)
+    span = 0.5 * (q.max(axis=0) - q.min(axis=0))
+    with np.errstate(divide='ignore'):
+        scale = margin * np.min([half / span, limits.velocity_limits / np.abs(qd).max(axis=0),
+                                 limits.acceleration_limits / np.abs(qdd).max(axis=0)], axis=0)
+    if not np.isfinite(scale).all():
+        bad = [j for j, s in zip(limits.joint_names, scale) if not np.isfinite(s)]
+        raise IdentificationError(f'the trajectory does not move joints {bad}')
+    mid = 0.5 * (q.max(axis=0) + q.min(axis=0))
+    q0 = np.where(limited, centre - scale * mid, traj.q0)
+    return FourierTrajectory(traj.a * scale[:, None], traj.b * scale[:, None], q0,
+                             traj.period, traj.joint_names)
+
+
+def shrink_into_limits(traj: FourierTrajectory, robot, limits: ExcitationLimits,
+                       target: float = VERIFY_RATIO, max_steps: int = 60,
+                       phis: Sequence[np.ndarray] | None = None
+                       ) -> tuple[FourierTrajectory, float, dict]:
+    """Scale the motion down until every limit ratio (limit_ratios) is at most ``target``:
+    amplitudes times s, and each offset q0 drawn towards the centre of its position range by
+    the same factor (kept where unlimited), so every kinematic ratio scales by s exactly.
+    Returns (trajectory, s, ratios); IdentificationError when even the centre of the ranges
+    at rest exceeds the effort limits. ``phis``: the torque models (see limit_ratios)."""
+    ratios = limit_ratios(traj, robot, limits, phis=phis)
+    kinematic = max(ratios[k] for k in LIMIT_KINDS[:3])
+    scale = min(1.0, target / kinematic) if kinematic > 0 else 1.0
+    for _ in range(max_steps):
+        cur = scale_motion(traj, limits, scale)
+        if scale != 1.0:
+            ratios = limit_ratios(cur, robot, limits, phis=phis)
+        if _worst(ratios) <= target:
+            return cur, scale, ratios
+        scale *= float(np.clip(target / _worst(ratios), 0.5, 0.995))
+    raise IdentificationError('infeasible limits: the trajectory cannot be scaled into the '
+                              'effort limits (with their margin): the static torque near the '
+                              'centre of the position ranges exceeds them')
+
+
+def scale_motion(traj: FourierTrajectory, limits: ExcitationLimits, scale: float
+                 ) -> FourierTrajectory:
+    """The motion of ``traj`` scaled by ``scale``: amplitudes, and offsets towards the centre
+    of the position ranges (kept where unlimited)."""
+    centre = _ranges(limits, traj.q0)[1]
+    return FourierTrajectory(traj.a * scale, traj.b * scale, centre + scale * (traj.q0 - centre),
+                             traj.period, traj.joint_names)
+
+
+def table1_trajectory(robot, harmonics: int = DEFAULT_HARMONICS,
+                      period: float = TABLE1_PERIOD) -> FourierTrajectory:
+    """Table I of Radkhah, Kulic and Croft for a 6-joint robot, with its offsets moved into
+    our joint zeros (TABLE1_OFFSET) for the bundled crs_a465; zero-padded beyond its 5
+    harmonics."""
+    if robot.dof != 6:
+        raise IdentificationError(f'Table I is for the 6 joints of the CRS A460/A465; the robot '
+                                  f'identifies {robot.dof} ({robot.joint_names})')
+    H = check_harmonics(harmonics)
+    t1 = FourierTrajectory.crs_table1(period)
+    if H < t1.harmonics:
+        raise IdentificationError(f'Table I has {t1.harmonics} harmonics; ask for at least '
+                                  f'{t1.harmonics}')
+    pad = np.zeros((6, H - t1.harmonics))
+    offset = np.array(TABLE1_OFFSET) if robot.name == 'crs_a465' else np.zeros(6)
+    return FourierTrajectory(np.hstack([t1.a, pad]), np.hstack([t1.b, pad]), t1.q0 + offset,
+                             period, robot.joint_names)
+
+
+def check_harmonics(harmonics: int) -> int:
+    if isinstance(harmonics, bool) or not isinstance(harmonics, (int, np.integer)) \
+            or harmonics < 1:
+        raise IdentificationError(f'harmonics must be an integer >= 1, got {harmonics!r}')
+    return int(harmonics)
+
+
+def initial_trajectory(robot, initial: str | FourierTrajectory | None,
+                       limits: ExcitationLimits, harmonics: int, period: float,
+                       seed: int | None, phis: Sequence[np.ndarray] | None = None
+                       ) -> FourierTrajectory:
+    """The starting point: 'lsq' (None; least_squares_guess scaled into the limits), 'table1'
+    (table1_trajectory) or a FourierTrajectory, shrunk into every limit."""
+    if initial is None or (isinstance(initial, str) and initial == 'lsq'):
+        guess = scale_to_limits(least_squares_guess(limits, harmonics, period, seed), limits)
+    elif isinstance(initial, str) and initial == 'table1':
+        guess = table1_trajectory(robot, harmonics, period)
+    elif isinstance(initial, FourierTrajectory):
+        guess = initial
+        if (guess.dof, guess.harmonics, guess.period) != (robot.dof, harmonics, period):
+            raise IdentificationError(
+                f'initial trajectory has {guess.dof} joints, {guess.harmonics} harmonics, '
+                f'period {guess.period} s; need {robot.dof}, {harmonics}, {period} s')
+        guess = FourierTrajectory(guess.a, guess.b, guess.q0, period, robot.joint_names)
+    else:
+        raise IdentificationError(f"unknown initial trajectory {initial!r}: use 'lsq', "
+                                  "'table1' or a FourierTrajectory")
+    return shrink_into_limits(guess, robot, limits, phis=phis)[0]
