@@ -52,7 +52,7 @@ BAG_VERSION = 1  # bump when the bag recipe changes (cache key)
 def make_bag(samples: int) -> Path:
     """The cached benchmark bag of ``samples`` joint states (made on first use)."""
     from identification_node.bags.writer import BagWriter
-    from identification_node.cli.simulate import true_parameters
+    from identification_node.simulation.bag import read_true_parameters
     from identification_node.excitation.trajectories import load_trajectory
     from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
     from identification_node.settings import Settings, read_parameter_file
@@ -62,7 +62,7 @@ def make_bag(samples: int) -> Path:
     if (path / 'metadata.yaml').is_file():
         return path
     robot = Settings.from_dict(read_parameter_file(CONFIG)).load_robot()
-    phi = true_parameters(robot, str(FRICTION))
+    phi = read_true_parameters(str(FRICTION), robot, 'true parameters')
     t = np.arange(samples) / RATE
     sim = simulate_kinematic(robot, phi, load_trajectory('fourier', robot), t,
                              SensorNoise(torque_std=0.2, encoder_counts=262144), seed=3)

@@ -46,16 +46,15 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
-from identification_node.config import PARAMETERS, PER_JOINT, coerce, flatten
+from identification_node.config import PARAMETERS, PER_JOINT, coerce
 from identification_node.errors import IdentificationError
-from identification_node.safe_yaml import read_yaml
 from identification_node.excitation.trajectory_base import Trajectory
 from identification_node.excitation.trajectories import load_trajectory
 from identification_node.model.drive import DriveModel
 from identification_node.model.robot import RobotModel
+from identification_node.simulation.bag import read_true_parameters
 from identification_node.simulation.simulator import ArmSimulator, SensorNoise, SimResult
 from identification_node.model.torque import TorqueConverter
-from identification_node.model.urdf_export import consistency_problems
 from identification_node.payload.fit import read_payload_changes, true_parameter_changes
 from identification_node.ros.conversions import publish_joint_states, time_msg, wait_for_all_acked
 from identification_node.ros.parameters import declare_settings
@@ -109,31 +108,6 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 
 def _bad(name: str, value: Any, expected: str) -> IdentificationError:
     return IdentificationError(f'parameter {name} = {value!r} must be {expected}')
-
-
-def read_true_parameters(path: str, robot: RobotModel) -> np.ndarray:
-    """The robot's own phi with the values of a YAML mapping (standard parameter name -> value,
-    nested mappings joined with dots) put in; the links it changes must stay physically
-    consistent."""
-    name = 'true_parameters_file'
-    data = read_yaml(path, f'parameter {name}: {path}')
-    if not isinstance(data, Mapping):
-        raise IdentificationError(f'parameter {name}: {path} does not hold a mapping')
-    phi = robot.phi_model.copy()
-    for key, value in flatten(data).items():
-        if key not in robot.param_names:
-            raise IdentificationError(f'parameter {name}: {path} names {key!r}, not a standard '
-                                      f'parameter of {robot.name} ({robot.param_names[0]}, ...)')
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not math.isfinite(value):
-            raise IdentificationError(f'parameter {name}: {key} = {value!r} is not a number')
-        phi[robot.param_names.index(key)] = float(value)
-    own = set(consistency_problems(robot, robot.phi_model))   # the description's own faults
-    problems = [p for p in consistency_problems(robot, phi) if p not in own]
-    if problems:
-        raise IdentificationError(f'parameter {name}: the parameters of {path} are not '
-                                  f'physically consistent: {"; ".join(problems)}')
-    return phi
 
 
 @dataclass
@@ -198,7 +172,8 @@ class SimSetup:
             trajectory = load_trajectory(v['trajectory'], robot)
         except IdentificationError as exc:
             raise IdentificationError(f'parameter trajectory: {exc}') from None
-        phi = (read_true_parameters(v['true_parameters_file'], robot)
+        what = 'parameter true_parameters_file'
+        phi = (read_true_parameters(v['true_parameters_file'], robot, what)
                if v['true_parameters_file'].strip() else robot.phi_model)
         noise = SensorNoise(v['noise.position_std'], v['noise.encoder_counts'],
                             v['noise.velocity_std'], v['noise.torque_std'],
