@@ -84,4 +84,4 @@ def save_figure(fig, path: str | os.PathLike) -> Path:
     FigureCanvasAgg(fig)
     with atomic_file(path, 'wb') as f:
         fig.savefig(f, format='png', dpi=100)
-    return path
+    return Path(path)

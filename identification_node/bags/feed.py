@@ -80,7 +80,7 @@ def feed_records(reader, pipeline, topics: list[str], batch: int,
     for item in _records(reader, pipeline, topics, batch, bounds):
         kept += item[1]
         yield item
-    if bounds is not None and kept == 0:
+    if window is not None and bounds is not None and kept == 0:
         raise empty_window_error(str(reader.path), window)
 
 
@@ -107,21 +107,22 @@ def _records(reader, pipeline, topics: list[str], batch: int, bounds: tuple[int,
         while malformed:
             done += 1
             yield malformed.pop(), 1
+        stamps = block.stamp_ns
         if bounds is not None:
             keep = in_window(log_ns, bounds)
             if not keep.any():
                 continue
-            if np.ndim(block.stamp_ns) and not keep.all():
-                block = JointStateRecord(block.stamp_ns[keep], block.names,
-                                         *(a[keep] for a in block[2:]))
-        if not np.ndim(block.stamp_ns):
+            if isinstance(stamps, np.ndarray) and stamps.ndim and not keep.all():
+                stamps = stamps[keep]
+                block = JointStateRecord(stamps, block.names, *(a[keep] for a in block[2:]))
+        if not isinstance(stamps, np.ndarray) or not stamps.ndim:
             done += 1
             yield functools.partial(pipeline.add_joint_state, block), 1
             continue
         start = 0
-        while start < len(block.stamp_ns):
-            stop = min(len(block.stamp_ns), start + batch - done % batch)
-            part = JointStateRecord(block.stamp_ns[start:stop], block.names,
+        while start < len(stamps):
+            stop = min(len(stamps), start + batch - done % batch)
+            part = JointStateRecord(stamps[start:stop], block.names,
                                     *(a[start:stop] for a in block[2:]))
             done += stop - start
             yield functools.partial(pipeline.add_joint_states, part), stop - start

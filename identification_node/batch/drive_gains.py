@@ -105,6 +105,7 @@ def known_payload_from_bags(bag: str | os.PathLike, loaded_bag: str | os.PathLik
             eq = payload_equations(r.regressor, r.tau, r.regressor @ d_beta if loaded else None,
                                    r.mask)
             equations = eq if equations is None else equations + eq
+    assert equations is not None   # batch_rows yields rows or raises
     gains = known_payload_gains(robot.joint_names, equations, configured_gains(converter),
                                 payload.mass)
     return [g for g in gains if g.joint in converter.current_joints]
@@ -116,10 +117,10 @@ def settings_with_gains(settings: Settings, robot: RobotModel,
     gain is determined."""
     converter = converter_of(settings, robot)
     kt = [c.kt for c in converter.configs]
-    by_joint = {g.joint: g for g in gains if g.value is not None}   # the last one wins
+    by_joint = {g.joint: g.value for g in gains if g.value is not None}   # the last one wins
     for j, (name, c) in enumerate(zip(robot.joint_names, converter.configs)):
         if name in by_joint and c.source != 'measured':
-            kt[j] = by_joint[name].value / c.gear_ratio
+            kt[j] = by_joint[name] / c.gear_ratio
     values = dict(settings.values, kt=kt)
     return Settings(values, settings.given | {'kt'})
 
@@ -137,7 +138,7 @@ def identify_drive_gains(bag: str | os.PathLike, settings: Settings, robot: Robo
     if motor_voltages:
         gains += back_emf_from_bag(bag, settings, robot, joint_states, motor_currents,
                                    motor_voltages)
-    if loaded_bag:
+    if loaded_bag and payload is not None:   # both or neither
         gains += known_payload_from_bags(bag, loaded_bag, read_known_payload(payload),
                                          settings, robot, joint_states, motor_currents)
     return mark_used(gains)

@@ -54,9 +54,10 @@ class BatchRows:
         return len(self.stamps_ns)
 
     def slice(self, a: int, b: int) -> BatchRows:
-        return BatchRows(*(None if x is None else x[a:b] for x in (
-            self.stamps_ns, self.regressor, self.tau, self.scale, self.mask, self.index,
-            self.features)))
+        def cut(x: np.ndarray | None) -> np.ndarray | None:
+            return None if x is None else x[a:b]
+        return BatchRows(self.stamps_ns[a:b], self.regressor[a:b], self.tau[a:b],
+                         cut(self.scale), cut(self.mask), cut(self.index), cut(self.features))
 
 
 @dataclass(frozen=True)
@@ -130,6 +131,7 @@ def _plan_filtered(samples: BagSamples, options: BatchOptions, max_gap: float
     """Split the streams at stamp gaps > max_gap into segments and choose the rows kept."""
     segments, dropped, resampled, decimations, rates = [], 0, 0, set(), set()
     cutoff = options.cutoff
+    assert cutoff is not None   # batch_rows chose one
     offset = 0
     for s in samples.streams:
         gaps = np.flatnonzero(np.diff(s.stamps_ns) * 1e-9 > max_gap) + 1
@@ -289,6 +291,7 @@ def reversal_exclusion_speed(settings: Settings, robot: RobotModel) -> float | N
 
 def harmonic_range(options: BatchOptions) -> tuple[float, int | None, int, int]:
     """period, fixed harmonics, most and fewest harmonics of the periodic path."""
+    assert options.period is not None   # the periodic path
     period = float(options.period)
     top = max(1, int(math.floor((options.cutoff or DEFAULT_CUTOFF) * period)),
               options.min_harmonics)
@@ -328,17 +331,18 @@ def batch_rows(samples: BagSamples, settings: Settings, robot: RobotModel,
         info['rows'] = len(rows)
         return info, iter([rows])
     source = 'given'
-    if options.cutoff is None:
+    cutoff = options.cutoff
+    if cutoff is None:
         cutoff, source = auto_cutoff(samples, settings, robot, base)
         options = replace(options, cutoff=cutoff)
     segments, info = _plan_filtered(samples, options, settings['smoother.max_gap'])
     info['cutoff_source'] = source
 
-    def rows() -> Iterator[BatchRows]:
+    def segment_rows() -> Iterator[BatchRows]:
         for seg in segments:
-            yield from _segment_rows(seg, robot, base, options.cutoff, options.order,
+            yield from _segment_rows(seg, robot, base, cutoff, options.order,
                                      samples.velocity_measured, speed)
-    return info, rows()
+    return info, segment_rows()
 
 
 def auto_cutoff(samples: BagSamples, settings: Settings, robot: RobotModel,
@@ -359,4 +363,5 @@ def auto_cutoff(samples: BagSamples, settings: Settings, robot: RobotModel,
                              np.asarray(noise, dtype=float) ** -2 if noise else None,
                              final=True,
                              exclusion_speed=settings['coulomb_exclusion_speed'])
+    assert choice is not None   # final: no more samples to wait for
     return float(choice.cutoff), choice.source

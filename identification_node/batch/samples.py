@@ -69,6 +69,7 @@ def read_samples(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     def collect(flush: bool) -> None:
         s = stages.process(flush)
         if len(s):   # all of the newest stream
+            assert s.tau is not None   # what process() returns carries its torque
             parts.append((counters.restarts, counters.stamps_ns(s.stamps), s.q, s.qd, s.tau))
 
     with open_bag(bag) as reader:

@@ -122,6 +122,7 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
                 offsets.add(part.stamps_ns * 1e-9, part.regressor, part.tau,
                             None if part.features is None else part.features[..., :3])
                 if done % every == 0 and done < info['rows'] and done * n >= 4 * b:
+                    assert part.index is not None   # filtered rows carry it
                     _checkpoint(history, acc, int(part.index[-1]), part.stamps_ns[-1])
     else:
         rows = next(rows_iter)

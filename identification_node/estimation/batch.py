@@ -219,7 +219,7 @@ class WeightedFit:
     covariance: np.ndarray
     noise_variance: np.ndarray
     s2: float
-    weights: np.ndarray | None = None
+    weights: np.ndarray
 
 
 def weighted_solve(equations: NormalEquations, known: bool = False, iterations: int = 20,

@@ -93,7 +93,7 @@ def read_manifest(path: str | os.PathLike) -> list[FleetEntry]:
     try:
         with open(path, newline='') as f:
             rows = list(csv.DictReader(f))
-            header = [c.strip() for c in (rows and rows[0].keys() or [])]
+            header = [c.strip() for c in rows[0].keys()] if rows else []
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise IdentificationError(f'cannot read the manifest {path}: {exc}') from None
     missing = [c for c in MANIFEST_COLUMNS if c not in header]
@@ -104,9 +104,10 @@ def read_manifest(path: str | os.PathLike) -> list[FleetEntry]:
     unknown = sorted(set(header) - set(MANIFEST_COLUMNS) - set(OPTIONAL_COLUMNS))
     if unknown:
         raise IdentificationError(f'manifest {path}: unknown columns {", ".join(unknown)}')
-    entries, seen = [], {}
-    for line, row in enumerate(rows, start=2):
-        row = {k.strip(): (v or '').strip() for k, v in row.items() if k is not None}
+    entries: list[FleetEntry] = []
+    seen: dict[str, int] = {}     # bag: its line
+    for line, raw in enumerate(rows, start=2):
+        row = {k.strip(): (v or '').strip() for k, v in raw.items() if k is not None}
         if not all(row.get(c) for c in MANIFEST_COLUMNS):
             raise IdentificationError(f'manifest {path} line {line}: bag, robot and period '
                                       'must all be given')
@@ -114,11 +115,12 @@ def read_manifest(path: str | os.PathLike) -> list[FleetEntry]:
         def local(name: str) -> str | None:
             return str(path.parent / row[name]) if row.get(name) else None
 
-        if local('bag') in seen:
+        bag = str(path.parent / row['bag'])
+        if bag in seen:
             raise IdentificationError(f"manifest {path} line {line}: bag {row['bag']} is "
-                                      f"listed twice (first on line {seen[local('bag')]})")
-        seen[local('bag')] = line
-        entries.append(FleetEntry(local('bag'), row['robot'], row['period'], local('urdf'),
+                                      f"listed twice (first on line {seen[bag]})")
+        seen[bag] = line
+        entries.append(FleetEntry(bag, row['robot'], row['period'], local('urdf'),
                                   local('config')))
     return entries
 
@@ -341,7 +343,9 @@ def run_fleet(entries: Sequence[FleetEntry], client, segment_seconds: float | No
     entries_of = {(t.entry.robot, t.entry.period): t.entry for t, _ in good}
     models: dict[str, tuple] = {}     # robot: settings, model, consistent solver
     idents, total_idents = {}, {}
-    for key, stats in [*groups.items(), *totals.items()]:
+    keyed: list[tuple[tuple[str, str] | str, BagStatistics]] = [
+        *groups.items(), *totals.items()]
+    for key, stats in keyed:
         robot = key[0] if isinstance(key, tuple) else key
         try:
             if robot not in models:

@@ -108,7 +108,8 @@ def batch_options(config: IdentifyConfig, robot: RobotModel) -> BatchOptions:
             offset = config.trajectory_start or 0.0
             if not (offset >= 0 and offset < float('inf')):
                 raise IdentificationError(f'--trajectory-start must be >= 0 s, got {offset}')
-            window = tuple(offset + t for t in traj.periodic_window)
+            t0, t1 = traj.periodic_window
+            window = (offset + t0, offset + t1)
             traj = traj.periodic
         elif config.trajectory_start is not None:
             raise IdentificationError(f'--trajectory-start needs a framed --trajectory; '

@@ -63,7 +63,7 @@ class _Job:
 
 
 def _segment(job: _Job) -> BagStatistics:
-    settings = Settings(dict(job.values), set(job.given))
+    settings = Settings(dict(job.values), job.given)
     return bag_statistics(job.bag, settings, job.robot, job.start_ns, job.stop_ns,
                           job.joint_states, job.motor_currents)
 
@@ -105,13 +105,15 @@ def parallel_identify(bag: str | os.PathLike, settings: Settings, robot: RobotMo
     with ProcessPoolExecutor(min(workers, len(jobs)),
                              mp_context=multiprocessing.get_context(method)) as pool:
         parts = list(pool.map(_segment, jobs))
-    merged, history = None, []
+    merged: BagStatistics | None = None
+    history = []
     for part in parts:
         merged = part if merged is None else merged + part
         if merged.num_samples:
             step = identification(merged, settings, robot, str(bag), physical_consistency=False)
             history.append(Checkpoint(step.num_samples, (merged.last_ns or 0) * 1e-9,
                                       step.theta, step.stddev))
+    assert merged is not None   # two segments at least
     ident = identification(merged, settings, robot, str(bag), physical_consistency=False)
     ident.history = history
     if choice is not None:   # reported as the serial run reports it

@@ -7,7 +7,7 @@ import hashlib
 import math
 import os
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, cast
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.model.robot import RobotModel
 from identification_node.pipeline import IdentificationPipeline
 from identification_node.pipeline.estimate import RESIDUAL_GRID
+from identification_node.pipeline.rows import RowBuilder
 from identification_node.replay.stream import identify_bag
 from identification_node.results.identification import Checkpoint, ReplayResult
 from identification_node.settings import Settings
@@ -95,7 +96,9 @@ class _SegmentPipeline(IdentificationPipeline):
         self._window = (lo, hi)
         self._feed = (lo - margin_ns, hi + margin_ns)
         self.messages = 0
-        self.row_builder = _WindowRows(self.row_builder, self.samples.counters, lo, hi)
+        # a RowBuilder by delegation
+        self.row_builder = cast(RowBuilder, _WindowRows(self.row_builder, self.samples.counters,
+                                                        lo, hi))
 
     def _keep(self, stamps_ns) -> np.ndarray:
         self.messages += int(np.count_nonzero(_inside(stamps_ns, *self._window)))
@@ -204,11 +207,13 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
     smoother = bag_smoother(bag, settings, robot, joint_states, motor_currents)
     settings = pinned(settings, smoother)
     pipeline = settings.build(robot)
-    segment = start_ns is not None or stop_ns is not None
-    if segment:
-        pipeline = _SegmentPipeline(robot, pipeline.config, pipeline.base, start_ns, stop_ns,
+    windowed = None
+    if start_ns is not None or stop_ns is not None:
+        windowed = _SegmentPipeline(robot, pipeline.config, pipeline.base, start_ns, stop_ns,
                                     segment_margin_ns(settings))
-    span: list[int] = []     # first and last row stamps
+        pipeline = windowed
+    segment = windowed is not None
+    span: list[int] = []     # first and last row stamps, or none
 
     def stamps(out) -> None:
         if len(out.stamps_ns):
@@ -223,8 +228,8 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
             raise
         messages = 0
     rls = pipeline.rls
-    if segment:   # the margins' messages are counted by their own segments
-        messages = pipeline.messages
+    if windowed is not None:   # the margins' messages are counted by their own segments
+        messages = windowed.messages
     # an estimator without rows knows no joints yet: the zero sums of this robot's instead
     equations = (rls.normal_equations() if rls.num_samples else
                  NormalEquations.zeros(pipeline.base.num_base, robot.dof))
@@ -232,7 +237,7 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
         (str(bag),), model_key(robot), equations, pipeline.residuals,
         int(rls.num_samples), int(pipeline.used), int(messages), int(pipeline.received),
         {k: v for k, v in pipeline.rejected.items() if v}, int(pipeline.excluded_rows),
-        int(pipeline.restarts), *(span or (None, None)),
+        int(pipeline.restarts), span[0] if span else None, span[-1] if span else None,
         smoother=smoother or tuple((k, settings[k]) for k in SMOOTHER))
 
 

@@ -59,9 +59,10 @@ def parameters_document(robot: RobotModel, base: BaseParameters, theta: np.ndarr
     the unconstrained ``unconstrained``), the solver's status, the full standard parameters
     (the consistent ones, else the closest to the model's reproducing theta) and per link
     mass, centre of mass and inertia about it (link frame, SI)."""
-    ok = consistent is not None and consistent.ok
-    value = consistent.theta if ok else theta
-    phi = consistent.phi if ok else base.closest_standard(theta, robot.phi_model)
+    if consistent is not None and consistent.phi is not None and consistent.theta is not None:
+        value, phi = consistent.theta, consistent.phi    # consistent.ok: both set
+    else:
+        value, phi = theta, base.closest_standard(theta, robot.phi_model)
     problems = consistency_problems(robot, phi)
     links = {}
     for i, link in enumerate(robot.link_names):

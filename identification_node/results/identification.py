@@ -132,8 +132,9 @@ class Identification:
     @property
     def estimate(self) -> np.ndarray:
         """The estimate published: the consistent one when solved, else theta (unconstrained)."""
-        ok = self.consistent is not None and self.consistent.ok
-        return self.consistent.theta if ok else self.theta
+        c = self.consistent
+        # c.ok: c.phi and c.theta are set
+        return c.theta if c is not None and c.ok and c.theta is not None else self.theta
 
     @property
     def stddev(self) -> np.ndarray:
@@ -169,8 +170,9 @@ class Identification:
     def standard_parameters(self) -> np.ndarray:
         """The consistent full parameter vector when solved, else the one closest to the
         model's that reproduces theta."""
-        if self.consistent is not None and self.consistent.ok:
-            return self.consistent.phi
+        c = self.consistent
+        if c is not None and c.phi is not None:    # c.ok
+            return c.phi
         return self.base.closest_standard(self.theta, safe_prior(self.robot)[0])
 
     def consistency_problems(self) -> list[str]:

@@ -88,7 +88,7 @@ def convergence_figure_data(history: list[Checkpoint], theta: np.ndarray, stddev
         normalised = np.where(stddev > 0, (values - theta) / stddev, np.nan)
         rel = np.where(theta != 0, 100.0 * sds / np.abs(theta), np.nan)
     dev = np.abs(normalised)
-    finite = np.isfinite(dev).any(axis=0)
+    finite = np.asarray(np.isfinite(dev).any(axis=0))
     with np.errstate(invalid='ignore'):
         percentiles = {p: (np.nanpercentile(dev[:, finite], p, axis=1) if finite.any()
                            else np.full(len(history), np.nan)) for p in PERCENTILES}
@@ -421,8 +421,9 @@ def smoother_words(sm: dict) -> str:
     """The smoother (SmootherChoice.document) in words."""
     def known(v, scale=1.0):
         return '?' if v is None or not np.isfinite(v) else f'{scale * v:.4g}'
-    source = {'half_window': 'half window given', 'cutoff': 'cut-off given',
-              'fallback': 'fallback cut-off'}.get(sm.get('source'), sm.get('source'))
+    words: dict[object, str] = {'half_window': 'half window given', 'cutoff': 'cut-off given',
+                                'fallback': 'fallback cut-off'}
+    source = words.get(sm.get('source'), sm.get('source'))
     return (f"cut-off {known(sm.get('cutoff_hz'))} Hz ({source}), half window "
             f"{sm.get('half_window')} samples at {known(sm.get('rate_hz'))} Hz, delay "
             f"{known(sm.get('delay_s'), 1e3)} ms, polynomial order {sm.get('order')}")

@@ -90,13 +90,13 @@ def format_report(doc: dict) -> str:
                       for b in doc['base_parameters']])
     sd = np.array([b['stddev'] if b['stddev'] else np.inf for b in doc['base_parameters']])
     picks = _spread(len(doc['convergence']), 8)
-    rows = []
+    spread: list[tuple] = []
     for c in (doc['convergence'][k] for k in picks):
         dev = np.abs(np.array(c['estimate'], dtype=float) - final) / sd
         dev = dev[np.isfinite(dev)]   # not the unexcited parameters
-        rows.append((str(c['num_samples']),
-                     *(f'{f(dev):.2f}' if len(dev) else '-' for f in (np.max, np.median))))
-    lines += text_table(('samples', 'max', 'median'), rows)
+        spread.append((str(c['num_samples']),
+                       *(f'{f(dev):.2f}' if len(dev) else '-' for f in (np.max, np.median))))
+    lines += text_table(('samples', 'max', 'median'), spread)
     return '\n'.join(lines)
 
 

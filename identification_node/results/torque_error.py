@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from identification_node.bags.windows import TimeWindow
+from identification_node.results.identification import TorqueSeries
 
 __all__ = ['TorqueError', 'relative_error', 'ErrorSums', 'BagError']
 
@@ -63,7 +64,7 @@ class BagError:
     errors: dict[str, TorqueError]
     smoothed: dict[str, TorqueError]
     window: TimeWindow | None = None
-    series: object | None = None       # identification.TorqueSeries
+    series: TorqueSeries | None = None
     rejected: dict = field(default_factory=dict)
     # per joint std of the torque sensor's noise (N m): of raw minus smoothed torque, whose
     # white-noise variance is (1 - gain) of the raw one (the smoother's centre weight is its

@@ -69,16 +69,17 @@ class DriveGainOutputs:
 
     def tee(self, joint_states: Callable, currents: Callable) -> tuple[Callable, Callable]:
         """The pipeline's handlers, each also copying its messages into the back-EMF stream."""
-        if self.stream is None:
+        stream = self.stream
+        if stream is None:
             return joint_states, currents
 
         def js(messages: list[bytes]) -> None:
             joint_states(messages)
-            self.stream.joint_states.add_cdr(messages)
+            stream.joint_states.add_cdr(messages)
 
         def cur(messages: list[bytes]) -> None:
             currents(messages)
-            self.stream.currents.add_cdr(messages)
+            stream.currents.add_cdr(messages)
         return js, cur
 
     def process(self, out) -> None:
@@ -95,6 +96,7 @@ class DriveGainOutputs:
 
     def apply(self, argument) -> None:
         """The known-payload command (under the node's lock): (payload, link) or None."""
+        assert self.segments is not None   # the command's service exists with them only
         if argument is None:
             self.segments.end()
         else:
@@ -117,7 +119,7 @@ class DriveGainOutputs:
         return [Parameter(PREFIX + j, value=float(used.get(j, UNKNOWN))) for j in self.joints]
 
     def diagnostics(self) -> dict:
-        out = {}
+        out: dict[str, Any] = {}
         if self.stream is not None:
             out['drive_gains.back_emf_samples'] = self.stream.samples
         if self.segments is not None:

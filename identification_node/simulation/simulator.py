@@ -264,7 +264,7 @@ class ArmSimulator:
         start = command if self._tau is None else self._tau
         f = self._true.forward
         h = 1.0 / (self.rate * self.substeps)
-        qdd0 = None
+        qdd0: np.ndarray | None = None
         for i in range(self.substeps):
             tau0 = start + (command - start) * (i / self.substeps)
             tau1 = start + (command - start) * ((i + 1) / self.substeps)
@@ -285,6 +285,7 @@ class ArmSimulator:
         self.q, self.qd, self._tau = q, qd, command
         self._k += 1
         self.t = self.t0 + self._k / self.rate  # no drift from summing 1/rate
+        assert qdd0 is not None   # substeps >= 1
         return start, qdd0
 
     # -- batch ------------------------------------------------------------------------------------
@@ -301,12 +302,14 @@ class ArmSimulator:
         ``rate``: samples t = 0, 1/rate, ... <= duration. ``changes``: (time s, true
         parameters) the arm switches to at that time (payload events)."""
         self.reset(trajectory)
-        duration = self.trajectory.horizon() if duration is None else float(duration)
+        reference = self.trajectory
+        assert reference is not None   # reset() sets it
+        duration = reference.horizon() if duration is None else float(duration)
         if not (math.isfinite(duration) and duration >= 0):
             raise IdentificationError(f'duration must be finite and >= 0, got {duration}')
         N = int(math.floor(duration * self.rate + 1e-9)) + 1
         t = np.arange(N) / self.rate
-        q_r, qd_r, qdd_r = self.trajectory.sample(t)
+        q_r, qd_r, qdd_r = reference.sample(t)
         n = self.robot.dof
         q, qd, qdd, tau = (np.empty((N, n)) for _ in range(4))
         switch = {int(math.ceil(time * self.rate - 1e-9)): phi
