@@ -17,6 +17,7 @@ $(STAMP): setup.py setup.cfg package.xml
 
 lint: $(STAMP)
 	$(PY) -m flake8 identification_node test bench launch examples setup.py
+	$(PY) -m mypy
 
 # Everything, the ROS and slow tests included (`pytest -m "not ros and not slow"`: the core).
 test: lint

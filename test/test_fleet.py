@@ -372,7 +372,8 @@ def test_forgetting_is_refused(fleet_dir, robot):
     ('bag,robot,period,colour\nx,y,z,red\n', 'unknown columns colour'),
     ('bag,robot,period\nx,,z\n', 'line 2'),
     ('bag,robot,period\n', 'it has no rows'),
-    ('bag,robot,period\nx,a,1\nx,a,2\n', 'line 3: bag x is listed twice')])
+    ('bag,robot,period\nx,a,1\nx,a,2\n', 'line 3: bag x is listed twice'),
+    ('bag,robot,period\nx,a,1,extra\n', 'line 2: more fields than the header')])
 def test_manifest_errors_are_clear(tmp_path, text, error):
     (tmp_path / 'm.csv').write_text(text)
     with pytest.raises(IdentificationError, match=error):

@@ -92,8 +92,9 @@ def read_manifest(path: str | os.PathLike) -> list[FleetEntry]:
     path = Path(path)
     try:
         with open(path, newline='') as f:
-            rows = list(csv.DictReader(f))
-            header = [c.strip() for c in rows[0].keys()] if rows else []
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            header = [c.strip() for c in reader.fieldnames or ()]
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise IdentificationError(f'cannot read the manifest {path}: {exc}') from None
     missing = [c for c in MANIFEST_COLUMNS if c not in header]
@@ -107,6 +108,9 @@ def read_manifest(path: str | os.PathLike) -> list[FleetEntry]:
     entries: list[FleetEntry] = []
     seen: dict[str, int] = {}     # bag: its line
     for line, raw in enumerate(rows, start=2):
+        if None in raw:   # DictReader keys the fields beyond the header's by None
+            raise IdentificationError(f'manifest {path} line {line}: more fields than the '
+                                      'header names')
         row = {k.strip(): (v or '').strip() for k, v in raw.items() if k is not None}
         if not all(row.get(c) for c in MANIFEST_COLUMNS):
             raise IdentificationError(f'manifest {path} line {line}: bag, robot and period '

@@ -153,8 +153,7 @@ def _send_response(srv: Any, response: Any, header: Any) -> None:
     """``srv.send_response``, but raising RuntimeWarning when the middleware refuses the
     response (rclpy only warns)."""
     if warnings.filters[:1] != [_REFUSED]:  # first, whatever was put before it since
-        warnings.filterwarnings(_REFUSED[0], _REFUSED[1].pattern, _REFUSED[2],
-                                _REFUSED[3].pattern)
+        warnings.filterwarnings('error', _REFUSED[1].pattern, _REFUSED[2], _REFUSED[3].pattern)
     if not isinstance(response, srv.srv_type.Response):
         raise TypeError(f'a {srv.srv_type.__name__} response expected, got '
                         f'{type(response).__name__}')
