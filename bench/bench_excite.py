@@ -68,7 +68,7 @@ def run(case: str, maxiter: int = 200, exact: bool = False, quiet: bool = True) 
 
 def constraint_cpu(exact: bool) -> float:
     """CPU s of the Panda's collision constraints and Jacobian at the initial guess."""
-    from identification_node.excitation.criteria import _base_of
+    from identification_node.excitation.criteria import base_of
     from identification_node.excitation.design import MARGIN
     from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEFAULT_PERIOD,
                                                               initial_trajectory, to_x)
@@ -78,7 +78,7 @@ def constraint_cpu(exact: bool) -> float:
 
     robot, checker = _robot_and_checker('panda+collision', exact)
     limits = ExcitationLimits.from_robot(robot).with_margin(DEFAULT_LIMIT_MARGIN)
-    design = DesignProblem(robot, _base_of(robot, None), limits, DEFAULT_HARMONICS,
+    design = DesignProblem(robot, base_of(robot, None), limits, DEFAULT_HARMONICS,
                            DEFAULT_PERIOD, 100, 'cond', None, MARGIN, None, checker)
     x = to_x(initial_trajectory(robot, None, limits, DEFAULT_HARMONICS, DEFAULT_PERIOD, 0))
     c0 = time.process_time()

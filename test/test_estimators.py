@@ -534,8 +534,8 @@ def test_residual_statistics_for_any_theta_and_long_run_variance():
 def _count_qr(monkeypatch):
     import identification_node.estimation.rls as est
     calls = []
-    qr = est._qr_r
-    monkeypatch.setattr(est, '_qr_r', lambda a: calls.append(a.shape) or qr(a))
+    qr = est.qr_r
+    monkeypatch.setattr(est, 'qr_r', lambda a: calls.append(a.shape) or qr(a))
     return calls
 
 

@@ -14,7 +14,7 @@ import yaml
 from identification_node.bags.reader import BagReader, iter_messages
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
-from identification_node.excitation.criteria import _base_of, criterion_value
+from identification_node.excitation.criteria import base_of, criterion_value
 from identification_node.excitation import design as ex
 from identification_node.excitation.initial_guess import initial_trajectory, to_x
 from identification_node.excitation.problem import DesignProblem
@@ -249,7 +249,7 @@ def test_collision_checker_pairs_srdf_obstacles_and_gradients():
 def test_design_constraint_jacobian_with_torque_models_and_collisions():
     robot = load_robot(PANDA)
     limits = ExcitationLimits.from_robot(robot).with_margin(0.1)
-    base = _base_of(robot, None)
+    base = base_of(robot, None)
     checker = CollisionChecker(robot, floor=0.0)
     design = DesignProblem(robot, base, limits, 2, 4.0, 40, 'cond', None, 1.0,
                            [robot.phi_model, 1.5 * robot.phi_model], checker)

@@ -1,6 +1,7 @@
 """The package's import graph (issue 26): every import, at module level or inside a function,
 points down the layers or stays within its own; no module imports another that imports it
-back. Read from the source with ast, so a lazy import counts as much as a top-level one."""
+back, and none imports another's underscore names. Read from the source with ast, so a lazy
+import counts as much as a top-level one."""
 from __future__ import annotations
 
 import ast
@@ -88,3 +89,14 @@ def test_no_module_cycle():
         if m not in state:
             visit(m, [m])
     assert not cycles, cycles
+
+
+def test_no_module_imports_another_modules_private_names():
+    private = []
+    for path in PACKAGE.rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or '').startswith(
+                    'identification_node'):
+                private += [(str(path.relative_to(PACKAGE)), a.name) for a in node.names
+                            if a.name.startswith('_') and not a.name.startswith('__')]
+    assert not private, private

@@ -10,7 +10,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from identification_node.bags.mcap_check import _chunks, verify_chunks
+from identification_node.bags.mcap_check import mcap_chunks, verify_chunks
 from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
 from identification_node.errors import IdentificationError
@@ -212,7 +212,7 @@ def test_bit_flips_in_mcap_chunks_are_errors_naming_it(good_bag, tmp_path):
     assert verify_chunks(storage) == 0           # our bags carry chunk CRCs
     data = storage.read_bytes()
     with open(storage, 'rb') as f:
-        chunk = _chunks(f)[0]
+        chunk = mcap_chunks(f)[0]
     rng = np.random.default_rng(5)
     start = chunk.chunk_start_offset + 80
     for trial in range(6):
@@ -272,7 +272,7 @@ def test_a_bag_without_chunk_crcs_is_read_with_a_warning(good_bag, tmp_path):
     shutil.copytree(good_bag, bag)
     storage = next(bag.glob('*.mcap'))
     with open(storage, 'r+b') as f:
-        chunks = _chunks(f)
+        chunks = mcap_chunks(f)
         for chunk in chunks:     # as the rosbags writer leaves them: 0, "not computed"
             f.seek(chunk.chunk_start_offset + 1 + 8 + 24)
             f.write(struct.pack('<I', 0))

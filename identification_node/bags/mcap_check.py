@@ -19,7 +19,7 @@ from identification_node.errors import IdentificationError
 _CRC_OFFSET = 1 + 8 + 24
 
 
-def _chunks(f) -> list:
+def mcap_chunks(f) -> list:
     """The chunk indexes of an open mcap file (its summary), in file order."""
     from mcap.reader import make_reader
     summary = make_reader(f).get_summary()
@@ -50,7 +50,7 @@ def verify_chunks(path: str | Path) -> int:
     unchecked = 0
     with open(path, 'rb') as f:
         try:
-            indexes = _chunks(f)
+            indexes = mcap_chunks(f)
         except Exception as exc:   # noqa: BLE001 - a corrupt summary: the reader names it
             raise IdentificationError(f'mcap file {path}: cannot read its chunk index '
                                       f'({type(exc).__name__}: {exc})') from None
@@ -76,7 +76,7 @@ def add_chunk_crcs(path: str | Path) -> int:
     many were filled in."""
     filled = 0
     with open(path, 'r+b') as f:
-        for index in _chunks(f):
+        for index in mcap_chunks(f):
             chunk = _read_chunk(f, index)
             if chunk.uncompressed_crc:
                 continue

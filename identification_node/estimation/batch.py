@@ -25,16 +25,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.lsq import (_CHUNK, _DEFAULT_RCOND, Estimate, _check_count,
-                                                _check_data, _covariance, _qr_r, _sample_rows,
-                                                _solve)
+from identification_node.estimation.lsq import (CHUNK, DEFAULT_RCOND, Estimate, check_count,
+                                                check_data, covariance_from_root, qr_r,
+                                                sample_rows, solve_triangular_lsq)
 from identification_node.estimation.normal_equations import NormalEquations
 
 
 def _augmented_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
                     ) -> np.ndarray:
     """Per-joint row blocks [Y_j | tau_j] (n, N, p+1), rows optionally scaled by scale (N, n)."""
-    return _sample_rows(Y, tau, scale).transpose(1, 0, 2)
+    return sample_rows(Y, tau, scale).transpose(1, 0, 2)
 
 
 def _joint_rss(R_aug: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -62,9 +62,9 @@ def _excitation_error(num_samples: int, num_joints: int, p: int, rank: int) -> I
 class _BatchAccumulator:
     """Per-joint QR factors of [Y_j | tau_j], filled by add() and merge()."""
 
-    def __init__(self, num_params: int, num_joints: int, rcond: float = _DEFAULT_RCOND):
-        self.num_params = _check_count('num_params', num_params)
-        self.num_joints = _check_count('num_joints', num_joints)
+    def __init__(self, num_params: int, num_joints: int, rcond: float = DEFAULT_RCOND):
+        self.num_params = check_count('num_params', num_params)
+        self.num_joints = check_count('num_joints', num_joints)
         if not (np.isfinite(rcond) and 0 < rcond < 1):
             raise IdentificationError(f'rcond must be in (0, 1), got {rcond!r}')
         self.rcond = float(rcond)
@@ -74,10 +74,10 @@ class _BatchAccumulator:
 
     def add(self, Y: np.ndarray, tau: np.ndarray) -> None:
         """Add samples: regressor Y (N, n, p) and torques tau (N, n)."""
-        Y, tau = _check_data(Y, tau, self.num_params, self.num_joints)
-        for start in range(0, Y.shape[0], _CHUNK):
-            rows = _augmented_rows(Y[start:start + _CHUNK], tau[start:start + _CHUNK])
-            self._R_aug = _qr_r(np.concatenate([self._R_aug, rows], axis=1))
+        Y, tau = check_data(Y, tau, self.num_params, self.num_joints)
+        for start in range(0, Y.shape[0], CHUNK):
+            rows = _augmented_rows(Y[start:start + CHUNK], tau[start:start + CHUNK])
+            self._R_aug = qr_r(np.concatenate([self._R_aug, rows], axis=1))
         self.num_samples += Y.shape[0]
 
     def merge(self, other: _BatchAccumulator) -> _BatchAccumulator:
@@ -89,7 +89,7 @@ class _BatchAccumulator:
             raise IdentificationError(
                 f'cannot merge estimators of different size: {other.num_params} parameters x '
                 f'{other.num_joints} joints into {self.num_params} x {self.num_joints}')
-        self._R_aug = _qr_r(np.concatenate([self._R_aug, other._R_aug], axis=1))
+        self._R_aug = qr_r(np.concatenate([self._R_aug, other._R_aug], axis=1))
         self.num_samples += other.num_samples
         return self
 
@@ -103,7 +103,7 @@ class _BatchAccumulator:
         """Factor R (p, p) and z (p,) of all joints, joint j's rows scaled by sqrt_weights[j]."""
         p = self.num_params
         stacked = (self._R_aug * sqrt_weights[:, None, None]).reshape(-1, p + 1)
-        R_aug = _qr_r(stacked)
+        R_aug = qr_r(stacked)
         return R_aug[:p, :p], R_aug[:p, p]
 
     def _require_data(self) -> None:
@@ -113,7 +113,7 @@ class _BatchAccumulator:
     def _weighted_solve(self, weights: np.ndarray):
         """theta, G = R^-1, per-joint rss and leverage for joint weights (n,); raises on rank."""
         R, z = self._combine(np.sqrt(weights))
-        theta, rank, G, _ = _solve(R, z, self.rcond)
+        theta, rank, G, _ = solve_triangular_lsq(R, z, self.rcond)
         if rank < self.num_params:
             raise _excitation_error(self.num_samples, self.num_joints, self.num_params, rank)
         rows = self.num_samples * self.num_joints
@@ -140,7 +140,7 @@ class LeastSquares(_BatchAccumulator):
         self._require_data()
         theta, G, rss, noise = self._weighted_solve(np.ones(self.num_joints))
         sigma2 = rss.sum() / (self.num_samples * self.num_joints - self.num_params)
-        cov = _covariance(G, sigma2, np.ones(self.num_params, dtype=bool))
+        cov = covariance_from_root(G, sigma2, np.ones(self.num_params, dtype=bool))
         return Estimate.from_covariance(theta, cov, noise, self.num_samples, rss.sum())
 
 
@@ -151,9 +151,9 @@ class WeightedLeastSquares(_BatchAccumulator):
     """
 
     def __init__(self, num_params: int, num_joints: int, *, iterations: int = 20,
-                 tol: float = 1e-8, rcond: float = _DEFAULT_RCOND):
+                 tol: float = 1e-8, rcond: float = DEFAULT_RCOND):
         super().__init__(num_params, num_joints, rcond)
-        self.iterations = _check_count('iterations', iterations)
+        self.iterations = check_count('iterations', iterations)
         self.tol = float(tol)
 
     def normal_equations(self) -> NormalEquations:
@@ -179,7 +179,7 @@ class RidgeRegression(_BatchAccumulator):
     """
 
     def __init__(self, num_params: int, num_joints: int, d: float,
-                 rcond: float = _DEFAULT_RCOND):
+                 rcond: float = DEFAULT_RCOND):
         super().__init__(num_params, num_joints, rcond)
         if not (np.isfinite(d) and d > 0):
             raise IdentificationError(f'ridge parameter d must be finite and > 0, got {d!r}')
@@ -191,7 +191,7 @@ class RidgeRegression(_BatchAccumulator):
         p = self.num_params
         R, z = self._combine(np.ones(self.num_joints))
         ridge_rows = np.hstack([np.sqrt(self.d) * np.eye(p), np.zeros((p, 1))])
-        Rr_aug = _qr_r(np.vstack([np.column_stack([R, z]), ridge_rows]))
+        Rr_aug = qr_r(np.vstack([np.column_stack([R, z]), ridge_rows]))
         Rr = Rr_aug[:p, :p]
         sol = np.linalg.solve(Rr, np.column_stack([Rr_aug[:p, p], np.eye(p)]))
         theta, Rr_inv = sol[:, 0], sol[:, 1:]
@@ -204,7 +204,7 @@ class RidgeRegression(_BatchAccumulator):
         lev = _leverage(self._R_aug, Rr_inv, np.ones(self.num_joints))
         noise = rss / np.maximum(self.num_samples - lev, 1.0)
         M = Rr_inv @ (Rr_inv.T @ R.T)  # G K'K G = M M'
-        cov = _covariance(M, rss.sum() / dof, np.ones(p, dtype=bool))
+        cov = covariance_from_root(M, rss.sum() / dof, np.ones(p, dtype=bool))
         return Estimate.from_covariance(theta, cov, noise, self.num_samples, rss.sum())
 
 

@@ -14,8 +14,8 @@ import numpy as np
 
 from identification_node.errors import IdentificationError
 
-_CHUNK = 4096  # samples per QR: bounds the workspace to ~_CHUNK * n * (p + 1) floats
-_DEFAULT_RCOND = 1e-10  # singular-value ratio (column-scaled) below which a direction is unexcited
+CHUNK = 4096  # samples per QR: bounds the workspace to ~CHUNK * n * (p + 1) floats
+DEFAULT_RCOND = 1e-10  # singular-value ratio (column-scaled) below which a direction is unexcited
 
 
 @dataclass
@@ -43,7 +43,7 @@ class Estimate:
         covariance = np.asarray(covariance, dtype=float)
         stddev = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         return cls(theta=theta, covariance=covariance, stddev=stddev,
-                   rel_stddev=_relative(stddev, theta),
+                   rel_stddev=relative_stddev(stddev, theta),
                    noise_variance=np.asarray(noise_variance, dtype=float),
                    num_samples=int(num_samples), rss=float(rss))
 
@@ -52,24 +52,24 @@ class Estimate:
         return np.asarray(Y, dtype=float) @ self.theta
 
 
-def _relative(stddev: np.ndarray, theta: np.ndarray) -> np.ndarray:
+def relative_stddev(stddev: np.ndarray, theta: np.ndarray) -> np.ndarray:
     with np.errstate(divide='ignore', invalid='ignore'):
         rel = 100.0 * stddev / np.abs(theta)
     return np.where(theta == 0, np.inf, rel)
 
 
-def _qr_r(a: np.ndarray) -> np.ndarray:
+def qr_r(a: np.ndarray) -> np.ndarray:
     """Upper-triangular R (..., k, k) of the QR factorisation of a (..., m, k), m >= k."""
     return np.linalg.qr(a, mode='r')  # type: ignore[return-value]  # stubs: QRResult always
 
 
-def _check_count(name: str, value: int, minimum: int = 1) -> int:
+def check_count(name: str, value: int, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise IdentificationError(f'{name} must be an integer >= {minimum}, got {value!r}')
     return int(value)
 
 
-def _as_float(name: str, a) -> np.ndarray:
+def as_float(name: str, a) -> np.ndarray:
     try:
         return np.asarray(a, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -82,9 +82,9 @@ def _check_finite(name: str, a: np.ndarray) -> None:
         raise IdentificationError(f'{name} contains NaN or inf (first at sample {k})')
 
 
-def _check_data(Y, tau, num_params: int, num_joints: int | None) -> tuple[np.ndarray, np.ndarray]:
+def check_data(Y, tau, num_params: int, num_joints: int | None) -> tuple[np.ndarray, np.ndarray]:
     """Validate Y (N, n, p) and tau (N, n) (one sample: (n, p) and (n,))."""
-    Y, tau = _as_float('regressor', Y), _as_float('torques', tau)
+    Y, tau = as_float('regressor', Y), as_float('torques', tau)
     if Y.ndim == 2 and tau.ndim == 1:
         Y, tau = Y[None], tau[None]
     n = '{n}' if num_joints is None else num_joints
@@ -102,8 +102,8 @@ def _check_data(Y, tau, num_params: int, num_joints: int | None) -> tuple[np.nda
     return Y, tau
 
 
-def _sample_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
-                 ) -> np.ndarray:
+def sample_rows(Y: np.ndarray, tau: np.ndarray, scale: np.ndarray | None = None
+                ) -> np.ndarray:
     """Rows [Y_j | tau_j] of each sample and joint (N, n, p+1), optionally scaled by scale
     (N, n)."""
     rows = np.concatenate([Y, tau[:, :, None]], axis=2)
@@ -118,7 +118,7 @@ def row_information(rows: np.ndarray) -> np.ndarray:
     return rows.transpose(1, 2, 0) @ rows.transpose(1, 0, 2)
 
 
-def _column_scale(R: np.ndarray) -> np.ndarray:
+def column_scale(R: np.ndarray) -> np.ndarray:
     """Column norms of R, for a scale-invariant rank test on R / d."""
     d = np.linalg.norm(R, axis=0)
     # Columns at rounding level (a parameter without effect) must not be scaled up to unit norm.
@@ -129,8 +129,9 @@ def _rank(s: np.ndarray, rcond: float) -> int:
     return int(np.sum(s > rcond * s[0])) if s.size and s[0] > 0 else 0
 
 
-def _solve(R: np.ndarray, z: np.ndarray, rcond: float, theta_ref: np.ndarray | None = None
-           ) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+def solve_triangular_lsq(R: np.ndarray, z: np.ndarray, rcond: float,
+                         theta_ref: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
     """Minimise ||R theta - z|| for upper-triangular R.
 
     Returns theta, the rank, a generalised inverse G of R (R^-1 at full rank) and a boolean
@@ -138,7 +139,7 @@ def _solve(R: np.ndarray, z: np.ndarray, rcond: float, theta_ref: np.ndarray | N
     (default 0) plus the minimum-norm correction in column-scaled coordinates.
     """
     p = R.shape[0]
-    d = _column_scale(R)
+    d = column_scale(R)
     try:
         # LU of a triangular matrix does not pivot: this is back substitution (numpy only, so
         # one BLAS thread pool; scipy's would fight it for the cores).
@@ -159,7 +160,7 @@ def _solve(R: np.ndarray, z: np.ndarray, rcond: float, theta_ref: np.ndarray | N
     return theta, rank, G, determined
 
 
-def _covariance(G: np.ndarray, scale: float, determined: np.ndarray) -> np.ndarray:
+def covariance_from_root(G: np.ndarray, scale: float, determined: np.ndarray) -> np.ndarray:
     """scale * G G', symmetric; inf variance (and zero correlation) for undetermined params."""
     cov = scale * (G @ G.T)
     cov = 0.5 * (cov + cov.T)

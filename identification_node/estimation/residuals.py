@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.lsq import (_CHUNK, _check_count, _check_data, _sample_rows,
+from identification_node.estimation.lsq import (CHUNK, check_count, check_data, sample_rows,
                                                 row_information)
 from identification_node.estimation.normal_equations import NormalEquations
 
@@ -24,9 +24,9 @@ class ResidualStatistics:
     """
 
     def __init__(self, num_params: int, num_joints: int, block: int):
-        self.p, self.n = _check_count('num_params', num_params), _check_count(
+        self.p, self.n = check_count('num_params', num_params), check_count(
             'num_joints', num_joints)
-        self.block = _check_count('block', block)
+        self.block = check_count('block', block)
         p, n = self.p, self.n
         # Per joint [Y | tau]'[Y | tau] over the samples and over the block sums: gram, cross
         # and sq (and their block versions) are views into these.
@@ -42,13 +42,13 @@ class ResidualStatistics:
 
     def add(self, Y: np.ndarray, tau: np.ndarray) -> None:
         """Samples Y (N, n, p), tau (N, n), in time order."""
-        Y, tau = _check_data(Y, tau, self.p, self.n)
-        for start in range(0, len(tau), _CHUNK):
-            self.add_rows(_sample_rows(Y[start:start + _CHUNK], tau[start:start + _CHUNK]))
+        Y, tau = check_data(Y, tau, self.p, self.n)
+        for start in range(0, len(tau), CHUNK):
+            self.add_rows(sample_rows(Y[start:start + CHUNK], tau[start:start + CHUNK]))
 
     def add_rows(self, rows: np.ndarray, information: np.ndarray | None = None) -> None:
         """``add`` on trusted data (finite, shapes right: not checked): rows (N, n, p+1) =
-        [Y_j | tau_j] of each sample and joint in time order (_sample_rows), ``information``
+        [Y_j | tau_j] of each sample and joint in time order (sample_rows), ``information``
         their row_information when known."""
         N = len(rows)
         self._info += row_information(rows) if information is None else information

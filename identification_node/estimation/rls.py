@@ -36,10 +36,11 @@ from typing import Callable, cast
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.estimation.lsq import (_CHUNK, _DEFAULT_RCOND, Estimate, _as_float,
-                                                _check_count, _check_data, _column_scale,
-                                                _covariance, _qr_r, _relative, _sample_rows,
-                                                _solve, row_information)
+from identification_node.estimation.lsq import (CHUNK, DEFAULT_RCOND, Estimate, as_float,
+                                                check_count, check_data, column_scale,
+                                                covariance_from_root, qr_r, relative_stddev,
+                                                row_information, sample_rows,
+                                                solve_triangular_lsq)
 from identification_node.estimation.normal_equations import NormalEquations
 
 # Bound on the column-scaled condition number of the information above which the RLS update
@@ -60,7 +61,7 @@ def _cholesky_augmented(M: np.ndarray) -> np.ndarray | None:
         return None
     F = np.zeros_like(M)
     F[:p, :p] = L.T
-    # L z = m: triangular, so LU does no pivoting (numpy only, see _solve)
+    # L z = m: triangular, so LU does no pivoting (numpy only, see solve_triangular_lsq)
     F[:p, p] = z = np.linalg.solve(L, M[:p, p])
     F[p, p] = np.sqrt(max(M[p, p] - z @ z, 0.0))
     return F if np.isfinite(F).all() and np.all(np.diagonal(L) > 0) else None
@@ -68,7 +69,7 @@ def _cholesky_augmented(M: np.ndarray) -> np.ndarray | None:
 
 def _information_factor(name: str, value, p: int) -> np.ndarray:
     """Upper-triangular R with R'R = value: scalar (times I), (p,) diagonal or (p, p) SPD."""
-    M = _as_float(name, value)
+    M = as_float(name, value)
     if not np.isfinite(M).all():
         raise IdentificationError(f'{name} must be finite')
     if M.ndim == 0 or M.shape == (p,):
@@ -82,7 +83,7 @@ def _information_factor(name: str, value, p: int) -> np.ndarray:
     w, V = np.linalg.eigh(M)
     if w.min() < -1e-12 * max(w.max(), 0.0):
         raise IdentificationError(f'{name} must be positive semi-definite')
-    return _qr_r((V * np.sqrt(np.maximum(w, 0.0))).T)
+    return qr_r((V * np.sqrt(np.maximum(w, 0.0))).T)
 
 
 class RecursiveLeastSquares:
@@ -106,8 +107,8 @@ class RecursiveLeastSquares:
     def __init__(self, num_params: int, forgetting: float = 1.0,
                  min_information=1e-6, *, num_joints: int | None = None,
                  prior_information=0.0, theta0: np.ndarray | None = None,
-                 rcond: float = _DEFAULT_RCOND):
-        self.num_params = p = _check_count('num_params', num_params)
+                 rcond: float = DEFAULT_RCOND):
+        self.num_params = p = check_count('num_params', num_params)
         if not (np.isfinite(forgetting) and 0 < forgetting <= 1):
             raise IdentificationError(f'forgetting factor must be in (0, 1], got {forgetting!r}')
         if not (np.isfinite(rcond) and 0 < rcond < 1):
@@ -116,7 +117,7 @@ class RecursiveLeastSquares:
         self.rcond = float(rcond)
         self._R_min = _information_factor('min_information', min_information, p)
         R0 = _information_factor('prior_information', prior_information, p)
-        theta0 = np.zeros(p) if theta0 is None else _as_float('theta0', theta0)
+        theta0 = np.zeros(p) if theta0 is None else as_float('theta0', theta0)
         if theta0.shape != (p,) or not np.isfinite(theta0).all():
             raise IdentificationError(
                 f'theta0 must be {p} finite values, got shape {theta0.shape}')
@@ -124,12 +125,12 @@ class RecursiveLeastSquares:
         self._prior_aug = np.zeros((p + 1, p + 1))
         self._prior_aug[:p, :p] = R0
         self._prior_aug[:p, p] = R0 @ theta0
-        self._num_joints = None if num_joints is None else _check_count('num_joints', num_joints)
+        self._num_joints = None if num_joints is None else check_count('num_joints', num_joints)
         self.reset()
 
     @classmethod
     def from_normal_equations(cls, equations: NormalEquations, num_samples: int, *,
-                              theta: np.ndarray | None = None, rcond: float = _DEFAULT_RCOND
+                              theta: np.ndarray | None = None, rcond: float = DEFAULT_RCOND
                               ) -> RecursiveLeastSquares:
         """The estimator (no forgetting, no prior) that has seen data with these per-joint
         normal equations, e.g. the merged statistics of many bags: the same estimate,
@@ -146,7 +147,7 @@ class RecursiveLeastSquares:
         rls.num_samples = int(num_samples)
         rls._refresh()
         if theta is not None:
-            theta = _as_float('theta', theta)
+            theta = as_float('theta', theta)
             if theta.shape != (equations.num_params,) or not np.isfinite(theta).all():
                 raise IdentificationError(f'theta must be {equations.num_params} finite '
                                           f'values, got shape {theta.shape}')
@@ -170,11 +171,11 @@ class RecursiveLeastSquares:
         _INFORMATION_MAX_CONDITION: accurate enough if it was Cholesky-factored."""
         p = self.num_params
         self._R = self._F[:p, :p]
-        self._theta, self._rank, self._G, self._determined = _solve(
+        self._theta, self._rank, self._G, self._determined = solve_triangular_lsq(
             self._R, self._F[:p, p], self.rcond, self._theta0)
         if self._rank < p:
             return False
-        d = _column_scale(self._R)
+        d = column_scale(self._R)
         kappa = np.linalg.norm(self._R / d) * np.linalg.norm(d[:, None] * self._G)
         return bool(kappa * kappa <= _INFORMATION_MAX_CONDITION)
 
@@ -182,11 +183,11 @@ class RecursiveLeastSquares:
                ) -> np.ndarray:
         """Process a batch: regressor Y (N, n, p), torques tau (N, n), optional weights
         (broadcastable to (N, n), >= 0) multiplying the squared residuals. Returns theta."""
-        Y, tau = _check_data(Y, tau, self.num_params, self._num_joints)
+        Y, tau = check_data(Y, tau, self.num_params, self._num_joints)
         N, n = tau.shape
         root = None
         if weights is not None:
-            w = _as_float('weights', weights)
+            w = as_float('weights', weights)
             try:
                 w = np.broadcast_to(w, (N, n))
             except ValueError:
@@ -198,7 +199,7 @@ class RecursiveLeastSquares:
         if N == 0:
             return self.theta
         self._update_rows(
-            lambda a, b: _sample_rows(Y[a:b], tau[a:b], None if root is None else root[a:b]),
+            lambda a, b: sample_rows(Y[a:b], tau[a:b], None if root is None else root[a:b]),
             N, n, None if root is None else root > 0)
         return self.theta
 
@@ -216,7 +217,7 @@ class RecursiveLeastSquares:
                      used: np.ndarray | None = None, information: np.ndarray | None = None
                      ) -> None:
         """``update_rows`` with the rows [Y_j | tau_j] of samples a:b (b - a, n, p+1) given by
-        rows(a, b) (see _sample_rows), already scaled by the square roots of the weights (not
+        rows(a, b) (see sample_rows), already scaled by the square roots of the weights (not
         by the forgetting)."""
         if self._num_joints is None:
             self._num_joints = n
@@ -230,7 +231,7 @@ class RecursiveLeastSquares:
             r = rows(a, b)
             return r if decay is None else r * np.sqrt(decay[a:b])[:, None, None]
 
-        spans = [(a, min(a + _CHUNK, N)) for a in range(0, N, _CHUNK)]
+        spans = [(a, min(a + CHUNK, N)) for a in range(0, N, CHUNK)]
         if information is None or decay is not None:
             # N >= 1, so at least one span: an array, never sum's start 0
             information = cast(np.ndarray, sum(row_information(chunk(a, b)) for a, b in spans))
@@ -248,7 +249,7 @@ class RecursiveLeastSquares:
             accurate = self._refresh()
         if not accurate:
             for a, b in spans:  # each joint's rows first: fewer rounding errors
-                old = _qr_r(np.concatenate([old, *_qr_r(chunk(a, b).transpose(1, 0, 2))]))
+                old = qr_r(np.concatenate([old, *qr_r(chunk(a, b).transpose(1, 0, 2))]))
             self._F = old
             self._refresh()
         if f < 1.0:
@@ -330,7 +331,7 @@ class RecursiveLeastSquares:
         sigma2 = self.noise_variance
         if not np.isfinite(sigma2):
             return np.diag(np.full(self.num_params, np.inf))
-        return _covariance(self._G, sigma2, self._determined)
+        return covariance_from_root(self._G, sigma2, self._determined)
 
     @property
     def stddev(self) -> np.ndarray:
@@ -339,7 +340,7 @@ class RecursiveLeastSquares:
     @property
     def rel_stddev(self) -> np.ndarray:
         """100 stddev / |theta| in percent (inf where theta == 0)."""
-        return _relative(self.stddev, self._theta)
+        return relative_stddev(self.stddev, self._theta)
 
     def estimate(self) -> Estimate:
         """The current estimate as an :class:`Estimate` (noise_variance per joint)."""

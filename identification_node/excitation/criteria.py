@@ -27,7 +27,7 @@ import numpy as np
 
 from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
-from identification_node.excitation.limits import _numbers
+from identification_node.excitation.limits import numbers
 from identification_node.excitation.trajectories import FramedTrajectory
 from identification_node.excitation.trajectory_base import Trajectory
 
@@ -57,7 +57,7 @@ def d_optimality(W: np.ndarray, noise_std: Sequence[float] | None = None) -> flo
     if noise_std is not None:
         if W.ndim != 3:
             raise IdentificationError('noise weights need the regressor as (N, n, b)')
-        W = W * _noise_weights(noise_std, W.shape[1])[None, :, None]
+        W = W * noise_weights(noise_std, W.shape[1])[None, :, None]
     s = np.linalg.svd(_rows(W), compute_uv=False)
     return float(-2.0 * np.log(s).sum()) if s[-1] > 0 else math.inf
 
@@ -67,18 +67,18 @@ def _rows(W: np.ndarray) -> np.ndarray:
     return W.reshape(-1, W.shape[-1])
 
 
-def _noise_weights(noise_std: Sequence[float] | None, n: int) -> np.ndarray:
+def noise_weights(noise_std: Sequence[float] | None, n: int) -> np.ndarray:
     if noise_std is None:
         return np.ones(n)
-    std = _numbers('noise_std', noise_std).reshape(-1)
+    std = numbers('noise_std', noise_std).reshape(-1)
     if std.shape != (n,) or not (np.isfinite(std) & (std > 0)).all():
         raise IdentificationError(f'noise_std needs {n} finite values > 0 (one per joint), got '
                                   f'{np.asarray(noise_std).tolist()}')
     return 1.0 / std
 
 
-def _objective(W: np.ndarray, criterion: str, grad: bool
-               ) -> tuple[float, np.ndarray | None]:
+def objective(W: np.ndarray, criterion: str, grad: bool
+              ) -> tuple[float, np.ndarray | None]:
     """The optimised function of W (rows, b): log cond(W) or -log det(W'W), and its gradient
     with respect to W (for simple extreme singular values). Both work on the b x b triangular
     factor R of W = Q R; the singular vectors of W are u_k = W v_k / s_k."""
@@ -102,7 +102,7 @@ def _objective(W: np.ndarray, criterion: str, grad: bool
     return f, -2.0 * (W @ Rinv) @ Rinv.T  # -2 W (W'W)^-1
 
 
-def _report_value(f: float, criterion: str) -> float:
+def report_value(f: float, criterion: str) -> float:
     """The reported criterion value from the optimised function value."""
     return float(np.exp(f)) if criterion == 'cond' and np.isfinite(f) else float(f)
 
@@ -113,24 +113,24 @@ def criterion_value(robot, traj: Trajectory, criterion: str = 'cond', base=None,
     """``cond`` (condition number) or ``dopt`` (-log det W'W, noise-weighted) of the base
     regressor stacked over ``num_samples`` equally spaced samples of one pass of ``traj`` (of
     one period of the periodic part of a FramedTrajectory)."""
-    _check_criterion(criterion)
+    check_criterion(criterion)
     if isinstance(traj, FramedTrajectory):
         traj = traj.periodic
-    base = _base_of(robot, base)
+    base = base_of(robot, base)
     t = np.arange(int(num_samples)) * (traj.horizon() / int(num_samples))
     q, qd, qdd = traj.sample(t)
     Yb = base.base_regressor(robot.regressor(q, qd, qdd))
-    W = (Yb * _noise_weights(noise_std, robot.dof)[None, :, None]).reshape(-1, base.num_base)
-    return _report_value(_objective(W, criterion, False)[0], criterion)
+    W = (Yb * noise_weights(noise_std, robot.dof)[None, :, None]).reshape(-1, base.num_base)
+    return report_value(objective(W, criterion, False)[0], criterion)
 
 
-def _check_criterion(criterion: str) -> None:
+def check_criterion(criterion: str) -> None:
     if criterion not in CRITERIA:
         raise IdentificationError(f'unknown criterion {criterion!r}; use one of '
                                   f'{", ".join(CRITERIA)}')
 
 
-def _base_of(robot, base):
+def base_of(robot, base):
     if base is None:
         from identification_node.model.identifiability import BaseParameters
         return BaseParameters.from_robot(robot)

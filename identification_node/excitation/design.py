@@ -35,15 +35,15 @@ import numpy as np
 
 from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
-from identification_node.excitation.criteria import (DEFAULT_SAMPLES, _base_of, _check_criterion,
-                                                     _report_value)
+from identification_node.excitation.criteria import (DEFAULT_SAMPLES, base_of, check_criterion,
+                                                     report_value)
 from identification_node.excitation.framing import (DEFAULT_PERIODS, check_start,
                                                     frame_excitation, framed_clearance)
 from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEFAULT_PERIOD,
                                                           check_harmonics, from_x,
                                                           initial_trajectory, scale_motion,
                                                           shrink_into_limits, to_x)
-from identification_node.excitation.limits import ExcitationLimits, _as_limits, limit_ratios
+from identification_node.excitation.limits import ExcitationLimits, as_limits, limit_ratios
 from identification_node.excitation.problem import DesignProblem
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN, ExcitationResult
 from identification_node.excitation.trajectories import FourierTrajectory
@@ -148,7 +148,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     from scipy.optimize import minimize
 
     start_time = time.perf_counter()
-    _check_criterion(criterion)
+    check_criterion(criterion)
     H = check_harmonics(harmonics)
     try:
         period = float(period)
@@ -164,7 +164,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                        and not isinstance(time_limit, bool)):
         raise IdentificationError(f'time limit must be a number of seconds > 0, got '
                                   f'{time_limit!r}')
-    limits = _as_limits(robot, limits)
+    limits = as_limits(robot, limits)
     work = limits.with_margin(margin)
     start_q = None if start is None else check_start(start, work)
     checker = checker if checker is not None and checker.num_pairs else None
@@ -174,7 +174,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
             raise IdentificationError(f'the start configuration is in collision: {c["pair"][0]}'
                                       f' - {c["pair"][1]} at {c["distance"]:.4g} m (minimum '
                                       f'{checker.min_distance:g} m)')
-    base = _base_of(robot, base)
+    base = base_of(robot, base)
     if num_samples * robot.dof < base.num_base:
         raise IdentificationError(f'{num_samples} samples x {robot.dof} joints cannot '
                                   f'determine {base.num_base} base parameters')
@@ -209,7 +209,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         if np.isfinite(f):
             worst = float(design.constraint(x).min())
             iterates.append((f, worst, x.copy()))
-            watch.iterate(_report_value(f, criterion), worst)
+            watch.iterate(report_value(f, criterion), worst)
 
     res = None
     if maxiter > 0:
@@ -252,10 +252,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                     reasons.append(f'collision between {clearance["pair"][0]} and '
                                    f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)')
                     return None
-        return (_report_value(design.value(to_x(cand))[0], criterion), cand, framed, s,
+        return (report_value(design.value(to_x(cand))[0], criterion), cand, framed, s,
                 clearance)
 
-    f_init = _report_value(f0, criterion)
+    f_init = report_value(f0, criterion)
     # the feasible iterates and those within NEAR_FEASIBLE of the constraints: the best of each
     # of CANDIDATES stretches of the iterations (consecutive iterates are alike and tend to
     # fail the dense checks alike), best first

@@ -10,7 +10,7 @@ import numpy as np
 from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_RATE, ExcitationLimits,
-                                                   _numbers, _worst, limit_ratios)
+                                                   numbers, worst_ratio, limit_ratios)
 from identification_node.excitation.problem import no_tick
 from identification_node.excitation.trajectories import FourierTrajectory, FramedTrajectory
 
@@ -36,7 +36,7 @@ def _ramp(periodic: FourierTrajectory, robot, limits: ExcitationLimits, start: n
         t0, t1 = framed.periodic_window
         window = (0.0, t0) if side == 'in' else (t1, t1 + T)
         ratios = limit_ratios(framed, robot, limits, 0, 0, phis, window)
-        if _worst(ratios) <= 1.0:   # the periodic part keeps VERIFY_RATIO: room to blend in
+        if worst_ratio(ratios) <= 1.0:   # the periodic part keeps VERIFY_RATIO: room to blend in
             return T
         worst = max(LIMIT_KINDS, key=lambda k: ratios[k])
         T *= RAMP_GROWTH
@@ -62,7 +62,7 @@ def frame_excitation(periodic: FourierTrajectory, robot, limits: ExcitationLimit
 
 def check_start(start: Sequence[float] | np.ndarray, limits: ExcitationLimits) -> np.ndarray:
     """The start configuration (n,) rad, checked inside the position limits of ``limits``."""
-    q = _numbers('start configuration', start).reshape(-1)
+    q = numbers('start configuration', start).reshape(-1)
     if q.shape != (limits.dof,) or not np.all(np.isfinite(q)):
         raise IdentificationError(f'start configuration needs {limits.dof} finite values '
                                   f'(joints {", ".join(limits.joint_names)}), got '

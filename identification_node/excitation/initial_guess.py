@@ -13,7 +13,7 @@ import numpy as np
 from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, ExcitationLimits,
-                                                   _ranges, _worst, limit_ratios)
+                                                   position_ranges, worst_ratio, limit_ratios)
 from identification_node.excitation.trajectories import TABLE1_PERIOD, FourierTrajectory
 
 __all__ = ['DEFAULT_HARMONICS', 'DEFAULT_PERIOD', 'INITIAL_MARGIN', 'LSQ_POINTS', 'TABLE1_OFFSET',
@@ -79,7 +79,7 @@ def least_squares_guess(limits: ExcitationLimits, harmonics: int = DEFAULT_HARMO
     vmax = limits.velocity_limits
     target = rng.uniform(-1.0, 1.0, size=(M, limits.dof)) * vmax
     coef = np.linalg.lstsq(A, target, rcond=None)[0].T  # (n, 2H)
-    return FourierTrajectory(coef[:, :H], coef[:, H:], _ranges(limits)[1], period,
+    return FourierTrajectory(coef[:, :H], coef[:, H:], position_ranges(limits)[1], period,
                              limits.joint_names)
 
 
@@ -91,7 +91,7 @@ def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
     excursion in the position range (unchanged for joints without position limits)."""
     unit = FourierTrajectory(traj.a, traj.b, np.zeros(traj.dof), traj.period)
     q, qd, qdd = unit.sample(np.linspace(0.0, traj.period, num_points))
-    limited, centre, half = _ranges(limits)
+    limited, centre, half = position_ranges(limits)
     span = 0.5 * (q.max(axis=0) - q.min(axis=0))
     with np.errstate(divide='ignore'):
         scale = margin * np.min([half / span, limits.velocity_limits / np.abs(qd).max(axis=0),
@@ -121,9 +121,9 @@ def shrink_into_limits(traj: FourierTrajectory, robot, limits: ExcitationLimits,
         cur = scale_motion(traj, limits, scale)
         if scale != 1.0:
             ratios = limit_ratios(cur, robot, limits, phis=phis)
-        if _worst(ratios) <= target:
+        if worst_ratio(ratios) <= target:
             return cur, scale, ratios
-        scale *= float(np.clip(target / _worst(ratios), 0.5, 0.995))
+        scale *= float(np.clip(target / worst_ratio(ratios), 0.5, 0.995))
     raise IdentificationError('infeasible limits: the trajectory cannot be scaled into the '
                               'effort limits (with their margin): the static torque near the '
                               'centre of the position ranges exceeds them')
@@ -133,7 +133,7 @@ def scale_motion(traj: FourierTrajectory, limits: ExcitationLimits, scale: float
                  ) -> FourierTrajectory:
     """The motion of ``traj`` scaled by ``scale``: amplitudes, and offsets towards the centre
     of the position ranges (kept where unlimited)."""
-    centre = _ranges(limits, traj.q0)[1]
+    centre = position_ranges(limits, traj.q0)[1]
     return FourierTrajectory(traj.a * scale, traj.b * scale, centre + scale * (traj.q0 - centre),
                              traj.period, traj.joint_names)
 

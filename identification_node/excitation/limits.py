@@ -114,14 +114,14 @@ class ExcitationLimits:
             for kind, value in spec.items():
                 where = f'{source}: {joint}.{kind}'
                 if kind == 'position':
-                    pos = _numbers(where, value)
+                    pos = numbers(where, value)
                     if pos.shape != (2,) or np.isnan(pos).any() or not pos[0] < pos[1] \
                             or np.isfinite(pos).sum() == 1:
                         raise IdentificationError(f'{where} must be [lo, hi] with lo < hi, both '
                                                   f'finite or both infinite, got {value!r}')
                     out.position_limits[i] = pos
                     continue
-                v = _numbers(where, value)
+                v = numbers(where, value)
                 finite_needed = kind != 'effort'
                 if v.shape != () or np.isnan(v) or v <= 0 or \
                         (finite_needed and not np.isfinite(v)):
@@ -148,7 +148,7 @@ class ExcitationLimits:
                 or not 0 <= margin < 1:
             raise IdentificationError(f'limit margin must lie in [0, 1), got {margin!r}')
         keep = 1.0 - float(margin)
-        limited, centre, half = _ranges(self)
+        limited, centre, half = position_ranges(self)
         pos = self.position_limits.copy()
         pos[limited] = np.stack([centre - keep * half, centre + keep * half], axis=1)[limited]
         return ExcitationLimits(list(self.joint_names), pos, keep * self.velocity_limits,
@@ -174,7 +174,7 @@ class ExcitationLimits:
                 for i, j in enumerate(self.joint_names)}
 
 
-def _numbers(where: str, value: Any) -> np.ndarray:
+def numbers(where: str, value: Any) -> np.ndarray:
     if isinstance(value, bool):
         raise IdentificationError(f'{where} must be numeric, got {value!r}')
     try:
@@ -193,7 +193,7 @@ def load_limits(path: str | os.PathLike, robot, effort: bool = True) -> Excitati
     return base.updated(data, f'limits file {path}')
 
 
-def _as_limits(robot, limits) -> ExcitationLimits:
+def as_limits(robot, limits) -> ExcitationLimits:
     if limits is None:
         return ExcitationLimits.from_robot(robot)
     if isinstance(limits, ExcitationLimits):
@@ -216,7 +216,7 @@ def limit_ratios(traj: Trajectory, robot, limits: ExcitationLimits | None = None
     least half that rate), tau the inverse dynamics under each parameter vector of ``phis``
     (default: the robot's own). Same layout as check_limits: kind -> float, 'worst_joint',
     'per_joint'."""
-    limits = _as_limits(robot, limits)
+    limits = as_limits(robot, limits)
     t0, t1 = (0.0, traj.horizon()) if window is None else window
     span = t1 - t0
     num_points = max(num_points, int(math.ceil(span * VERIFY_RATE)) + 1)
@@ -240,11 +240,11 @@ def _peak_torques(robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
     """Largest |tau| per joint (n,) over the samples and the parameter vectors ``phis``."""
     Y = np.concatenate([robot.regressor(q[k:k + 4096], qd[k:k + 4096], qdd[k:k + 4096])
                         for k in range(0, len(q), 4096)])
-    P = np.column_stack(_torque_models(robot, phis))
+    P = np.column_stack(torque_models(robot, phis))
     return np.abs(Y @ P).max(axis=(0, 2))
 
 
-def _torque_models(robot, phis: Sequence[np.ndarray] | None) -> list[np.ndarray]:
+def torque_models(robot, phis: Sequence[np.ndarray] | None) -> list[np.ndarray]:
     if phis is None or len(phis) == 0:
         return [robot.phi_model]
     return [robot._check_phi(p) for p in phis]
@@ -263,19 +263,19 @@ def estimate_parameters(path: str | os.PathLike, robot) -> np.ndarray:
         raise IdentificationError(
             f'estimate {path} does not match the robot\'s parameters (missing '
             f'{missing[:4]}, unknown {extra[:4]}): give the same robot, joints and --extras')
-    phi = np.array([_numbers(f'estimate {path}: {n}', given[n]) for n in robot.param_names],
+    phi = np.array([numbers(f'estimate {path}: {n}', given[n]) for n in robot.param_names],
                    dtype=float)
     if not np.all(np.isfinite(phi)):
         raise IdentificationError(f'estimate {path} holds non-finite parameters')
     return phi
 
 
-def _worst(ratios: dict) -> float:
+def worst_ratio(ratios: dict) -> float:
     return max(ratios[k] for k in LIMIT_KINDS)
 
 
-def _ranges(limits: ExcitationLimits, default: np.ndarray | float = 0.0
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def position_ranges(limits: ExcitationLimits, default: np.ndarray | float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(limited (n,) bool, centre (n,), half width (n,)) of the position ranges; joints
     without position limits get centre ``default`` and half width inf."""
     pos = limits.position_limits

@@ -7,9 +7,9 @@ from typing import Sequence
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.excitation.criteria import _noise_weights, _objective
+from identification_node.excitation.criteria import noise_weights, objective
 from identification_node.excitation.initial_guess import fourier_basis
-from identification_node.excitation.limits import ExcitationLimits, _ranges, _torque_models
+from identification_node.excitation.limits import ExcitationLimits, position_ranges, torque_models
 
 __all__ = ['COLLISION_OVERSAMPLE', 'COLLISION_PAD', 'COLLISION_RHO', 'COLLISION_SCALE',
            'GRID_PER_HARMONIC', 'KS_RHO', 'RAMP_BLENDS', 'DesignProblem', 'ks_max', 'no_tick']
@@ -67,12 +67,12 @@ class DesignProblem:
         self.n, self.H, self.period = robot.dof, harmonics, period
         self.k = 2 * harmonics + 1
         self.criterion = criterion
-        self.weights = _noise_weights(noise_std, self.n)
+        self.weights = noise_weights(noise_std, self.n)
         t = np.arange(num_samples) * (period / num_samples)
         self.Bq, self.Bv, self.Ba = fourier_basis(t, harmonics, period)
         grid = GRID_PER_HARMONIC * harmonics
         self.grid = fourier_basis(np.arange(grid) * (period / grid), harmonics, period)
-        self.Phi = np.column_stack(_torque_models(robot, phis))    # (p, models)
+        self.Phi = np.column_stack(torque_models(robot, phis))    # (p, models)
         self.margin = margin
         self.checker = checker.hulls() if checker is not None and checker.num_pairs else None
         self.tick = no_tick
@@ -91,7 +91,7 @@ class DesignProblem:
         self.Cc = (weight[:, None] * np.asarray(start, dtype=float)[None] if fixed
                    else np.zeros((len(weight), self.n)))
         self._collision: tuple[bytes, np.ndarray, np.ndarray | None] | None = None
-        limited, centre, half = _ranges(limits)
+        limited, centre, half = position_ranges(limits)
         self.pos = np.flatnonzero(limited)
         self.centre, self.half = centre[self.pos], half[self.pos]
         self.effort = np.flatnonzero(np.isfinite(limits.effort_limits))
@@ -114,7 +114,7 @@ class DesignProblem:
             self.evaluations += 1
             self.tick()
             Y = self.robot.regressor(*self.kinematics(x))
-            f = _objective(self._W(Y), self.criterion, False)[0]
+            f = objective(self._W(Y), self.criterion, False)[0]
             self._value = (key, f, Y @ self.Phi)
         return self._value[1], self._value[2]
 
@@ -140,7 +140,7 @@ class DesignProblem:
         Y = Y.reshape(3 * n + 1, N, n, -1)
         steps = np.repeat([_STEP_Q, _STEP_QD, 1.0], n)
         dY = (Y[1:] - Y[0]) / steps[:, None, None, None]        # (3n, N, n, p)
-        f, dfdW = _objective(self._W(Y[0]), self.criterion, True)
+        f, dfdW = objective(self._W(Y[0]), self.criterion, True)
         self._value = (key, f, Y[0] @ self.Phi)
         if dfdW is None:
             raise IdentificationError('the trajectory does not excite every base parameter')

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from identification_node.errors import IdentificationError
-from identification_node.model.torque import _PERM, _SHIFT, JointTorqueConfig, TorqueConverter
+from identification_node.model.torque import PERM, SHIFT, JointTorqueConfig, TorqueConverter
 
 
 def emf_shape(converter: TorqueConverter, q: np.ndarray, theta_e: np.ndarray | None = None
@@ -38,8 +38,8 @@ def emf_shape(converter: TorqueConverter, q: np.ndarray, theta_e: np.ndarray | N
         th = converter.theta_e(q)
         if theta_e is not None:
             th = np.where(np.isnan(theta_e), th, theta_e)
-        phys = np.sin(th[:, t, None] + _SHIFT * np.arange(3))
-        perm = np.array([_PERM[c.phase_order] for c in converter.configs])[t]
+        phys = np.sin(th[:, t, None] + SHIFT * np.arange(3))
+        perm = np.array([PERM[c.phase_order] for c in converter.configs])[t]
         out[:, t] = np.take_along_axis(phys, perm[None], axis=2)
     return out
 
@@ -114,7 +114,7 @@ def _phase_cos(converter: TorqueConverter, q: np.ndarray) -> np.ndarray:
     """cos(th + k 120 deg) (N, n, 3) in wire order (three-phase joints; else NaN)."""
     th = converter.theta_e(q)
     out = np.full(th.shape + (3,), np.nan)
-    perm = np.array([_PERM[c.phase_order] for c in converter.configs])
-    phys = np.cos(th[..., None] + _SHIFT * np.arange(3))
+    perm = np.array([PERM[c.phase_order] for c in converter.configs])
+    phys = np.cos(th[..., None] + SHIFT * np.arange(3))
     out[:] = np.take_along_axis(phys, perm[None], axis=2)
     return out

@@ -30,9 +30,9 @@ from identification_node.errors import IdentificationError
 
 SOURCES = ('measured', 'current', 'three_phase')
 PHASE_ORDERS = ('abc', 'acb')
-# Channel permutation: physical phase k is read from channel _PERM[order][k] (an involution).
-_PERM = {'abc': (0, 1, 2), 'acb': (0, 2, 1)}
-_SHIFT = 2.0 * np.pi / 3.0
+# Channel permutation: physical phase k is read from channel PERM[order][k] (an involution).
+PERM = {'abc': (0, 1, 2), 'acb': (0, 2, 1)}
+SHIFT = 2.0 * np.pi / 3.0
 
 
 def _number(value: Any, field: str, joint: str) -> float:
@@ -127,8 +127,8 @@ def three_phase_torque(ia: np.ndarray, ib: np.ndarray, ic: np.ndarray, theta_e: 
     """Motor torque (N m) from phase currents (A), paper 000 eq. 10."""
     th = np.asarray(theta_e, dtype=float)
     return np.asarray(kt, dtype=float) * (
-        np.asarray(ia) * np.sin(th) + np.asarray(ib) * np.sin(th + _SHIFT)
-        + np.asarray(ic) * np.sin(th + 2.0 * _SHIFT))
+        np.asarray(ia) * np.sin(th) + np.asarray(ib) * np.sin(th + SHIFT)
+        + np.asarray(ic) * np.sin(th + 2.0 * SHIFT))
 
 
 def phase_currents(tau_motor: np.ndarray, theta_e: np.ndarray, kt: Any
@@ -137,7 +137,7 @@ def phase_currents(tau_motor: np.ndarray, theta_e: np.ndarray, kt: Any
     with I = 2 tau / (3 kt), the inverse of :func:`three_phase_torque`."""
     th = np.asarray(theta_e, dtype=float)
     amp = 2.0 * np.asarray(tau_motor, dtype=float) / (3.0 * np.asarray(kt, dtype=float))
-    return (amp * np.sin(th), amp * np.sin(th + _SHIFT), amp * np.sin(th + 2.0 * _SHIFT))
+    return (amp * np.sin(th), amp * np.sin(th + SHIFT), amp * np.sin(th + 2.0 * SHIFT))
 
 
 class TorqueConverter:
@@ -176,7 +176,7 @@ class TorqueConverter:
         self._gear = np.array([c.gear_ratio for c in self.configs])
         self._poles = np.array([c.pole_pairs for c in self.configs], dtype=float)
         self._offset = np.array([c.angle_offset for c in self.configs])
-        self._perm = np.array([_PERM[c.phase_order] for c in self.configs])  # (n, 3)
+        self._perm = np.array([PERM[c.phase_order] for c in self.configs])  # (n, 3)
         # for torque(): the channels it reads, the three-phase joints and their phase columns
         self._used = np.zeros((len(names), 3), dtype=bool)   # current channels read
         self._used[self._single, 0] = True
@@ -319,6 +319,6 @@ class TorqueConverter:
                 th = np.where(np.isnan(given), th, given)
             phys = np.stack(phase_currents(tau[:, t] / self._gear[t], th[:, t], self._kt[t]),
                             axis=-1)
-            # _PERM is an involution: channel k carries physical phase perm[k].
+            # PERM is an involution: channel k carries physical phase perm[k].
             out[:, t] = np.take_along_axis(phys, self._perm[t][None], axis=2)
         return out
