@@ -56,10 +56,10 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
         live = wait_for(lambda: (e := live_estimate())['num_samples'] >= est.num_samples - 5
                         and e['consistency_status'] != 'starting' and e, 90) or live_estimate()
     finally:
-        stop_process(node)
+        log = stop_process(node)
     assert live['names'] == est.names
     # the node's log names what it rejected or lost, should the counts differ
-    assert 0 <= est.num_samples - live['num_samples'] <= 5, node.stderr.read()[-4000:]
+    assert 0 <= est.num_samples - live['num_samples'] <= 5, log[-4000:]
     values, stddev = np.array(live['values']), np.array(live['stddev'])
     unconstrained = np.array(live['unconstrained_values'])
     # Those few samples aside, both saw the same data through the same pipeline ...
