@@ -1,13 +1,13 @@
-"""ServiceThread's sending, without ROS traffic: a response the middleware refuses is sent
-again. rclpy does not raise then: its binding warns (RuntimeWarning 'failed to send response
-(timeout)', attributed to the calling frame) and drops the response; the fake handle below
-does the same."""
+"""The service thread's queue and sending, without ROS traffic. RequestQueue answers in
+order. ServiceThread sends again a response the middleware refuses: rclpy does not raise
+then (its binding warns RuntimeWarning 'failed to send response (timeout)', attributed to the
+calling frame, and drops the response); the fake handle below does the same."""
 import warnings
 from types import SimpleNamespace
 
 from std_srvs.srv import Trigger
 
-from identification_node.ros.service_requests import ServiceThread
+from identification_node.ros.service_requests import Outcome, RequestQueue, ServiceThread
 
 REFUSAL = 'failed to send response (timeout): client will not receive response'
 
@@ -45,6 +45,20 @@ def test_a_refused_response_is_sent_again():
     assert thread._send() == 0                              # sent once only
 
 
+def test_responses_after_a_refused_one_wait_for_it():
+    """A service's answers leave in the order they were given: those after a refused one are
+    held until it is sent (a new client's first answers are refused until it is matched)."""
+    thread = ServiceThread(None, lambda name, exc: None)
+    srv = SimpleNamespace(srv_type=Trigger, handle=RefusingHandle(refusals=1))
+    other = SimpleNamespace(srv_type=Trigger, handle=RefusingHandle(refusals=0))
+    for k in range(3):
+        thread._reply(srv, SimpleNamespace(request_id=k))(Trigger.Response(message=str(k)))
+    thread._reply(other, SimpleNamespace(request_id=9))(Trigger.Response())
+    assert thread._send() == 1 and srv.handle.sent == []    # another service is not held
+    assert thread._send() == 3
+    assert [(r.message, i) for r, i in srv.handle.sent] == [('0', 0), ('1', 1), ('2', 2)]
+
+
 def test_other_warnings_are_left_alone():
     """The refusal is an error only where ServiceThread sends: elsewhere it stays a warning."""
     handle = RefusingHandle(refusals=1)
@@ -56,3 +70,31 @@ def test_other_warnings_are_left_alone():
         assert thread._send() == 1      # its filter goes first
         handle.service_send_response(Trigger.Response(), 2)     # called from here
     assert [str(w.message) for w in seen] == [REFUSAL]
+
+
+def test_commands_are_answered_once_applied_reads_and_saves_by_their_snapshot():
+    """A command's answer needs no solve: it goes out once applied, unless a read or save
+    sent before it still waits for its snapshot (answers stay in order)."""
+    queue, log = RequestQueue(), []
+
+    def record(name):
+        return lambda outcome: log.append((name, outcome.error or outcome.estimate))
+
+    queue.command('reset', None, record('reset 1'))        # 1
+    queue.command('save', None, record('save 2'))          # 2
+    queue.command('reset', None, record('reset 3'))        # 3
+    queue.read(record('read after 3'))
+    queue.command('freeze', True, record('freeze 4'))      # 4
+    queue.applied(1)
+    assert log == [('reset 1', '')]
+    queue.applied(3)                 # the save waits for its snapshot, so does all after it
+    assert log == [('reset 1', '')]
+    queue.answer(2, Outcome(estimate='after 2'))
+    assert log[1:] == [('save 2', 'after 2')]
+    queue.applied(4)                 # reset 3 goes; the read waits for the snapshot after 3
+    assert log[2:] == [('reset 3', '')]
+    queue.answer(4, Outcome(estimate='after 4'))
+    assert log[3:] == [('read after 3', 'after 4'), ('freeze 4', 'after 4')]
+    queue.answer(4, Outcome(estimate='again'))           # nothing is answered twice
+    queue.applied(4)
+    assert len(log) == 5 and queue.waiting == 0

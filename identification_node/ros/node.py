@@ -221,6 +221,7 @@ class IdentificationNode(Node):
                 for kind, argument in items:
                     self._apply_command(kind, argument)
                 jobs.append(self._take_snapshot(seq, save))
+                self._requests.applied(seq)
             except Exception as exc:   # noqa: BLE001 - answered with the reason, counted
                 self.callback_errors['estimate'] += 1
                 text = f'estimate failed: {type(exc).__name__}: {exc}'

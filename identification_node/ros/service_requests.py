@@ -10,8 +10,10 @@ processing thread's work (nor on its lock): commands (reset, freeze, save, paylo
 queued, numbered in arrival order, for the processing thread to apply at the start of its
 next run, in order (a run of several resets applies once, and coalesced saves write once);
 the snapshot taken after them (estimate, its constrained solve, the saved files) answers
-every request up to that number at once, in order. A read (``~/get_estimate``) is answered
-at once from the newest snapshot, unless a command sent before it is still queued: then from
+every request up to that number at once, in order. Commands that no earlier read or save
+waits before are answered as soon as they are applied (their answer does not depend on the
+solve, which a busy machine may keep waiting). A read (``~/get_estimate``) is answered at
+once from the newest snapshot, unless a command sent before it is still queued: then from
 the first snapshot after it. A snapshot that fails answers the requests it was for with the
 reason.
 """
@@ -61,7 +63,7 @@ class ServiceThread:
         self.node, self._on_error, self._name = node, on_error, name
         self._group = PolledGroup()
         self._services: list[tuple[Any, Callable[[Any, Reply], None], str]] = []
-        self._outbox: list[tuple] = []    # (service, response, header, first try)
+        self._outbox: list[tuple] = []    # (service, response, header, first try), in order
         self._outbox_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -133,14 +135,19 @@ class ServiceThread:
         with self._outbox_lock:
             out, self._outbox = self._outbox, []
         again = []
+        held: set[int] = set()    # services with a response to send again: the later wait
         now = time.monotonic()
         for srv, response, header, first in out:
+            if id(srv) in held:
+                again.append((srv, response, header, first))
+                continue
             try:
                 _send_response(srv, response, header)
                 self.answered += 1
             except Exception as exc:   # noqa: BLE001 - not matched yet, vanished, shut down
                 if first is None or now - first < RESEND_FOR:
                     again.append((srv, response, header, now if first is None else first))
+                    held.add(id(srv))
                 else:
                     self._on_error('send_response', exc)
         if again:
@@ -276,6 +283,19 @@ class RequestQueue:
             taken = Commands(self._items, self._seq, self._wanted)
             self._items, self._wanted = [], False
         return taken
+
+    def applied(self, seq: int) -> None:
+        """The commands up to ``seq`` are applied and their snapshot taken: answer the
+        commands among the first requests waiting, up to the first read or save (which need
+        the snapshot's estimate or files), so that answers stay in order."""
+        with self._lock:
+            k = 0
+            while (k < len(self._waiting) and self._waiting[k].kind == 'command'
+                   and self._waiting[k].seq <= seq):
+                k += 1
+            due, self._waiting = self._waiting[:k], self._waiting[k:]
+        for w in due:
+            w.answer(Outcome())
 
     def answer(self, seq: int, outcome: Outcome) -> None:
         """A snapshot taken after command ``seq``: answer every request it covers, in order."""
