@@ -60,7 +60,7 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float,
 
     from identification_node.pipeline import IdentificationPipeline, PipelineOutput
     from identification_node.pipeline.samples import stack_records
-    from identification_node.ros import conversions, node as node_module
+    from identification_node.ros import conversions, effort_outputs, node as node_module
 
     spent = dict.fromkeys(PARTS, 0.0)
     calls = dict.fromkeys(PARTS, 0)
@@ -87,8 +87,9 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float,
     process = passthrough if mode == 'passthrough' else IdentificationPipeline.process
     IdentificationPipeline.process = timed('pipeline', process)
     conversions.PolledSubscription.poll = timed('poll', conversions.PolledSubscription.poll)
+    outputs = effort_outputs.EffortOutputs
+    outputs.publish = timed('publish', outputs.publish)
     node_class = node_module.IdentificationNode
-    node_class._publish_efforts = timed('publish', node_class._publish_efforts)
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     if mode == 'relay':
