@@ -48,7 +48,7 @@ def solver(monkeypatch):
 
 @pytest.fixture
 def worker(solver):
-    base = type('Base', (), {'num_base': 3})()
+    base = types.SimpleNamespace(num_base=3)
     w = solver_worker.ConsistencyWorker(None, base, ConsistencyOptions(), handle=lambda job: job,
                                         answer=lambda seq, outcome: None,
                                         failure=lambda text: text,

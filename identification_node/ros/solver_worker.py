@@ -188,7 +188,7 @@ class ConsistencyWorker:
         self._solver: SolverProcess | None = None
         self._solver_lock = threading.Lock()
         self._solver_failure = ''
-        self._solved: tuple[tuple, ConsistentEstimate] | None = None   # last input, result
+        self._solved_for: tuple | None = None   # the equations ``consistent`` solved
         self._jobs: list[Any] = []     # taken in order
         self._job_ready = threading.Condition()
         self._running = True
@@ -223,14 +223,14 @@ class ConsistencyWorker:
         machine may keep waiting."""
         solver = self._solver_instance()
         with self._solver_lock:
-            if self._solved is not None and _same_equations(self._solved[0], equations):
-                return self._solved[1]
+            if (self.consistent is not None and self._solved_for is not None
+                    and _same_equations(self._solved_for, equations)):
+                return self.consistent
             if not wait and not solver.ready():
                 return ConsistentEstimate('starting', None, None,
                                           np.full(self._base.num_base, np.inf), 0.0)
-            result = solver.solve(*equations)
-            self._solved = (equations, result) if result.ok else None
-        self.consistent = result
+            result = self.consistent = solver.solve(*equations)
+            self._solved_for = equations if result.ok else None
         if not result.ok and result.status != self._solver_failure and self._running:
             self._logger.warning(
                 f'physically consistent solve: {result.status}; publishing the '
