@@ -27,7 +27,7 @@ from identification_node.model.identifiability import BaseParameters
 
 __all__ = ['NICE', 'ConsistencyWorker', 'SolverProcess']
 
-NICE = 19                  # the node's solver process: below its processing thread
+NICE = 5    # the solver process: below the node's processing, yet not starved by a neighbour
 
 
 class SolverProcess:
