@@ -1,14 +1,17 @@
 """Helpers for tests over real DDS: a private ROS context, nodes spun in a thread, the simulated
 arm as a subprocess, message collectors, service and parameter calls.
 
-Every test module takes its own ROS_DOMAIN_ID (from the pid and the module name) so parallel
-runs and other modules do not hear each other; subprocesses get it through the environment.
+Every test module takes a ROS_DOMAIN_ID of its own, claimed by a lock file for as long as it
+runs, so that other modules and a second suite on the same machine do not hear it;
+subprocesses get it through the environment.
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import zlib
@@ -31,9 +34,37 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+DOMAIN_LOCKS = Path(tempfile.gettempdir()) / 'identification_node_test_domains'
+_CLAIMED: dict[int, int] = {}   # domain -> the descriptor holding its lock
+
+
 def domain_id(module: str) -> int:
-    """A ROS domain for one test module of this process: 1..100 (FastDDS' safe range)."""
-    return 1 + (os.getpid() * 7 + zlib.crc32(module.encode())) % 100
+    """A ROS domain (1..100, FastDDS' safe range) for one test module, claimed for this
+    process until ``release_domain`` (or its exit): an exclusive lock per domain, so that
+    suites run side by side never share one. The search starts at a hash of the pid and
+    ``module``."""
+    DOMAIN_LOCKS.mkdir(mode=0o777, exist_ok=True)
+    start = os.getpid() * 7 + zlib.crc32(module.encode())
+    for k in range(100):
+        domain = 1 + (start + k) % 100
+        if domain in _CLAIMED:
+            continue
+        fd = os.open(DOMAIN_LOCKS / f'{domain}.lock', os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _CLAIMED[domain] = fd
+        return domain
+    raise RuntimeError(f'no free ROS domain: all of 1..100 are claimed in {DOMAIN_LOCKS}')
+
+
+def release_domain(domain: int) -> None:
+    """Give back a domain claimed by ``domain_id`` (nothing if it was not)."""
+    fd = _CLAIMED.pop(domain, None)
+    if fd is not None:
+        os.close(fd)
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float, period: float = 0.02) -> Any:
@@ -108,6 +139,7 @@ class RosHarness:
         for node in list(self._spinners):
             self.remove(node)
         rclpy.try_shutdown(context=self.context)
+        release_domain(self.domain)
 
     # -- calls ------------------------------------------------------------------------------------
     def call(self, srv_type, name: str, request, timeout: float = 10.0):

@@ -14,7 +14,6 @@ import subprocess
 import sys
 import threading
 import time
-import zlib
 from pathlib import Path
 
 import pytest
@@ -40,12 +39,11 @@ from identification_node.ros.conversions import wait_for_all_acked  # noqa: E402
 from identification_node.ros.player import BagPlayer, offered_qos  # noqa: E402
 from identification_node.ros.recorder import BagRecorder  # noqa: E402
 from identification_node.wire.cdr import JOINT_STATE, STRING, encode_joint_state  # noqa: E402
+from ros_helpers import domain_id  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-# 1..100: Linux' ephemeral ports start above the ports of higher domains; pid and module
-# name keep parallel runs and other modules apart (as test/ros_helpers.domain_id does)
-DOMAIN = 1 + (os.getpid() * 7 + zlib.crc32(b'test_play_record')) % 100
+DOMAIN = domain_id('test_play_record')   # claimed for the whole run
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000_000_000_000  # bag log time origin [ns]
 PERIOD_NS = 5_000_000  # 200 Hz
