@@ -91,6 +91,8 @@ def test_consistency_problems():
     # Table 1's link 1 violates the triangle inequality (principal moments 0.62, 1.33, 3.98).
     problems = consistency_problems(mit, mit.phi_model)
     assert len(problems) == 1 and 'link1' in problems[0] and 'triangle' in problems[0]
+    # plain text, as the node's diagnostics carry it (no numpy brackets)
+    assert 'principal moments 0.6239, 1.328, 3.979 kg m^2' in problems[0], problems
     crs = load_robot('crs_a465', extras=('fv', 'Ia'))
     assert consistency_problems(crs, crs.phi_model) == []
     phi = crs.phi_model.copy()

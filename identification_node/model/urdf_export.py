@@ -40,12 +40,12 @@ def inertia_problems(Ic: np.ndarray, rtol: float = 1e-9) -> list[str]:
     if not np.isfinite(ev).all():
         return ['inertia about the centre of mass is not finite']
     tol = rtol * max(1.0, float(np.abs(ev).max()))
+    moments = ', '.join(f'{v:.4g}' for v in ev)   # plain text: diagnostics values carry it
     if ev[0] <= tol:
         return ['inertia about the centre of mass is not positive definite '
-                f'(principal moments {np.array2string(ev, precision=4)})']
+                f'(principal moments {moments} kg m^2)']
     if 2 * ev.max() > ev.sum() + tol:
-        return [f'principal moments {np.array2string(ev, precision=4)} violate the triangle '
-                'inequality']
+        return [f'principal moments {moments} kg m^2 violate the triangle inequality']
     return []
 
 
