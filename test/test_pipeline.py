@@ -190,13 +190,28 @@ def test_currents_with_no_joint_state_and_joint_states_with_no_current():
     assert np.all(np.isfinite(p.estimate().values))
 
 
+def test_joint_states_before_the_first_current_are_told_apart_from_lost_currents():
+    """The currents' topic starting (or discovered) 0.5 s after the joint states': those
+    joint states count 'before_currents', a start-up transient; currents lost later in the
+    stream still count 'no_current'."""
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    sim = simulate(duration=3.0, noise=SensorNoise(current_std=0.01), converter=converter)
+    js, cur = joint_records(sim, effort=False), current_records(sim, converter)
+    p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE, align_tolerance=5e-4),
+                               BASE)
+    feed(p, js, cur[500:2000] + cur[2100:])
+    assert p.rejected['before_currents'] == 500
+    assert p.rejected['no_current'] == 100
+    assert np.all(np.isfinite(p.estimate().values))
+
+
 @pytest.mark.parametrize('live', [False, True])
 def test_late_currents_of_a_live_stream_are_waited_for(live):
     """Live topics are not delivered in step: 300 ms of joint states in one processing run,
     their currents in the next. By stamps alone the joint states more than hold_time (0.1 s)
-    older than the newest are given up ('no_current'); with the node's clock (live) they wait
-    hold_time of it too, and all are matched. Currents that never come are still given up
-    once the clock passed hold_time."""
+    older than the newest are given up (no current had come yet: 'before_currents'); with the
+    node's clock (live) they wait hold_time of it too, and all are matched. Currents that
+    never come are still given up once the clock passed hold_time ('no_current')."""
     converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
     sim = simulate(duration=1.0, noise=SensorNoise(current_std=0.01), converter=converter)
     js, cur = joint_records(sim, effort=False), current_records(sim, converter)
@@ -211,7 +226,8 @@ def test_late_currents_of_a_live_stream_are_waited_for(live):
     for r in cur[:300]:
         p.add_currents(r)
     p.process()
-    assert p.rejected['no_current'] == (0 if live else 200)
+    assert p.rejected['before_currents'] == (0 if live else 200)
+    assert p.rejected['no_current'] == 0
     # joint states whose currents never come: given up once hold_time of the clock passed
     # (all but the newest hold_time of stamps, and the first within align_tolerance)
     before = p.rejected['no_current']

@@ -3,12 +3,14 @@ nearest in header stamp, and the joint torque of every sample.
 
 A joint state is matched to the nearest current within ``align_tolerance``; it waits until a
 current stamped at or after it is in (then its nearest is known), or ``hold_time`` at most,
-and is counted 'no_current' when none is near. With a ``clock`` (a live stream: the node's
-monotonic time), a joint state also waits ``hold_time`` of that clock from when it was first
-processed: two topics are not delivered in step on a busy machine, and stamps alone would
-give up joint states whose currents are merely late. Currents no joint state took are counted
-'unmatched_current'. With every joint's torque measured there is nothing to wait for: the
-torque is the effort (checked finite on the way in).
+and is counted 'no_current' when none is near ('before_currents' when no current had come
+yet or it is older than the first: the currents' topic started, or was discovered, after the
+joint states', a start-up transient rather than currents lost). With a ``clock`` (a live
+stream: the node's monotonic time), a joint state also waits ``hold_time`` of that clock from
+when it was first processed: two topics are not delivered in step on a busy machine, and
+stamps alone would give up joint states whose currents are merely late. Currents no joint
+state took are counted 'unmatched_current'. With every joint's torque measured there is
+nothing to wait for: the torque is the effort (checked finite on the way in).
 """
 from __future__ import annotations
 
@@ -41,6 +43,7 @@ class CurrentAlignment:
         self._seen = np.empty(0)      # clock time each pending joint state was first processed
         self.currents = Samples.empty(self.dof, with_currents=True)
         self._newest_js = -math.inf
+        self._first_current = math.inf   # stamp of the stream's first current
 
     def add_joint_states(self, s: Samples) -> None:
         self.pending = self.pending.concat(s)
@@ -50,6 +53,7 @@ class CurrentAlignment:
     def add_currents(self, s: Samples) -> None:
         if len(s):
             self.currents = self.currents.concat(s)
+            self._first_current = min(self._first_current, float(s.stamps[0]))
 
     def restart(self, old_newest: float, restart_jump: float) -> int:
         """A restarted stream: drop the pending joint states (returns how many) and the
@@ -59,6 +63,7 @@ class CurrentAlignment:
         self.pending, self._seen = Samples.empty(self.dof), np.empty(0)
         self.currents = self.currents.select(self.currents.stamps < old_newest - restart_jump)
         self._newest_js = -math.inf
+        self._first_current = float(self.currents.stamps[0]) if len(self.currents) else math.inf
         return dropped
 
     def ready(self, flush: bool = False) -> Samples:
@@ -94,7 +99,9 @@ class CurrentAlignment:
         self._seen = self._seen[k:]
         match = self._nearest(cur.stamps, ready.stamps)
         ok = match >= 0
-        self.counters.reject('no_current', np.count_nonzero(~ok))
+        early = ready.stamps < self._first_current - self.align_tolerance
+        self.counters.reject('before_currents', np.count_nonzero(~ok & early))
+        self.counters.reject('no_current', np.count_nonzero(~ok & ~early))
         used = np.zeros(len(cur), dtype=bool)
         used[match[ok]] = True
         # Currents older than what the next joint state could still match are done with.
