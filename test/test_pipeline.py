@@ -190,18 +190,32 @@ def test_currents_with_no_joint_state_and_joint_states_with_no_current():
     assert np.all(np.isfinite(p.estimate().values))
 
 
-def test_joint_states_before_the_first_current_are_told_apart_from_lost_currents():
-    """The currents' topic starting (or discovered) 0.5 s after the joint states': those
-    joint states count 'before_currents', a start-up transient; currents lost later in the
-    stream still count 'no_current'."""
+@pytest.mark.parametrize('late', ['currents', 'joint_states'])
+def test_a_stream_starting_late_is_told_apart_from_lost_messages(late):
+    """One topic starting (or discovered) 0.5 s after the other: the other's messages before
+    its first count 'before_currents' (joint states) or 'before_joint_states' (currents), a
+    start-up transient; messages lost later in the stream still count 'no_current' and
+    'unmatched_current'."""
     converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
     sim = simulate(duration=3.0, noise=SensorNoise(current_std=0.01), converter=converter)
     js, cur = joint_records(sim, effort=False), current_records(sim, converter)
     p = IdentificationPipeline(ROBOT, PipelineConfig(torque=THREE_PHASE, align_tolerance=5e-4),
                                BASE)
-    feed(p, js, cur[500:2000] + cur[2100:])
-    assert p.rejected['before_currents'] == 500
-    assert p.rejected['no_current'] == 100
+    gone = {'currents': (set(range(2500, 2550)), set(range(500)) | set(range(2000, 2100))),
+            'joint_states': (set(range(500)) | set(range(2000, 2050)), set(range(2500, 2550)))}
+    for start in range(0, len(js), 50):     # both streams in step, as published
+        chunk = range(start, min(start + 50, len(js)))
+        for k in chunk:
+            if k not in gone[late][0]:
+                p.add_joint_state(js[k])
+            if k not in gone[late][1]:
+                p.add_currents(cur[k])
+        p.process()
+    p.process(flush=True)
+    early = {'before_currents': 500 if late == 'currents' else 0,
+             'before_joint_states': 500 if late == 'joint_states' else 0}
+    lost = {'no_current': 100 if late == 'currents' else 50, 'unmatched_current': 50}
+    assert {k: p.rejected[k] for k in (*early, *lost)} == {**early, **lost}
     assert np.all(np.isfinite(p.estimate().values))
 
 

@@ -9,8 +9,10 @@ joint states', a start-up transient rather than currents lost). With a ``clock``
 stream: the node's monotonic time), a joint state also waits ``hold_time`` of that clock from
 when it was first processed: two topics are not delivered in step on a busy machine, and
 stamps alone would give up joint states whose currents are merely late. Currents no joint
-state took are counted 'unmatched_current'. With every joint's torque measured there is
-nothing to wait for: the torque is the effort (checked finite on the way in).
+state took are counted 'unmatched_current' ('before_joint_states' when older than the
+stream's first joint state: the converse start-up transient). With every joint's torque
+measured there is nothing to wait for: the torque is the effort (checked finite on the way
+in).
 """
 from __future__ import annotations
 
@@ -44,9 +46,12 @@ class CurrentAlignment:
         self.currents = Samples.empty(self.dof, with_currents=True)
         self._newest_js = -math.inf
         self._first_current = math.inf   # stamp of the stream's first current
+        self._first_js = math.inf        # and of its first joint state
 
     def add_joint_states(self, s: Samples) -> None:
         self.pending = self.pending.concat(s)
+        if len(s):
+            self._first_js = min(self._first_js, float(s.stamps[0]))
         if self.clock is not None and len(s):
             self._seen = np.concatenate([self._seen, np.full(len(s), self.clock())])
 
@@ -64,6 +69,7 @@ class CurrentAlignment:
         self.currents = self.currents.select(self.currents.stamps < old_newest - restart_jump)
         self._newest_js = -math.inf
         self._first_current = float(self.currents.stamps[0]) if len(self.currents) else math.inf
+        self._first_js = math.inf
         return dropped
 
     def ready(self, flush: bool = False) -> Samples:
@@ -110,7 +116,10 @@ class CurrentAlignment:
         if flush:
             horizon = math.inf
         done = cur.stamps < horizon
-        self.counters.reject('unmatched_current', np.count_nonzero(done & ~used & ~cur.used))
+        stale = done & ~used & ~cur.used
+        early = cur.stamps < self._first_js - self.align_tolerance
+        self.counters.reject('before_joint_states', np.count_nonzero(stale & early))
+        self.counters.reject('unmatched_current', np.count_nonzero(stale & ~early))
         cur.used |= used
         self.currents = cur.select(~done) if done.any() else cur
         if not ok.all():

@@ -23,8 +23,9 @@ from identification_node.wire.records import JointStateRecord
 REJECT_REASONS = (
     'empty', 'length_mismatch', 'duplicate_names', 'missing_joints', 'non_finite',
     'missing_velocity', 'missing_effort', 'out_of_order', 'repeated_stamp', 'no_current',
-    'before_currents', 'unmatched_current', 'unknown_channels', 'stream_restart', 'malformed',
-    'too_many_names', 'implausible', 'outlier', 'regressor_overflow', 'numerical_failure',
+    'before_currents', 'unmatched_current', 'before_joint_states', 'unknown_channels',
+    'stream_restart', 'malformed', 'too_many_names', 'implausible', 'outlier',
+    'regressor_overflow', 'numerical_failure',
 )
 
 
