@@ -4,10 +4,11 @@ The node runs in its own process on a 7-DOF Panda-like arm (test/fixtures/panda_
 the shipped defaults (payload identification on), the simulated arm streams 1 kHz with torque
 noise, and this process sends each burst at once from one client: 200 ``~/get_estimate``, 20
 ``~/save``, 100 ``~/freeze`` toggles, 30 (``~/save``, ``~/reset``) pairs and 50
-``~/payload/reset``. Printed per burst: the calls answered, whether each service answered in
-the order called, and the time until the last answer. The baseline, measured in the same run:
-the same 200 ``get_estimate`` calls to a bare rclpy Trigger server in a process of its own that
-answers a message of the node's size at once (what the middleware alone costs).
+``~/payload/reset``. Printed per burst: the calls answered (and of those refused), whether
+each service answered in the order called, and the time until the last answer. The
+baseline, measured in the same run: the same 200 ``get_estimate`` calls to a bare rclpy
+Trigger server in a process of its own that answers a message of the node's size at once
+(what the middleware alone costs).
 
     .venv/bin/python bench/bench_services.py [--repeat 3] [--timeout 60]
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -95,6 +97,7 @@ class Caller:
         while len(done) < len(calls) and time.monotonic() < end:
             time.sleep(0.005)
         return {'answered': len(done), 'calls': len(calls),
+                'refused': sum(not r.success for a in arrived.values() for _, r in a),
                 'in_order': all([k for k, _ in a] == sorted(k for k, _ in a)
                                 for a in arrived.values()),
                 'seconds': (max(done) - start) if done else float('nan'),
@@ -127,7 +130,7 @@ def wait_until(predicate, timeout: float) -> bool:
     return False
 
 
-def bursts(timeout: float) -> dict:
+def bursts() -> dict:
     from std_srvs.srv import SetBool, Trigger
 
     def n(srv, name, count, make=None):
@@ -170,7 +173,7 @@ def run(timeout: float) -> dict:
                           != 'starting' and estimate(caller)['num_samples'] > 1000, 180):
             raise SystemExit('the node gave no consistent estimate within 180 s')
         results = {name: caller.burst(calls, timeout)
-                   for name, calls in bursts(timeout).items()}
+                   for name, calls in bursts().items()}
         size = len(next(iter(results['200 get_estimate']['responses'].values()))[0][1].message)
         bare = subprocess.Popen([python, __file__, '--serve-bare', str(size)], cwd=REPO)
         results['baseline: 200 to a bare server'] = caller.burst(
@@ -179,6 +182,7 @@ def run(timeout: float) -> dict:
         return results
     finally:
         caller.close()
+        shutil.rmtree(tmp, ignore_errors=True)
         for proc in (bare, sim, node):
             if proc is not None:
                 proc.terminate()
@@ -204,7 +208,8 @@ def main() -> None:
         runs.append(run(args.timeout))
         for name, res in runs[-1].items():
             print(f'  run {r + 1}  {name:32s} answered {res["answered"]:4d} of '
-                  f'{res["calls"]:4d}  in order: {str(res["in_order"]):5s}  last answer '
+                  f'{res["calls"]:4d} ({res["refused"]} refused)  in order: '
+                  f'{str(res["in_order"]):5s}  last answer '
                   f'after {res["seconds"]:7.3f} s', flush=True)
     names = list(runs[0])
     median = {name: float(np.median([run[name]['seconds'] for run in runs]))
