@@ -1,13 +1,13 @@
 """Helpers for tests over real DDS: a private ROS context, nodes spun in a thread, the simulated
 arm as a subprocess, message collectors, service and parameter calls.
 
-Every test module takes a ROS_DOMAIN_ID of its own, claimed by a lock file for as long as it
-runs, so that other modules and a second suite on the same machine do not hear it;
+Every test module takes a ROS_DOMAIN_ID of its own, claimed by a file naming its pid for as
+long as it runs, so that other modules and a second suite on the same machine do not hear it;
 subprocesses get it through the environment.
 """
 from __future__ import annotations
 
-import fcntl
+import atexit
 import os
 import subprocess
 import sys
@@ -35,36 +35,56 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 
 
 DOMAIN_LOCKS = Path(tempfile.gettempdir()) / 'identification_node_test_domains'
-_CLAIMED: dict[int, int] = {}   # domain -> the descriptor holding its lock
+_CLAIMED: set[int] = set()
 
 
-def domain_id(module: str) -> int:
+def _claim(path: Path) -> bool:
+    """Create ``path`` holding this process's pid; a file of a process that ended is taken
+    over. A file, not a lock held on a descriptor: a run of the suite found its flock
+    released while the descriptor stayed open (some library unlocked a reused fd number)."""
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+        except FileExistsError:
+            try:
+                owner = int(path.read_text() or 0)
+                os.kill(owner, 0)          # raises if that process ended
+                return False
+            except (ProcessLookupError, ValueError, FileNotFoundError):
+                path.unlink(missing_ok=True)    # its owner ended: take it over
+                continue
+            except PermissionError:             # alive, another user's
+                return False
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        return True
+    return False
+
+
+def domain_id(module: str, first: int | None = None) -> int:
     """A ROS domain (1..100, FastDDS' safe range) for one test module, claimed for this
-    process until ``release_domain`` (or its exit): an exclusive lock per domain, so that
-    suites run side by side never share one. The search starts at a hash of the pid and
-    ``module``."""
+    process until ``release_domain`` (or its exit) by a file naming its pid, so that suites
+    run side by side never share one. The search starts at ``first`` (default: a hash of the
+    pid and ``module``)."""
     DOMAIN_LOCKS.mkdir(mode=0o777, exist_ok=True)
-    start = os.getpid() * 7 + zlib.crc32(module.encode())
+    start = (first - 1 if first is not None
+             else os.getpid() * 7 + zlib.crc32(module.encode()))
     for k in range(100):
         domain = 1 + (start + k) % 100
-        if domain in _CLAIMED:
-            continue
-        fd = os.open(DOMAIN_LOCKS / f'{domain}.lock', os.O_CREAT | os.O_RDWR, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        _CLAIMED[domain] = fd
-        return domain
+        if domain not in _CLAIMED and _claim(DOMAIN_LOCKS / f'{domain}.pid'):
+            _CLAIMED.add(domain)
+            return domain
     raise RuntimeError(f'no free ROS domain: all of 1..100 are claimed in {DOMAIN_LOCKS}')
 
 
 def release_domain(domain: int) -> None:
     """Give back a domain claimed by ``domain_id`` (nothing if it was not)."""
-    fd = _CLAIMED.pop(domain, None)
-    if fd is not None:
-        os.close(fd)
+    if domain in _CLAIMED:
+        _CLAIMED.discard(domain)
+        (DOMAIN_LOCKS / f'{domain}.pid').unlink(missing_ok=True)
+
+
+atexit.register(lambda: [release_domain(d) for d in list(_CLAIMED)])
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float, period: float = 0.02) -> Any:

@@ -1,5 +1,4 @@
 """The suite's ROS domains: two suites on one machine never share one (test/ros_helpers)."""
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -7,27 +6,39 @@ from pathlib import Path
 import ros_helpers
 
 CHILD = """
-import os, sys
+import sys
 sys.path.insert(0, {test!r})
-os.getpid = lambda: 0
 import ros_helpers
 print(ros_helpers.domain_id('same_module'), flush=True)
 sys.stdin.read()
 """
 
 
-def test_a_domain_held_by_another_process_is_not_taken(monkeypatch):
+def start_child():
+    """A process holding a domain of its own; (process, its domain)."""
     child = subprocess.Popen(
         [sys.executable, '-c', CHILD.format(test=str(Path(__file__).parent))],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    return child, int(child.stdout.readline())
+
+
+def test_a_domain_held_by_another_process_is_not_taken():
+    child, theirs = start_child()
     try:
-        theirs = int(child.stdout.readline())
-        monkeypatch.setattr(os, 'getpid', lambda: 0)   # the same first choice as the child's
-        ours = ros_helpers.domain_id('same_module')
-        try:
-            assert 1 <= ours <= 100 and ours != theirs
-        finally:
-            ros_helpers.release_domain(ours)
+        ours = ros_helpers.domain_id('same_module', first=theirs)
+        ros_helpers.release_domain(ours)
+        assert 1 <= ours <= 100 and ours != theirs
     finally:
         child.kill()
         child.wait()
+
+
+def test_the_domain_of_a_process_that_ended_is_taken_over():
+    child, theirs = start_child()
+    child.kill()     # no release: its claim stays behind, naming a process that ended
+    child.wait()
+    assert (ros_helpers.DOMAIN_LOCKS / f'{theirs}.pid').exists()
+    ours = ros_helpers.domain_id('same_module', first=theirs)
+    ros_helpers.release_domain(ours)
+    assert ours == theirs
+    assert not (ros_helpers.DOMAIN_LOCKS / f'{theirs}.pid').exists()
