@@ -169,8 +169,8 @@ def run(timeout: float) -> dict:
     caller = Caller()
     bare = None
     try:
-        if not wait_until(lambda: estimate(caller).get('consistency_status', 'starting')
-                          != 'starting' and estimate(caller)['num_samples'] > 1000, 180):
+        if not wait_until(lambda: (e := estimate(caller)).get('consistency_status', 'starting')
+                          != 'starting' and e['num_samples'] > 1000, 180):
             raise SystemExit('the node gave no consistent estimate within 180 s')
         results = {name: caller.burst(calls, timeout)
                    for name, calls in bursts().items()}

@@ -84,7 +84,10 @@ def release_domain(domain: int) -> None:
         (DOMAIN_LOCKS / f'{domain}.pid').unlink(missing_ok=True)
 
 
-atexit.register(lambda: [release_domain(d) for d in list(_CLAIMED)])
+@atexit.register
+def _release_all() -> None:
+    for domain in list(_CLAIMED):
+        release_domain(domain)
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float, period: float = 0.02) -> Any:

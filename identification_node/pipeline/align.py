@@ -52,8 +52,8 @@ class CurrentAlignment:
         self.pending = self.pending.concat(s)
         if len(s):
             self._first_js = min(self._first_js, float(s.stamps[0]))
-        if self.clock is not None and len(s):
-            self._seen = np.concatenate([self._seen, np.full(len(s), self.clock())])
+            if self.clock is not None:
+                self._seen = np.concatenate([self._seen, np.full(len(s), self.clock())])
 
     def add_currents(self, s: Samples) -> None:
         if len(s):
