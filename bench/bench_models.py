@@ -10,7 +10,9 @@ TX40 and Kinova Gen3 runs of ../shared/data instead (bench/recordings.py), masse
 URDF only.
 
     .venv/bin/python bench/bench_models.py [--arms ur5,panda] [--rates 100,500]
-        [--duration 60] [--recordings]
+        [--duration 60] [--recordings] [--config FILE]
+
+``--config``: a parameter YAML passed to every ``identify`` (e.g. other ``consistency.*``).
 """
 from __future__ import annotations
 
@@ -30,6 +32,10 @@ def _masses(ratios) -> str:
     return ' '.join(f'{r:.2f}' for r in ratios)
 
 
+def _config(args) -> list[str]:
+    return ['--config', args.config] if args.config else []
+
+
 def simulated(args) -> int:
     arms = args.arms.split(',') if args.arms else list(ARMS)
     rates = [float(r) for r in args.rates.split(',')] if args.rates else list(RATES)
@@ -41,7 +47,7 @@ def simulated(args) -> int:
             for rate in rates:
                 case = Case(arm, rate, args.duration)
                 start = time.perf_counter()
-                r = identify_case(case, Path(tmp))
+                r = identify_case(case, Path(tmp), _config(args))
                 ok = (r['consistent'] and not r['errors'] and r['heldout_ratio'] <= 1.03
                       and r['masses_ok'])
                 failures += not ok
@@ -64,7 +70,7 @@ def recordings(args) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in RECORDINGS:
             try:
-                r = identify_recording(name, Path(tmp))
+                r = identify_recording(name, Path(tmp), _config(args))
             except RuntimeError as exc:   # identify's own error line is above
                 print(f'{name} | not identified: {exc}', flush=True)
                 continue
@@ -86,6 +92,7 @@ def main() -> int:
     parser.add_argument('--duration', type=float, default=60.0, help='s per motion')
     parser.add_argument('--recordings', action='store_true',
                         help='the real recordings of ../shared/data instead')
+    parser.add_argument('--config', help='parameter YAML given to every identify')
     args = parser.parse_args()
     return recordings(args) if args.recordings else simulated(args)
 

@@ -347,6 +347,36 @@ def test_solution_within_tolerance_is_projected(panda, monkeypatch):
     assert any('projection' in n for n in result.notes)
 
 
+def test_inaccurate_solver_answer_is_checked_without_a_warning(panda, monkeypatch):
+    """cvxpy warns 'Solution may be inaccurate' (to stderr: identify's output, the node's log)
+    when Clarabel stops near its tolerance; the answer is checked and projected here, so the
+    solve does not pass the warning on. The result is the solver's, consistent."""
+    import warnings
+
+    robot, base = panda
+    Yb, tau = data(robot, base, truth(robot), 5.0, 0.6, 0.1, seed=15)
+    ne = NormalEquations.from_rows(Yb, tau)
+    solver = ConsistentSolver.for_robot(robot, base)
+    solve = solver.problem.solve
+
+    def inaccurate(*args, **kwargs):
+        value = solve(*args, **kwargs)
+        warnings.warn('Solution may be inaccurate. Try another solver, adjusting the solver '
+                      'settings, or solve with verbose=True for more information.', UserWarning)
+        return value
+    monkeypatch.setattr(solver.problem, 'solve', inaccurate)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        result = solver.solve(ne, 100.0)
+    assert result.ok and result.method == 'CLARABEL'
+    assert consistency_problems(robot, result.phi) == []
+    with pytest.warns(UserWarning, match='something else'):   # only that warning is silenced
+        monkeypatch.setattr(solver.problem, 'solve',
+                            lambda *a, **k: (warnings.warn('something else', UserWarning),
+                                             solve(*a, **k))[1])
+        solver.solve(ne, 100.0)
+
+
 @pytest.mark.slow
 def test_solver_process_equals_in_process_and_survives_its_child(panda):
     """The node's solver runs in a child process: same result; a child that died is replaced

@@ -41,6 +41,7 @@ consistent estimate (the caller then keeps the unconstrained one and says so as 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -394,7 +395,9 @@ class ConsistentSolver:
             opts['eps_abs'] = opts['eps_rel'] = 1e-6
         begin = time.perf_counter()
         try:
-            self.problem.solve(**opts)
+            with warnings.catch_warnings():   # an inaccurate answer is checked below
+                warnings.filterwarnings('ignore', 'Solution may be inaccurate', UserWarning)
+                self.problem.solve(**opts)
             status = self.problem.status
         except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
             status = f'solver_error: {exc}'
