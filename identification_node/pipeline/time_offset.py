@@ -4,7 +4,8 @@ Motor currents and joint states often come from two drivers with two clocks; a t
 stamped late or early by a fraction of a second is paired with the wrong motion, and the
 estimate is silently wrong. The check fits the base regressor rows Yb(t) of the motion to
 the torque shifted in time, tau(t + s), by least squares for every shift s within
-``search`` seconds, and takes the shift of the smallest residual: the offset by which the
+``search`` seconds, and takes the shift of the smallest residual, each joint weighted by its
+noise floor (the smallest residual its own fit reaches at any shift): the offset by which the
 torque is late (s > 0: the torque's stamps are s too late against the joint states; the same
 holds for an effort carried in the joint states themselves). Model-free: the parameters are
 refitted at each shift, so it does not trust the description's inertials.
@@ -26,12 +27,13 @@ from scipy.signal import fftconvolve
 
 RATE = 250.0           # Hz the buffered rows are decimated to (lag resolution 4 ms)
 SIGNIFICANCE = 1.05    # residual RMS ratio (zero shift / best shift) needed to report
+NOISE_FLOOR = 1e-6     # a joint's noise floor at least this fraction of its torque's RMS
 
 
 @dataclass(frozen=True)
 class TimeOffset:
     """The estimated offset (s; > 0: the torque is late), the residual RMS of the fit at zero
-    shift and at the best one (per joint relative to its torque's RMS), the seconds of data
+    shift and at the best one (per joint in units of its noise floor), the seconds of data
     and the +- seconds searched; ``level`` 0 fine, 1 warned of, 2 refused."""
     offset: float
     rms_aligned: float
@@ -67,32 +69,42 @@ def estimate_offset(rows: np.ndarray, tau: np.ndarray, dt: float, search: float,
     L = int(search / dt)
     if L < 1 or M - 2 * L < max(2 * b, 2 * L):
         return None
-    rms = np.sqrt(np.mean(tau ** 2, axis=0))
-    scale = np.divide(1.0, rms, out=np.zeros_like(rms), where=rms > 0)
-    rows, tau = rows * scale[None, :, None], tau * scale
     centre = rows[L:M - L]                                   # (Mc, n, b)
-    A = np.einsum('ijk,ijl->kl', centre, centre)
-    # b_s = sum_i sum_j centre[i, j] tau[L + i + s, j] for s = -L..L: a correlation
-    cross = fftconvolve(tau[:, :, None], centre[::-1], mode='valid', axes=0).sum(axis=1)
-    sq = np.concatenate([[0.0], np.cumsum((tau ** 2).sum(axis=1))])
     Mc = M - 2 * L
-    energy = sq[Mc:Mc + 2 * L + 1] - sq[:2 * L + 1]          # sum of tau^2 at each shift
-    w, V = np.linalg.eigh(A)
-    keep = w > max(w.max(), 0.0) * 1e-10
-    proj = (cross @ V[:, keep]) / np.sqrt(w[keep])
-    rss = np.maximum(energy - (proj ** 2).sum(axis=1), 0.0)
+    # per joint j and shift s = -L..L: cross[s, j] = sum_i centre[i, j] tau[L + i + s, j]
+    cross = fftconvolve(tau[:, :, None], centre[::-1], mode='valid', axes=0)
+    sq = np.concatenate([np.zeros((1, n)), np.cumsum(tau ** 2, axis=0)])
+    energy = sq[Mc:Mc + 2 * L + 1] - sq[:2 * L + 1]          # (2L+1, n): sum of tau^2
+    A = np.einsum('ijk,ijl->jkl', centre, centre)            # (n, b, b)
+    # Each joint weighted by its noise floor, the best its own fit reaches at any shift (a
+    # joint whose torque is mostly noise must not outweigh the others' misfit)
+    rms = np.sqrt(np.mean(tau ** 2, axis=0))
+    own = [_rss(A[j], cross[:, j], energy[:, j]) for j in range(n)]
+    floor = np.array([r.min() / max(Mc - rank, 1) for r, rank in own])
+    sigma = np.sqrt(np.maximum(floor, (NOISE_FLOOR * rms) ** 2))
+    w = np.divide(1.0, sigma ** 2, out=np.zeros(n), where=rms > 0)
+    rss, _ = _rss(np.einsum('j,jkl->kl', w, A), np.einsum('j,sjk->sk', w, cross), energy @ w)
     k = int(np.argmin(rss))
     shift = float(k - L)
     if 0 < k < 2 * L:   # parabola through the minimum and its neighbours
         curve = rss[k - 1] - 2 * rss[k] + rss[k + 1]
         if curve > 0:
             shift += 0.5 * float(rss[k - 1] - rss[k + 1]) / curve
-    residual = np.sqrt(rss / (Mc * n))
+    residual = np.sqrt(rss / (Mc * max(int(np.count_nonzero(w)), 1)))
     found = TimeOffset(float(shift * dt), float(residual[L]), float(residual[k]),
                        float(M * dt), float(L * dt))
     if warn > 0 and found.ratio > SIGNIFICANCE and abs(found.offset) > warn:
         return replace(found, level=2 if abs(found.offset) > refuse else 1)
     return found
+
+
+def _rss(A: np.ndarray, cross: np.ndarray, energy: np.ndarray) -> tuple[np.ndarray, int]:
+    """(residual sum of squares at each shift (S,), rank) of the least squares with normal
+    matrix ``A`` (b, b), right-hand sides ``cross`` (S, b) and sums of squares ``energy``."""
+    w, V = np.linalg.eigh(A)
+    keep = w > max(w.max(initial=0.0), 0.0) * 1e-10
+    proj = (cross @ V[:, keep]) / np.sqrt(w[keep])
+    return np.maximum(energy - (proj ** 2).sum(axis=1), 0.0), int(keep.sum())
 
 
 class TimeOffsetCheck:
