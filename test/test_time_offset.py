@@ -3,8 +3,8 @@ bundled MIT bag with its /motor_currents stamped late or early, and a bag whose 
 its own positions, against the shifts put in."""
 import json
 import re
-import sys
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np

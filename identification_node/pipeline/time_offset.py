@@ -82,15 +82,16 @@ def estimate_offset(rows: np.ndarray, tau: np.ndarray, dt: float, search: float,
     own = [_rss(A[j], cross[:, j], energy[:, j]) for j in range(n)]
     floor = np.array([r.min() / max(Mc - rank, 1) for r, rank in own])
     sigma = np.sqrt(np.maximum(floor, (NOISE_FLOOR * rms) ** 2))
-    w = np.divide(1.0, sigma ** 2, out=np.zeros(n), where=rms > 0)
-    rss, _ = _rss(np.einsum('j,jkl->kl', w, A), np.einsum('j,sjk->sk', w, cross), energy @ w)
+    weight = np.divide(1.0, sigma ** 2, out=np.zeros(n), where=rms > 0)
+    rss, _ = _rss(np.einsum('j,jkl->kl', weight, A), np.einsum('j,sjk->sk', weight, cross),
+                  energy @ weight)
     k = int(np.argmin(rss))
     shift = float(k - L)
     if 0 < k < 2 * L:   # parabola through the minimum and its neighbours
         curve = rss[k - 1] - 2 * rss[k] + rss[k + 1]
         if curve > 0:
             shift += 0.5 * float(rss[k - 1] - rss[k + 1]) / curve
-    residual = np.sqrt(rss / (Mc * max(int(np.count_nonzero(w)), 1)))
+    residual = np.sqrt(rss / (Mc * max(int(np.count_nonzero(weight)), 1)))
     found = TimeOffset(float(shift * dt), float(residual[L]), float(residual[k]),
                        float(M * dt), float(L * dt))
     if warn > 0 and found.ratio > SIGNIFICANCE and abs(found.offset) > warn:
