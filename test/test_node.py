@@ -49,6 +49,7 @@ from ros_helpers import (LATCHED, RELIABLE, Collector, diagnostic_values,
 pytestmark = pytest.mark.ros
 
 DURATION = 15.0
+INPUT_DEPTH = 20_000    # the reader caches of reliable() hold a whole run (15,001 samples)
 OFFSET = 1000.0          # s: stamps = OFFSET + sample time
 POSITION_NOISE = {'noise.position_std': 1e-5, 'noise.encoder_counts': 2 ** 20,
                   'noise.velocity_std': 1e-4}
@@ -79,10 +80,13 @@ def start_node(ros, name, params, prefix):
 
 
 def reliable(prefix):
-    """QoS overrides making the node's subscriptions reliable: under CPU contention (2 cores
-    shared with other test processes) best effort loses messages, and these tests count them."""
-    return {f'qos_overrides./{prefix}/{t}.subscription.reliability': 'reliable'
-            for t in ('joint_states', 'motor_currents')}
+    """QoS overrides making the node's subscriptions reliable, their reader caches deep enough
+    for a whole run: under CPU contention (2 cores shared with other test processes) best
+    effort loses messages, and a node not taking them for over a second (the default depth,
+    1000, at 1 kHz) loses the oldest; these tests count every sample."""
+    return {f'qos_overrides./{prefix}/{t}.subscription.{policy}': value
+            for t in ('joint_states', 'motor_currents')
+            for policy, value in (('reliability', 'reliable'), ('depth', INPUT_DEPTH))}
 
 
 def start_node_process(ros, name, params, tmp, remaps=()):
