@@ -20,6 +20,7 @@ pytestmark = pytest.mark.ros
 
 MIT = load_robot('mit_dd_arm')
 DURATION = 3.0
+RATE = 1000.0   # Hz of the arm in mit_run
 OFFSET = 100.0
 PAYLOAD = 2.0   # kg added at the tip of link 3 in the true parameters
 TORQUE = {'torque_source': ['three_phase', 'three_phase', 'current'], 'kt': [12.0, 6.0, 0.5],
@@ -50,7 +51,7 @@ def mit_run(ros, tmp_path_factory):
     js = Collector(ros, JointState, 'joint_states')
     cur = Collector(ros, JointState, 'motor_currents')
     clock = Collector(ros, Clock, '/clock')
-    params = dict(TORQUE, robot='mit_dd_arm', trajectory='fourier', rate=1000.0,
+    params = dict(TORQUE, robot='mit_dd_arm', trajectory='fourier', rate=RATE,
                   duration=DURATION, publish_currents=True, publish_electrical_angle=True,
                   publish_clock=True, stamp_offset=OFFSET, true_parameters_file=str(true_file),
                   wait_for_subscribers=2)
@@ -63,7 +64,7 @@ def mit_run(ros, tmp_path_factory):
     proc.wait(DURATION + 30)
     ended = time.monotonic() - started
     wait_for(lambda: len(cur) >= len(js), 2)
-    run = dict(js=js.snapshot(), js_arrivals=list(js.arrivals), cur=cur.snapshot(),
+    run = dict(js=js.snapshot(), cur=cur.snapshot(),
                clock=clock.snapshot(), desc=desc.snapshot(), proc=proc, phi=phi,
                stderr=proc.stderr.read(), ended=ended)
     for c in (js, cur, clock, desc):
@@ -91,16 +92,17 @@ def test_stamps_are_sample_times_spaced_one_over_rate(mit_run):
 
 
 def test_rate_achieved_in_real_time(mit_run):
-    """The samples are paced by their stamps (scheduled on the monotonic clock): not faster,
-    and the arm reports the share of real time its work took. How much slower a busy
-    machine makes them is bench_node's to measure, not a bound here."""
-    stamps = arrays(mit_run['js'])[0]
-    span = (stamps[-1] - stamps[0]) * 1e-9
-    arrivals = np.array(mit_run['js_arrivals'])
-    wall = arrivals[-1] - arrivals[0]
-    assert wall >= span - 0.2
-    load = float(re.search(r'took (\d+) % of real time', mit_run['stderr']).group(1))
-    assert load > 0
+    """The samples are paced by their stamps (scheduled on the monotonic clock): the arm's
+    first and last publications are not closer in time than their stamps, and it reports the
+    share of real time its work took. Measured on the arm's own clock, not by arrivals here (a
+    busy machine delivers the first samples late, shortening their span). How much slower a
+    busy machine makes them is bench_node's to measure, not a bound here."""
+    found = re.search(r'(\d+) samples in ([0-9.]+) s; .* took (\d+) % of real time',
+                      mit_run['stderr'])
+    assert found, mit_run['stderr']
+    span = (int(found[1]) - 1) / RATE   # the first sample's stamp to the last's
+    assert float(found[2]) >= span - 0.005, found[0]
+    assert int(found[3]) > 0
 
 
 def test_currents_give_back_the_torque_the_dynamics_imply(mit_run):
