@@ -30,11 +30,9 @@ def test_bag_played_to_the_node_agrees_with_offline_replay(ros, bag, tmp_path):
     est = offline.pipeline.estimate()
     name = f'play_{bag}'
     # Reliable, and a queue deeper than the bag: a node stalled by a loaded machine must not
-    # lose the messages that arrive meanwhile (KEEP_LAST drops the oldest, reliable or not).
-    depth = {f'qos_overrides./{name}/{t}.subscription.depth': 50000
-             for t in ('joint_states', 'motor_currents')}
+    # lose the messages that arrive meanwhile.
     params = dict(config, process_period=0.01, output_directory=str(tmp_path / 'out'),
-                  **reliable(name), **depth)
+                  **reliable(name, depth=50000))
     node = start_node_process(ros, name, params, tmp_path, remaps(name))
 
     def live_estimate():

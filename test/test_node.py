@@ -79,14 +79,14 @@ def start_node(ros, name, params, prefix):
                                       cli_args=args))
 
 
-def reliable(prefix):
-    """QoS overrides making the node's subscriptions reliable, their reader caches deep enough
-    for a whole run: under CPU contention (2 cores shared with other test processes) best
+def reliable(prefix, depth=INPUT_DEPTH):
+    """QoS overrides making the node's subscriptions reliable, their reader caches ``depth``
+    deep (a whole run): under CPU contention (2 cores shared with other test processes) best
     effort loses messages, and a node not taking them for over a second (the default depth,
-    1000, at 1 kHz) loses the oldest; these tests count every sample."""
+    1000, at 1 kHz) loses the oldest, reliable or not; these tests count every sample."""
     return {f'qos_overrides./{prefix}/{t}.subscription.{policy}': value
             for t in ('joint_states', 'motor_currents')
-            for policy, value in (('reliability', 'reliable'), ('depth', INPUT_DEPTH))}
+            for policy, value in (('reliability', 'reliable'), ('depth', depth))}
 
 
 def start_node_process(ros, name, params, tmp, remaps=()):

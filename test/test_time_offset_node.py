@@ -22,12 +22,10 @@ REPO = Path(__file__).resolve().parents[1]
 def test_the_node_reports_currents_stamped_late(ros, tmp_path):
     bag = shift_topic(REPO / 'bags' / 'mit_exciting', tmp_path / 'late', '/motor_currents', 0.5)
     name = 'offset_node'
-    depth = {f'qos_overrides./{name}/{t}.subscription.depth': 50000
-             for t in ('joint_states', 'motor_currents')}
     # the bag has 8 s: estimate on its first 5 s of motion (the default is 10 s)
     params = dict(read_parameter_file(REPO / 'config' / 'identification.yaml'),
                   output_directory=str(tmp_path / 'out'), **{'time_offset.seconds': 5.0},
-                  **reliable(name), **depth)
+                  **reliable(name, depth=50000))
     diagnostics = Collector(ros, DiagnosticArray, '/diagnostics')
     node = start_node_process(ros, name, params, tmp_path, remaps(name))
 
