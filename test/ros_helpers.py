@@ -192,12 +192,11 @@ class RosHarness:
 
 
 class Collector:
-    """Messages of one topic, thread-safe, with their arrival times (time.monotonic)."""
+    """Messages of one topic, thread-safe."""
 
     def __init__(self, harness: RosHarness, msg_type, topic: str, qos: QoSProfile = RELIABLE,
                  node: Node | None = None):
         self.messages: list = []
-        self.arrivals: list[float] = []
         self._lock = threading.Lock()
         self.node = node or harness.client
         self.sub = self.node.create_subscription(msg_type, topic, self._cb, qos)
@@ -205,7 +204,6 @@ class Collector:
     def _cb(self, msg) -> None:
         with self._lock:
             self.messages.append(msg)
-            self.arrivals.append(time.monotonic())
 
     def __len__(self) -> int:
         return len(self.messages)
