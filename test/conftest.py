@@ -62,11 +62,12 @@ def _ros_only_with_the_marker(request, monkeypatch):
 @pytest.fixture(scope='module')
 def ros(request):
     """A RosHarness (context, client node, spinning executors) on the test module's own ROS
-    domain, shut down after the module."""
+    domain, shut down after the module, which then fails if a callback raised."""
     from ros_helpers import RosHarness, domain_id
     harness = RosHarness(domain_id(request.module.__name__))
     yield harness
     harness.shutdown()
+    harness.check()
 
 
 @pytest.fixture(scope='module')

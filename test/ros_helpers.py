@@ -14,16 +14,19 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 import zlib
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import rclpy
 import yaml
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = str(ROOT / '.venv' / 'bin' / 'python') if (ROOT / '.venv').is_dir() else sys.executable
@@ -110,26 +113,55 @@ class RosHarness:
         rclpy.init(context=self.context, domain_id=domain)
         self._spinners: dict = {}
         self._clients: dict = {}
+        self.errors: list[str] = []
         self.procs: list[subprocess.Popen] = []
         self.client = self.add(Node('test_client', context=self.context))
 
     def add(self, node: Node) -> Node:
         executor = SingleThreadedExecutor(context=self.context)
         executor.add_node(node)
-        thread = threading.Thread(target=self._spin, args=(executor,), daemon=True)
+        stop = threading.Event()
+        thread = threading.Thread(target=self._spin, args=(executor, node.get_name(), stop),
+                                  daemon=True)
         thread.start()
-        self._spinners[node] = (executor, thread)
+        self._spinners[node] = (executor, thread, stop)
         return node
 
-    @staticmethod
-    def _spin(executor) -> None:
-        try:
-            executor.spin()
-        except Exception:  # context shut down while spinning
-            pass
+    def _spin(self, executor, name: str, stop: threading.Event) -> None:
+        """Spin until ``stop``. A callback's exception is kept for ``check`` (rclpy's spin()
+        would end the thread, and every later call to the node would go unanswered), and an
+        entity destroyed from the test thread while the executor had it selected is not one:
+        rclpy raises InvalidHandle for that race (ros2/rclpy#1355) and the next wait no
+        longer has the entity."""
+        never = Future()    # slices of many events: about half the cost of spin_once each
+        while not stop.is_set() and self.context.ok():
+            try:
+                executor.spin_until_future_complete(never, timeout_sec=0.1)
+            except InvalidHandle:
+                continue
+            except Exception as exc:
+                if stop.is_set() or not self.context.ok():
+                    return      # shut down while spinning
+                if len(self.errors) < 20:
+                    self.errors.append(f'{name}: {type(exc).__name__}: {exc}')
+
+    def check(self) -> None:
+        """Fail naming the exceptions raised in the spinning nodes' callbacks, if any."""
+        assert not self.errors, 'exceptions in callbacks: ' + '; '.join(self.errors)
+
+    def spinner_state(self, node: Node) -> str:
+        """Whether ``node``'s spinning thread lives, and where it is (for a failure message)."""
+        thread = self._spinners[node][1]
+        frame = sys._current_frames().get(thread.ident)
+        if frame is None:
+            return f'the thread spinning {node.get_name()} ended'
+        where = ' <- '.join(f'{Path(f.filename).name}:{f.lineno} {f.name}'
+                            for f in reversed(traceback.extract_stack(frame)[-6:]))
+        return f'the thread spinning {node.get_name()} is at {where}'
 
     def remove(self, node: Node) -> None:
-        executor, thread = self._spinners.pop(node)
+        executor, thread, stop = self._spinners.pop(node)
+        stop.set()
         executor.shutdown()
         thread.join(5)
         node.destroy_node()
@@ -174,7 +206,9 @@ class RosHarness:
             client = self._clients[name] = self.client.create_client(srv_type, name)
         assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
         future = client.call_async(request)
-        assert wait_for(future.done, timeout), f'service {name} did not answer'
+        done = wait_for(future.done, timeout)
+        self.check()
+        assert done, f'service {name} did not answer; {self.spinner_state(self.client)}'
         return future.result()
 
     def get_parameters(self, target: str, names: list[str]) -> dict:

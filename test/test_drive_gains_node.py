@@ -6,17 +6,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.srv import GetParameters
 
 from arms import arm_urdf
-from ros_helpers import Collector, RosHarness, diagnostic_values, domain_id, wait_for
+from ros_helpers import Collector, diagnostic_values, wait_for
 
 KT_ERROR = [0.15, -0.12, 0.18, -0.10, 0.20, 0.11]
 NS = '/dg'
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 @pytest.mark.ros

@@ -12,19 +12,11 @@ from sensor_msgs.msg import JointState
 from identification_node.ros.conversions import PolledSubscription, wait_for_all_acked
 from identification_node.ros.node import IdentificationNode
 from identification_node.wire.cdr import encode_joint_states
-from ros_helpers import (RELIABLE, Collector, RosHarness, diagnostic_values, domain_id,
-                         wait_for)
+from ros_helpers import (RELIABLE, Collector, diagnostic_values, wait_for)
 
 pytestmark = pytest.mark.ros
 
 WIDE = 12_500          # doubles per message: ~100 kB each
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 def wide_messages(n, first=0):

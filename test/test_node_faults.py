@@ -17,7 +17,7 @@ from std_srvs.srv import Trigger
 from identification_node.ros.node import IdentificationNode
 from identification_node.ros.spin import STALLED_EXIT
 from identification_node.wire.cdr import encode_joint_states
-from ros_helpers import PYTHON, ROOT, RosHarness, domain_id, wait_for
+from ros_helpers import PYTHON, ROOT, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -25,13 +25,6 @@ BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          reliability=ReliabilityPolicy.BEST_EFFORT)
 BURST = 20_000
 HANG = 30.0       # s: no sign of life for this long is a hang (these tests measure nothing)
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 def node_process(ros, tmp_path, name, **params):

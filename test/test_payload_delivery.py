@@ -12,7 +12,7 @@ from sensor_msgs.srv import SetCameraInfo
 from identification_node.errors import IdentificationError
 from identification_node.payload.delivery import PRESETS, fill_request, parse_fields
 from identification_node.ros.payload_forwarder import PayloadForwarder
-from ros_helpers import LATCHED, RosHarness, domain_id, wait_for
+from ros_helpers import LATCHED, wait_for
 
 
 def inertia():
@@ -95,13 +95,6 @@ def test_bad_mappings_refused():
         fill_request(URSetPayloadRequest(), {'payload_mass': 'mass'}, inertia())
     with pytest.raises(IdentificationError, match='has 9 elements, not 3'):
         fill_request(FrankaSetLoadRequest(), {'load_inertia': 'com'}, inertia())
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 @pytest.mark.ros

@@ -14,20 +14,13 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
 
-from ros_helpers import LATCHED, Collector, RosHarness, diagnostic_values, domain_id, wait_for
+from ros_helpers import LATCHED, Collector, diagnostic_values, wait_for
 
 pytestmark = pytest.mark.ros
 
 URDF = 'test/fixtures/panda_like.urdf'
 PICK = 3.0                       # s (sample time) the arm picks the payload up
 MASS, COM = 1.0, [0.0, 0.02, 0.06]
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 def reliable(prefix):

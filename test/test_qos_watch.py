@@ -11,7 +11,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from ros_helpers import RELIABLE, Collector, RosHarness, diagnostic_values, domain_id, wait_for
+from ros_helpers import RELIABLE, Collector, diagnostic_values, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -20,13 +20,6 @@ BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 TRANSIENT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                        reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 def test_incompatible_qos_is_logged_with_both_profiles_and_counted(ros, tmp_path):

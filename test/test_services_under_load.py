@@ -17,7 +17,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool, Trigger
 
-from ros_helpers import LATCHED, Collector, RosHarness, domain_id, wait_for
+from ros_helpers import LATCHED, Collector, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -26,13 +26,6 @@ NAME = 'loaded'
 # The callers' side of the calls: a reply queue as deep as the burst (the node's is).
 CLIENT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                         reliability=ReliabilityPolicy.RELIABLE)
-
-
-@pytest.fixture(scope='module')
-def ros():
-    harness = RosHarness(domain_id(__name__))
-    yield harness
-    harness.shutdown()
 
 
 @pytest.fixture(scope='module')
