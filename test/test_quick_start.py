@@ -57,14 +57,22 @@ def test_the_readme_quick_start_identifies_the_simulated_arm(ros):
         for p in procs:
             assert p.poll() is None, p.communicate()[1][-2000:]
         assert values is not None, f'not converged on 2000 samples in 90 s: {last[0]}'
-        assert int(values.get('rejected.no_current', 0)) == 0
         # nothing refused at the input (the robust gate may flag a few of the noise-free
         # samples once converged: rejected.outlier; on a busy machine, one topic's messages
-        # from before the node heard the other's first: rejected.before_*)
+        # from before the node heard the other's first: rejected.before_*). A message the
+        # middleware lost or the node's queue dropped (the README's default QoS, a busy
+        # machine) leaves its partner on the other topic alone: as many as the node counted
+        # on that topic are allowed.
+        lost = {k: int(values.get(f'lost_messages.{k}', 0))
+                + int(values.get(f'dropped_messages.{k}', 0))
+                for k in ('joint_states', 'motor_currents')}
+        allowed = {'rejected.no_current': lost['motor_currents'],
+                   'rejected.unmatched_current': lost['joint_states']}
         rejected = {k: v for k, v in values.items() if k.startswith('rejected.') and v != '0'
                     and k not in ('rejected.outlier', 'rejected.before_currents',
-                                  'rejected.before_joint_states')}
-        assert not rejected, rejected
+                                  'rejected.before_joint_states')
+                    and int(v) > allowed.get(k, 0)}
+        assert not rejected, (rejected, lost)
         assert int(values.get('rejected.outlier', 0)) < 0.05 * int(values['samples_used'])
         assert values['converged'] == 'true' and float(values['condition_number']) < 1e8
     finally:
