@@ -183,10 +183,13 @@ class Consistency:
         1e-3, "weight of the log-det prior toward the description's inertials where no "
         'consistent body lies in the confidence region, in chi-square units of the data term')
     confidence: float = setting(
-        0.99, "chi-square level of the data's confidence region inside which the prior "
+        0.1, "chi-square level of the data's confidence region inside which the prior "
         "(closest to the description) chooses; 0: none, the data's best consistent fit")
     mass_ratio: float = setting(3.0, "each link's mass within [1/r, r] times the "
                                 "description's (0: no bound); a bound in use is reported")
+    mass_weight: float = setting(
+        30.0, "weight w of sum_i |m_i / m0_i - 1| beside the log-det prior: where the data "
+        "leave link masses open, as few as possible move from the description's (0: none)")
     total_mass: list[float] = setting([], "kg, [lo, hi] of the identified links' total mass "
                                       '(empty: none)', unit='kg', element=float)
     margin: float = setting(1e-6, 'pseudo-inertia margin: J - margin * 1 >= 0 (kg, kg m^2)',

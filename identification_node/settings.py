@@ -74,7 +74,7 @@ class Settings:
             weight=c.weight, margin=c.margin, solver=c.solver.upper(), time_limit=c.time_limit,
             geometry_box=c.geometry_box, mass_min=tuple(c.mass_min), mass_max=tuple(c.mass_max),
             com_box=tuple(c.com_box), confidence=c.confidence, mass_ratio=c.mass_ratio,
-            total_mass=tuple(c.total_mass))
+            total_mass=tuple(c.total_mass), mass_weight=c.mass_weight)
         options.validate()
         return options
 

@@ -414,6 +414,8 @@ def test_options_are_validated():
         ConsistencyOptions(com_box=(0,) * 6).validate(2)
     with pytest.raises(IdentificationError, match='consistency.solver'):
         ConsistencyOptions(solver='MOSEK').validate()
+    with pytest.raises(IdentificationError, match='consistency.mass_weight'):
+        ConsistencyOptions(mass_weight=-1.0).validate()
 
 
 def test_one_extra_body_payload_reuse():

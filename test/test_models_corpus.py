@@ -30,17 +30,32 @@ def test_noise_free_ur5_is_consistent_by_the_first_solver(rate, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('arm, rate', [('z1', 250.0), ('xarm7', 500.0)])
+@pytest.mark.parametrize('arm, rate', [('ur5', 250.0), ('ur10', 100.0), ('panda', 100.0),
+                                       ('kinova', 250.0), ('xarm7', 500.0), ('z1', 250.0)])
 def test_corpus_case_meets_the_targets(arm, rate, tmp_path):
     """A perturbed prior (URDF bodies 30 % off the truth), friction with a Stribeck bump the
-    model lacks, sensor noise: consistent by a conic solver, held-out error within 3 % of the
-    unconstrained fit's, every link mass within 30 % of the truth or between the URDF and the
-    truth, and the normalised base-parameter errors of unit size."""
-    r = identify_case(Case(arm, rate, 20.0), tmp_path)
+    model lacks, sensor noise, 30 s of motion: consistent by a conic solver, held-out error
+    within 3 % of the unconstrained fit's, every link mass within 30 % of the truth or between
+    the URDF and the truth, and the normalised base-parameter errors of unit size."""
+    r = identify_case(Case(arm, rate, 30.0), tmp_path)
     assert r['consistent'] and not r['errors'] and r['path'] == 'CLARABEL', r
     assert r['heldout_ratio'] <= 1.03, r
     assert r['masses_ok'], (r['truth_ratio'], r['urdf_ratio'])
     assert r['z_rms'] < 1.5, r['z_rms']
+
+
+@pytest.mark.slow
+def test_without_the_mass_term_a_light_link_moves_the_wrong_way(tmp_path):
+    """The UR5's wrist_3 (0.7 x its URDF mass in truth) and wrist_2 (1.3 x) enter the data
+    together: the log-det prior alone moves both, wrist_3 above its URDF mass (away from the
+    truth); the default L1 mass term moves wrist_2 only."""
+    config = tmp_path / 'no_mass_term.yaml'
+    config.write_text('/**:\n  ros__parameters:\n    consistency:\n      mass_weight: 0.0\n')
+    case = Case('ur5', 250.0, 30.0)
+    alone = identify_case(case, tmp_path / 'alone', ['--config', str(config)])
+    default = identify_case(case, tmp_path / 'default')
+    assert alone['urdf_ratio'][5] > 1.02 and not alone['masses_ok'], alone['urdf_ratio']
+    assert default['masses_ok'] and abs(default['urdf_ratio'][5] - 1) < 1e-3, default
 
 
 def test_joint_state_bag_round_trip(tmp_path):

@@ -5,20 +5,24 @@ weighted least squares gives their centre c and information G (chi-square units 
 weights w_j are the inverse noise variances). The solve looks for the full standard parameters
 phi (robot.py's order) minimising
 
-    sum_i d(J_i || J0_i) + sum_k ((x_k - x0_k) / s_k)^2 + t / gamma    (the prior; the excess)
-    subject to  (K phi - c)' G_f (K phi - c) <= q + t,  t >= 0,
+    sum_i [d(J_i || J0_i) + w |m_i / m0_i - 1|] + sum_k ((x_k - x0_k) / s_k)^2 + t / gamma
+    subject to  (K phi - c)' G_f (K phi - c) <= q + t,  t >= 0
 
-and, per body i (an identified link with what is merged into it), its own pseudo-inertia
-J_i - eps_i 1 >= 0 (Wensing, Kim and Slotine 2017: mass > 0, inertia about the centre of mass
-positive definite, triangle inequalities), optional mass bounds (absolute, a ratio to the
-description's, the total) and a box for its centre of mass, and fv, fc, Ia >= 0 for the
-per-joint columns x. The pseudo-inertia of a block [m, mx, my, mz, Ixx, Ixy, Ixz, Iyy, Iyz,
-Izz] (inertia I about the frame origin) is
+(the prior, then the excess), and, per body i (an identified link with what is merged into
+it), its own pseudo-inertia J_i - eps_i 1 >= 0 (Wensing, Kim and Slotine 2017: mass > 0,
+inertia about the centre of mass positive definite, triangle inequalities), optional mass
+bounds (absolute, a ratio to the description's, the total) and a box for its centre of mass,
+and fv, fc, Ia >= 0 for the per-joint columns x. The pseudo-inertia of a block [m, mx, my, mz,
+Ixx, Ixy, Ixz, Iyy, Iyz, Izz] (inertia I about the frame origin) is
 
     J = [[Sigma, h], [h', m]],  Sigma = tr(I)/2 1 - I,  h = (mx, my, mz).
 
 d is the log-det (Bregman) divergence of Lee, Wensing and Park 2020,
-d(J || J0) = -log det(J0^-1 J) + tr(J0^-1 J) - 4, toward the description's own inertials. q is
+d(J || J0) = -log det(J0^-1 J) + tr(J0^-1 J) - 4, toward the description's own inertials. The
+data never determine a link's mass alone, only combinations with its neighbours' masses and
+first moments; d alone spreads a change of such a combination over every link in it, moving
+light links the wrong way. The L1 term (``mass_weight`` w, of the description's masses m0_i)
+moves as few masses as the data need. q is
 the chi-square quantile of the stated ``confidence`` level with as many degrees of freedom as
 the data determine: among the parameters the data cannot tell apart from their best fit, the
 one closest to the description. That prior does not fade as the recording grows: the region
@@ -142,6 +146,7 @@ class ConsistencyOptions:
     confidence: float = Consistency.confidence   # chi-square level of the data's region
     mass_ratio: float = Consistency.mass_ratio   # link masses within [1/r, r] x description's
     total_mass: Sequence[float] = tuple(default('consistency.total_mass'))
+    mass_weight: float = Consistency.mass_weight   # w of |m / m0 - 1| beside the log-det
 
     def validate(self, num_links: int | None = None) -> None:
         """IdentificationError naming the first bad setting (``consistency.<name>``)."""
@@ -150,6 +155,7 @@ class ConsistencyOptions:
                   ('solver', self.solver in SOLVERS, f'one of {SOLVERS}'),
                   ('confidence', 0 <= self.confidence < 1, 'in [0, 1)'),
                   ('mass_ratio', self.mass_ratio == 0 or self.mass_ratio > 1, '0 or > 1'),
+                  ('mass_weight', self.mass_weight >= 0, '>= 0'),
                   ('total_mass', len(self.total_mass) == 0 or (
                       len(self.total_mass) == 2 and 0 <= self.total_mass[0]
                       < self.total_mass[1]), 'empty or [lo, hi] with 0 <= lo < hi')]
@@ -247,6 +253,8 @@ class ConsistentSolver:
             phi = phi + S @ total
             lo, hi = body.mass if body.mass is not None else (0.0, np.inf)
             whole = phi_prior[body.start]
+            if self.options.mass_weight and whole > 0:
+                regulariser += self.options.mass_weight * cp.abs(total[0] / whole - 1)
             if ratio and whole > 0:
                 lo, hi = max(lo, whole / ratio), min(hi, whole * ratio)
             self._mass_bounds.append((lo, hi))

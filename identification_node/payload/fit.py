@@ -39,6 +39,7 @@ _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 DEFAULT_TOLERANCE = {'mass': PayloadTolerance.mass, 'com': PayloadTolerance.com,   # kg, m,
                      'inertia': PayloadTolerance.inertia}                  # kg m^2
 PSEUDO_INERTIA_EPS = 1e-9   # J(phi) - eps 1 >= 0 (at most; kg m^2): consistent but free to be tiny
+PAYLOAD_CONFIDENCE = 0.99   # the chi-square region in which its prior (the fit itself) chooses
 
 
 @dataclass(frozen=True)
@@ -218,14 +219,16 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     1e-3 in chi-square units) pulls toward the least-squares fit ``phi`` itself, which the
     solver replaces by its nearest consistent pseudo-inertia (eigenvalues raised to 1e-3 of
     the largest): a weak prior of the payload's own size, where a fixed one (a sphere of the
-    fitted mass) scaled the solve badly for large payloads. ``phi`` when it is consistent
-    already."""
+    fitted mass) scaled the solve badly for large payloads. Its own region and no mass term
+    (the arm's defaults are for a URDF prior, not for the fit itself). ``phi`` when it is
+    consistent already."""
     if np.linalg.eigvalsh(pseudo_inertia(phi))[0] >= PSEUDO_INERTIA_EPS:
         return phi
     base = BaseParameters(_NAMES, np.arange(10), np.eye(10))
     status = ''
     for solver in SOLVERS:
-        options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0)
+        options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0,
+                                     confidence=PAYLOAD_CONFIDENCE, mass_weight=0.0)
         result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
         if result.phi is not None:   # result.ok
             return result.phi
