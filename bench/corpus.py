@@ -127,7 +127,8 @@ def score(doc: dict, truth_: dict | None = None) -> dict:
            'status': solver['status'], 'excess': solver['excess'],
            'heldout': held['estimate']['stacked'],
            'heldout_unconstrained': held['unconstrained']['stacked'],
-           'masses': masses, 'urdf_masses': urdf, 'notes': solver['notes']}
+           'links': list(doc['links']), 'masses': masses, 'urdf_masses': urdf,
+           'notes': solver['notes']}
     row['heldout_ratio'] = row['heldout'] / row['heldout_unconstrained']
     row['urdf_ratio'] = masses / urdf
     if truth_ is not None:

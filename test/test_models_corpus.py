@@ -12,7 +12,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
 from corpus import Case, identify_case  # noqa: E402
-from recordings import data_dir, joint_state_bag, tx40_bags, TX40_SPLIT  # noqa: E402
+from recordings import (RECORDINGS, data_dir, identify_recording,  # noqa: E402
+                        joint_state_bag, tx40_bags, TX40_SPLIT)
 
 from identification_node.bags.reader import (iter_joint_states, open_bag,  # noqa: E402
                                              read_string_topic)
@@ -95,3 +96,19 @@ def test_tx40_split_in_time(tmp_path):
         first = np.flatnonzero(np.all(z['q'] == q[0], axis=1))[0]
         np.testing.assert_array_equal(z['q'][first:first + len(q)], q)
     assert counts == [int(np.sum(z['t'] < TX40_SPLIT)), int(np.sum(z['t'] >= TX40_SPLIT))]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (data_dir() / 'staubli_tx40').is_dir(), reason='no ../shared/data')
+@pytest.mark.parametrize('name', RECORDINGS)
+def test_real_recording_gives_plausible_masses(name, tmp_path):
+    """The real TX40 and Kinova Gen3 runs with the defaults: consistent by a conic solver,
+    better than the unconstrained fit on the held-out part, every link mass within [1/3, 3] of
+    the URDF's, or at a bound that the notes name."""
+    r = identify_recording(name, tmp_path)
+    assert r['consistent'] and not r['errors'] and r['path'] == 'CLARABEL', r
+    assert r['heldout'] < r['heldout_unconstrained'], r
+    for link, ratio in zip(r['links'], r['urdf_ratio']):
+        assert 1 / 3 - 1e-3 <= ratio <= 3 + 1e-3, (link, ratio)
+        if not 1 / 3 + 1e-3 < ratio < 3 - 1e-3:
+            assert any(note.startswith(f'{link}: mass') for note in r['notes']), (link, r['notes'])

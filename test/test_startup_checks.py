@@ -89,6 +89,10 @@ def test_degenerate_urdf_prior_warns_and_falls_back(good_bag, tmp_path, mass, in
     assert np.isfinite(phi).all()
     m, c, Ic = link_inertia(phi[10:20])
     assert m > 0 and np.all(np.linalg.eigvalsh(Ic) > 0)
+    if inertia is not None:    # the URDF's mass and centre of mass were fine: kept
+        m0, c0, _ = link_inertia(robot.phi_model[10:20])
+        assert m == m0 and np.allclose(c, c0) and np.any(c0), (m, c, m0, c0)
+        assert 'kg at its centre of mass' in notes[0]
     np.testing.assert_array_equal(phi[:10], robot.phi_model[:10])   # good links kept
     # a pipeline on the good arm's data: the exported URDF is finite, masses plausible
     p = IdentificationPipeline(robot, PipelineConfig())

@@ -4,9 +4,11 @@ for the regularised parts of the solution (the full parameter set closest to the
 that reproduces the estimate). A triangle-inequality violation alone (CAD tables have them)
 is kept.
 
-The safe inertial of a bad link: the mean mass of the good links (1 kg if none), centre of
-mass at the joint origin, inertia about it m r^2 (identity) with r = 0.05 m. Standard
-parameter order and frames as in robot.py (link frame, about the joint origin).
+The safe inertial of a bad link keeps what the URDF gives of it: its mass when positive and
+finite (else the mean mass of the good links, 1 kg if none), its centre of mass when finite
+(else the joint origin), with an inertia about the centre of mass of m r^2 (identity), r =
+0.05 m. Standard parameter order and frames as in robot.py (link frame, about the joint
+origin).
 """
 from __future__ import annotations
 
@@ -27,16 +29,27 @@ def safe_prior(robot) -> tuple[np.ndarray, list[str]]:
            if any(p.startswith(f'{link}:') for p in problems)]
     good = [i for i in range(robot.dof) if i not in bad]
     masses = [phi[10 * i] for i in good]
-    mass = float(np.mean(masses)) if masses else 1.0
+    fallback = float(np.mean(masses)) if masses else 1.0
+    kept = {}
     for i in bad:
-        block = np.zeros(10)
-        block[0] = mass
-        block[[4, 7, 9]] = mass * FALLBACK_RADIUS ** 2     # Ixx, Iyy, Izz
-        phi[10 * i:10 * i + 10] = block
+        given = phi[10 * i:10 * i + 10]
+        m = float(given[0]) if np.isfinite(given[0]) and given[0] > 0 else fallback
+        c = given[1:4] / given[0] if m == given[0] else np.zeros(3)
+        if not np.isfinite(c).all():
+            c = np.zeros(3)
+        kept[i] = m, bool(np.any(c))
+        inertia = m * FALLBACK_RADIUS ** 2 * np.eye(3) + m * (c @ c * np.eye(3) - np.outer(c, c))
+        phi[10 * i:10 * i + 10] = np.r_[m, m * c, inertia[np.triu_indices(3)]]
     extras = phi[robot.n_inertial:]
     extras[~np.isfinite(extras)] = 0.0
-    notes = [f'degenerate model inertial, replaced in the prior by a safe one ({mass:.3g} kg '
-             f'at the joint origin): {p}' for p in problems if p.split(':')[0] in
-             {robot.link_names[i] for i in bad}]
+    names = {robot.link_names[i]: i for i in bad}
+    notes = []
+    for p in problems:
+        i = names.get(p.split(':')[0])
+        if i is not None:
+            m, at_com = kept[i]
+            notes.append(f'degenerate model inertial, replaced in the prior by a safe one '
+                         f"({m:.3g} kg at {'its centre of mass' if at_com else 'the joint origin'}"
+                         f', radius of gyration {FALLBACK_RADIUS:g} m): {p}')
     notes += [p for p in problems if p.split(':')[0] not in set(robot.link_names)]
     return phi, notes
