@@ -45,9 +45,9 @@ def safe_prior(robot) -> tuple[np.ndarray, list[str]]:
     names = {robot.link_names[i]: i for i in bad}
     notes = []
     for p in problems:
-        i = names.get(p.split(':')[0])
-        if i is not None:
-            m, at_com = kept[i]
+        link = p.split(':')[0]
+        if link in names:
+            m, at_com = kept[names[link]]
             notes.append(f'degenerate model inertial, replaced in the prior by a safe one '
                          f"({m:.3g} kg at {'its centre of mass' if at_com else 'the joint origin'}"
                          f', radius of gyration {FALLBACK_RADIUS:g} m): {p}')
