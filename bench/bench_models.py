@@ -10,7 +10,7 @@ TX40 and Kinova Gen3 runs of ../shared/data instead (bench/recordings.py), masse
 URDF only.
 
     .venv/bin/python bench/bench_models.py [--arms ur5,panda] [--rates 100,500]
-        [--duration 60] [--recordings] [--config FILE]
+        [--duration 60] [--seeds 1] [--recordings] [--config FILE]
 
 ``--config``: a parameter YAML passed to every ``identify`` (e.g. other ``consistency.*``).
 """
@@ -44,8 +44,8 @@ def simulated(args) -> int:
     failures = 0
     with tempfile.TemporaryDirectory() as tmp:
         for arm in arms:
-            for rate in rates:
-                case = Case(arm, rate, args.duration)
+            for rate, seed in ((r, k) for r in rates for k in range(args.seeds)):
+                case = Case(arm, rate, args.duration, seed)
                 start = time.perf_counter()
                 r = identify_case(case, Path(tmp), _config(args))
                 ok = (r['consistent'] and not r['errors'] and r['heldout_ratio'] <= 1.03
@@ -90,6 +90,8 @@ def main() -> int:
     parser.add_argument('--arms', help=f"comma-separated, of {', '.join(ARMS)} (default all)")
     parser.add_argument('--rates', help='comma-separated Hz (default 100,250,500,1000,2000)')
     parser.add_argument('--duration', type=float, default=60.0, help='s per motion')
+    parser.add_argument('--seeds', type=int, default=1,
+                        help='cases per arm and rate (truth perturbation, motions, noise)')
     parser.add_argument('--recordings', action='store_true',
                         help='the real recordings of ../shared/data instead')
     parser.add_argument('--config', help='parameter YAML given to every identify')
