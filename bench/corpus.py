@@ -101,6 +101,14 @@ def make_case(case: Case, directory: Path) -> dict:
             'dir': out}
 
 
+def plausible_masses(masses: np.ndarray, true: np.ndarray, urdf: np.ndarray) -> np.ndarray:
+    """Per link: the mass within PERTURBATION of the truth, or between the URDF's and the
+    truth (both to MASS_SLACK)."""
+    lo, hi = np.minimum(true, urdf), np.maximum(true, urdf)
+    return ((np.abs(masses / true - 1) <= PERTURBATION + MASS_SLACK)
+            | ((masses >= lo * (1 - MASS_SLACK)) & (masses <= hi * (1 + MASS_SLACK))))
+
+
 def run_identify(args: list[str]) -> tuple[int, dict]:
     """``identify ARGS --json`` in this process: (exit status, its JSON document)."""
     from identification_node.cli import main
@@ -133,12 +141,8 @@ def score(doc: dict, truth_: dict | None = None) -> dict:
     row['urdf_ratio'] = masses / urdf
     if truth_ is not None:
         true = truth_['masses']
-        lo, hi = np.minimum(true, urdf), np.maximum(true, urdf)
         row['truth_ratio'] = masses / true
-        slack = MASS_SLACK
-        row['masses_ok'] = bool(np.all((np.abs(masses / true - 1) <= 0.3 + slack)
-                                       | ((masses >= lo * (1 - slack))
-                                          & (masses <= hi * (1 + slack)))))
+        row['masses_ok'] = bool(np.all(plausible_masses(masses, true, urdf)))
         est = np.array([np.nan if b['estimate'] is None else b['estimate']
                         for b in doc['base_parameters']])
         sd = np.array([np.nan if b['stddev'] is None else b['stddev']

@@ -70,11 +70,9 @@ class Settings:
         if not self.values['physical_consistency']:
             return None
         c = self.config.consistency
-        options = ConsistencyOptions(
-            weight=c.weight, margin=c.margin, solver=c.solver.upper(), time_limit=c.time_limit,
-            geometry_box=c.geometry_box, mass_min=tuple(c.mass_min), mass_max=tuple(c.mass_max),
-            com_box=tuple(c.com_box), confidence=c.confidence, mass_ratio=c.mass_ratio,
-            total_mass=tuple(c.total_mass), mass_weight=c.mass_weight)
+        given: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                 for k, v in asdict(c).items()}
+        options = ConsistencyOptions(**dict(given, solver=c.solver.upper()))
         options.validate()
         return options
 

@@ -30,26 +30,22 @@ def safe_prior(robot) -> tuple[np.ndarray, list[str]]:
     good = [i for i in range(robot.dof) if i not in bad]
     masses = [phi[10 * i] for i in good]
     fallback = float(np.mean(masses)) if masses else 1.0
-    kept = {}
+    replaced = {}
     for i in bad:
         given = phi[10 * i:10 * i + 10]
         m = float(given[0]) if np.isfinite(given[0]) and given[0] > 0 else fallback
         c = given[1:4] / given[0] if m == given[0] else np.zeros(3)
         if not np.isfinite(c).all():
             c = np.zeros(3)
-        kept[i] = m, bool(np.any(c))
         inertia = m * FALLBACK_RADIUS ** 2 * np.eye(3) + m * (c @ c * np.eye(3) - np.outer(c, c))
         phi[10 * i:10 * i + 10] = np.r_[m, m * c, inertia[np.triu_indices(3)]]
+        replaced[robot.link_names[i]] = (
+            f"{m:.3g} kg at {'its centre of mass' if np.any(c) else 'the joint origin'}, "
+            f'radius of gyration {FALLBACK_RADIUS:g} m')
     extras = phi[robot.n_inertial:]
     extras[~np.isfinite(extras)] = 0.0
-    names = {robot.link_names[i]: i for i in bad}
-    notes = []
-    for p in problems:
-        link = p.split(':')[0]
-        if link in names:
-            m, at_com = kept[names[link]]
-            notes.append(f'degenerate model inertial, replaced in the prior by a safe one '
-                         f"({m:.3g} kg at {'its centre of mass' if at_com else 'the joint origin'}"
-                         f', radius of gyration {FALLBACK_RADIUS:g} m): {p}')
+    notes = [f'degenerate model inertial, replaced in the prior by a safe one '
+             f"({replaced[p.split(':')[0]]}): {p}" for p in problems
+             if p.split(':')[0] in replaced]
     notes += [p for p in problems if p.split(':')[0] not in set(robot.link_names)]
     return phi, notes
