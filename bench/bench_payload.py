@@ -46,8 +46,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / 'test')]
 
 import payload_scenarios as ps  # noqa: E402
 from identification_node.replay.stream import identify_bag  # noqa: E402
-from identification_node.payload.fit import PayloadChange  # noqa: E402
-from identification_node.payload.monitor import monitor_from_settings  # noqa: E402
+from identification_node.payload.fit import ArmPrior, PayloadChange  # noqa: E402
+from identification_node.payload.monitor import PayloadMonitor, monitor_from_settings  # noqa
 from identification_node.settings import Settings, read_parameter_file  # noqa: E402
 from test_payload_matrix import SEQUENCES  # noqa: E402
 
@@ -57,10 +57,11 @@ BAGS = (('mit_paper_moves', 'identification.yaml'), ('mit_exciting', 'identifica
         ('crs_a465_fourier', 'crs_a465.yaml'))
 
 
-def run_sequence(arm, phi_arm, rate, noise, changes, seed):
-    """(detection delays or None per change, mass errors %, com errors mm, their z-scores
+def run_sequence(arm, model, rate, noise, changes, seed):
+    """``model``: the arm identified (payload_scenarios.identify_arm) or parameters taken as
+    exact. (detection delays or None per change, mass errors %, com errors mm, their z-scores
     (error over the segment's reported stddev: mass, largest CoM axis), false alarms)."""
-    mon = ps.monitor(arm, phi_arm)
+    mon = ps.monitor(arm, model)
     sim = ps.simulate(arm, rate, changes[-1].time + 5.0, noise, seed, changes)
     events = ps.watch(mon, sim)
     segments = mon.finish()
@@ -101,11 +102,11 @@ def matrix(arms, rates, cases=CASES) -> None:
         for rate in rates:
             for noise, friction in cases:
                 arm = ps.make_arm(name, friction)
-                phi_arm = ps.identify_arm(arm, rate, noise)
+                model = ps.identify_arm(arm, rate, noise)
                 n = found = false = 0
                 delays, mass, com, zs = [], [], [], []
                 for k, changes in enumerate(SEQUENCES.values()):
-                    d, m, c, z, f = run_sequence(arm, phi_arm, rate, noise, changes, 10 + k)
+                    d, m, c, z, f = run_sequence(arm, model, rate, noise, changes, 10 + k)
                     n += len(d)
                     found += sum(x is not None for x in d)
                     delays += [x for x in d if x is not None]
@@ -125,11 +126,11 @@ def threshold(rates) -> None:
     arm = ps.make_arm('ur5', True)
     grid = (0.3, 0.25, 0.2, 0.15, 0.1, 0.05)
     for rate in rates:
-        phi_arm = ps.identify_arm(arm, rate, 0.1)
+        model = ps.identify_arm(arm, rate, 0.1)
         smallest, delay, tried = None, np.nan, []
 
         def detected(mass: float) -> tuple[int, float]:
-            delays = [run_sequence(arm, phi_arm, rate, 0.1,
+            delays = [run_sequence(arm, model, rate, 0.1,
                                    [PayloadChange(4.0, None, mass, (0.02, 0.0, 0.05))],
                                    20 + s)[0][0] for s in range(3)]
             hits = [d for d in delays if d is not None]
@@ -155,8 +156,7 @@ def simulated_false_alarms(minutes: float) -> None:
     print(f'\n3a. false alarms: {minutes:g} min of motion without a change (UR5, friction, '
           '0.2 N m, 1 kHz)')
     arm = ps.make_arm('ur5', True)
-    phi_arm = ps.identify_arm(arm, 1000.0, 0.2)
-    mon = ps.monitor(arm, phi_arm)
+    mon = ps.monitor(arm, ps.identify_arm(arm, 1000.0, 0.2))
     pipe = arm.settings.build(arm.robot)
     pipe_time = mon_time = 0.0
     declared, samples = 0, 0
@@ -184,10 +184,12 @@ def bag_false_alarms() -> None:
         settings = Settings.from_dict(read_parameter_file(ROOT / 'config' / config))
         robot = settings.load_robot()
         identified = identify_bag(ROOT / 'bags' / bag, settings, robot).pipeline
-        for label, phi_arm in (('urdf', None), ('identified', identified.standard_parameters())):
+        for label in ('urdf', 'identified'):
             mon = monitor_from_settings(settings, robot)
-            if phi_arm is not None:
-                mon.phi_arm = np.asarray(phi_arm, dtype=float)
+            if label == 'identified':   # as --arm with its estimate.yaml: with its covariance
+                mon = PayloadMonitor(robot, mon.attach, identified.standard_parameters(),
+                                     mon.config, arm_prior=ArmPrior.from_covariance(
+                                         identified.base, identified.covariance))
             events = []
             identify_bag(ROOT / 'bags' / bag, settings, robot,
                          on_output=lambda out: events.extend(mon.add_output(out)))

@@ -148,7 +148,8 @@ class Payload:
     arm: str = setting(
         '', "the arm's parameters the payload is fitted against: an estimate.yaml (~/save) of "
         "the arm without payload; 'estimate': the running estimate, taken at each "
-        "~/payload/reset; empty: the model's own")
+        "~/payload/reset (both with their covariance: the arm is corrected within it); "
+        "empty: the model's own, taken as exact")
     fit_time: float = setting(1.0, 's of samples after a change before the payload is fitted',
                               unit='s')
     settle: float = setting(0.1, 's after a detection before samples are used', unit='s')

@@ -17,7 +17,7 @@ import numpy as np
 
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.simulation.simulator import SensorNoise, SimResult, measure
-from identification_node.payload.fit import PayloadChange, true_parameter_changes
+from identification_node.payload.fit import ArmPrior, PayloadChange, true_parameter_changes
 from identification_node.payload.monitor import PayloadMonitor, monitor_from_settings
 from identification_node.settings import Settings
 from identification_node.wire.records import JointStateRecord
@@ -80,15 +80,23 @@ def simulate(arm: Arm, rate: float, duration: float, torque_std: float, seed: in
                    None)
 
 
+@dataclass
+class IdentifiedArm:
+    """An arm identified without payload: its standard parameters and the prior of their
+    error, from the estimate's covariance (what ~/save writes and --arm reads)."""
+    phi: np.ndarray
+    prior: ArmPrior | None
+
+
 def identify_arm(arm: Arm, rate: float, torque_std: float, seed: int = 1000,
-                 duration: float = 30.0) -> np.ndarray:
-    """The arm's standard parameters identified by the default pipeline on ``duration`` s
-    without payload (what ~/save writes and --arm reads)."""
+                 duration: float = 30.0) -> IdentifiedArm:
+    """The arm identified by the default pipeline on ``duration`` s without payload."""
     sim = simulate(arm, rate, duration, torque_std, seed)
     pipe = arm.settings.build(arm.robot)
     stream(pipe, sim)
     pipe.process(flush=True)
-    return pipe.standard_parameters()
+    return IdentifiedArm(pipe.standard_parameters(),
+                         ArmPrior.from_covariance(pipe.base, pipe.covariance))
 
 
 def stream(pipe, sim: SimResult, on_output=None, block: float = 0.05) -> None:
@@ -105,10 +113,14 @@ def stream(pipe, sim: SimResult, on_output=None, block: float = 0.05) -> None:
             on_output(out)
 
 
-def monitor(arm: Arm, phi_arm: np.ndarray) -> PayloadMonitor:
-    """The default settings' payload monitor against the identified arm ``phi_arm``."""
+def monitor(arm: Arm, model: IdentifiedArm | np.ndarray) -> PayloadMonitor:
+    """The default settings' payload monitor against an identified arm, or against standard
+    parameters taken as exact."""
     mon = monitor_from_settings(arm.settings, arm.robot)
-    mon.phi_arm = np.asarray(phi_arm, dtype=float)
+    if isinstance(model, IdentifiedArm):
+        return PayloadMonitor(arm.robot, mon.attach, model.phi, mon.config,
+                              arm_prior=model.prior)
+    mon.set_arm(model)
     return mon
 
 

@@ -270,3 +270,72 @@ def test_stalled_and_bursting_stream_is_not_a_change():
         events += mon.add_output(out)
     assert [e.kind for e in events if e.kind != 'refresh'] == ['start']
     assert mon.burst_samples > 0   # the compressed stamps were dropped, not smoothed
+
+
+def _arm_error_case(seed: int, prior_samples: int = 60, samples: int = 300, sigma: float = 0.05):
+    """Residuals of a payload plus an arm error drawn from the prior of an identification on
+    ``prior_samples`` other samples (noise ``sigma`` N m): (normal equations of the payload's
+    and the arm's base columns, the prior, the true payload, Yp, Yb, r)."""
+    from identification_node.model.identifiability import BaseParameters, sample_motion
+    from identification_node.payload.fit import ArmPrior
+    robot = load_robot(SEVEN)
+    base = BaseParameters.from_robot(robot)
+    att = attachment(robot)
+    rng = np.random.default_rng(seed)
+    Yb_prev = base.base_regressor(robot.regressor(*sample_motion(robot, prior_samples, 100)))
+    info = np.einsum('tjp,tjq->pq', Yb_prev, Yb_prev) / sigma ** 2
+    cov = np.linalg.inv(info)
+    prior = ArmPrior.from_covariance(base, cov)
+    delta = rng.multivariate_normal(np.zeros(base.num_base), cov)
+    Y = robot.regressor(*sample_motion(robot, samples, seed + 1))
+    Yp, Yb = payload_regressor(att, Y), base.base_regressor(Y)
+    truth = _params(0.8, (0.03, -0.02, 0.06), (0.02, 0, 0, 0.03, 0, 0.015))
+    r = Yp @ truth + Yb @ delta + sigma * rng.standard_normal((samples, robot.dof))
+    A = np.concatenate([Yp, Yb], axis=2)
+    return NormalEquations.from_rows(A, r), prior, truth, Yp, Yb, r
+
+
+def test_arm_prior_fit_is_the_joint_least_squares():
+    """With the arm's uncertainty the payload is the joint weighted least squares of payload
+    and arm correction with the prior's rows stacked below the data (a second formulation),
+    and its covariance that solution's payload block."""
+    ne, prior, truth, Yp, Yb, r = _arm_error_case(3)
+    sigma = 0.05
+    est = fit_payload(ne, np.full(7, sigma ** 2), 'link7', prior=prior)
+    A = np.concatenate([Yp, Yb], axis=2).reshape(-1, ne.num_params) / sigma
+    root = np.linalg.cholesky(prior.information).T
+    stacked = np.vstack([A, np.hstack([np.zeros((len(root), 10)), root])])
+    x = np.linalg.lstsq(stacked, np.concatenate([r.ravel() / sigma, np.zeros(len(root))]),
+                        rcond=None)[0]
+    assert est.consistent
+    np.testing.assert_allclose(est.phi, x[:10], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(est.arm_correction, x[10:], rtol=1e-5, atol=1e-9)
+    cov = np.linalg.inv(stacked.T @ stacked)[:10, :10]
+    np.testing.assert_allclose(est.covariance, cov, rtol=1e-6, atol=1e-14)
+    # the arm taken as exact: the same normal equations' payload columns alone
+    exact = fit_payload(ne, np.full(7, sigma ** 2), 'link7')
+    alone = np.linalg.lstsq(Yp.reshape(-1, 10), r.ravel(), rcond=None)[0]
+    np.testing.assert_allclose(exact.phi, alone, rtol=1e-6, atol=1e-9)
+
+
+def test_arm_prior_makes_the_payload_stddev_honest():
+    """Arm errors drawn from the arm's own covariance: taken as exact, the arm's error leaks
+    into the payload far beyond its reported stddev; with the prior the errors are of the
+    size the stddev says (mass and centre of mass z-scores' RMS about 1), and no larger (the
+    joint fit is the least-squares estimate given the prior)."""
+    z_exact, z_prior, err_exact, err_prior = [], [], [], []
+    for seed in range(40):
+        ne, prior, truth, *_ = _arm_error_case(10 + seed)
+        true_mass, true_com = truth[0], truth[1:4] / truth[0]
+        for prior_or_none, zs, errs in ((None, z_exact, err_exact),
+                                        (prior, z_prior, err_prior)):
+            est = fit_payload(ne, np.full(7, 0.05 ** 2), 'link7', prior=prior_or_none)
+            zs.append((est.mass - true_mass) / est.stddev['mass'])
+            zs += [(est.com[k] - true_com[k]) / est.stddev[f'com.{a}']
+                   for k, a in enumerate('xyz')]
+            errs.append(np.abs(est.com - true_com).max())
+    rms = lambda z: float(np.sqrt(np.mean(np.square(z))))   # noqa: E731
+    assert 0.7 < rms(z_prior) < 1.4, rms(z_prior)
+    assert rms(z_exact) > 2.5, rms(z_exact)
+    mse = lambda e: float(np.mean(np.square(e)))   # noqa: E731
+    assert mse(err_prior) <= mse(err_exact), (mse(err_prior), mse(err_exact))

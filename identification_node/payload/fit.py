@@ -5,8 +5,12 @@ given in the frame F of the attachment (a link, or a fixed frame such as a tool 
 F's origin, as the links' (README, Conventions). They add to the inertial parameters of the
 link whose joint carries F, so the payload's regressor is that link's 10 regressor columns
 times the (linear) map of F's parameters into the joint frame. The payload is fitted to the
-torque residual tau - Y phi_arm of a fixed arm model (its base model is kept), from
-NormalEquations. Outputs: mass (kg), centre of mass (m, in F), inertia about the centre of mass
+torque residual tau - Y phi_arm of an arm model, from NormalEquations. Where the arm's model
+comes with its uncertainty (ArmPrior: an identified arm's base-parameter covariance), the
+fit takes the arm's base regressor as further columns and solves for the payload and a
+correction of the arm's base parameters together, the correction held by that prior: the
+arm's error no longer leaks into the payload, and the payload's covariance includes the
+arm's uncertainty. Outputs: mass (kg), centre of mass (m, in F), inertia about the centre of mass
 (kg m^2, in F), with standard deviations; the quantities the motion did not excite are named
 and given no value.
 """
@@ -129,12 +133,84 @@ def arm_parameters(robot: RobotModel, estimate: str | None = None) -> np.ndarray
     return phi
 
 
+@dataclass(frozen=True)
+class ArmPrior:
+    """What is known of the error delta = beta_true - beta_arm of the arm's base parameters
+    (``base``: the arm's BaseParameters; delta multiplies the base regressor columns
+    Y[..., base.base_index]), in information form: ``information`` (nb, nb) and ``vector``
+    (nb,) with information @ mean = vector, in the units of the payload fit's weighted
+    normal equations (inverse variances of the base parameters, SI)."""
+    base: BaseParameters
+    information: np.ndarray
+    vector: np.ndarray
+
+    @classmethod
+    def from_covariance(cls, base: BaseParameters, covariance: np.ndarray
+                        ) -> 'ArmPrior | None':
+        """The prior of an estimate's base-parameter covariance (nb, nb), zero mean error;
+        directions of infinite variance get no information; None when none is finite."""
+        cov = np.asarray(covariance, dtype=float)
+        nb = base.num_base
+        if cov.shape != (nb, nb):
+            raise IdentificationError(f'arm covariance of shape {cov.shape}, expected '
+                                      f'({nb}, {nb}) for the robot\'s base parameters')
+        known = np.isfinite(np.diag(cov)) & (np.diag(cov) > 0)
+        known &= np.isfinite(cov[:, known]).all(axis=1) if known.any() else known
+        if not known.any():
+            return None
+        info = np.zeros((nb, nb))
+        info[np.ix_(known, known)] = _pinv_sym(cov[np.ix_(known, known)])
+        return cls(base, info, np.zeros(nb))
+
+    @property
+    def columns(self) -> np.ndarray:
+        """The standard regressor columns of the arm's base parameters."""
+        return self.base.base_index
+
+    def mean(self) -> np.ndarray:
+        """The prior's mean correction delta (nb,)."""
+        return _pinv_sym(self.information) @ self.vector
+
+    def updated(self, information: np.ndarray, vector: np.ndarray) -> 'ArmPrior':
+        """The prior with the information of further data on delta added."""
+        return ArmPrior(self.base, self.information + information, self.vector + vector)
+
+
+def _pinv_sym(A: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
+    """Pseudo-inverse of a symmetric positive semi-definite matrix, diagonally scaled."""
+    d = np.sqrt(np.maximum(np.diag(A), 0.0))
+    d = np.where(d > 0, d, 1.0)
+    lam, V = np.linalg.eigh(0.5 * (A + A.T) / np.outer(d, d))
+    keep = lam > rcond * max(lam.max(initial=0.0), 0.0)
+    return ((V[:, keep] / lam[keep]) @ V[:, keep].T) / np.outer(d, d)
+
+
+def read_arm_prior(robot: RobotModel, estimate: str, base: BaseParameters) -> ArmPrior | None:
+    """The ArmPrior of a saved estimate.yaml's ``covariance`` (results.save_results): its
+    base parameters must be the robot's (``base``), else IdentificationError."""
+    doc = read_yaml(estimate, f'arm estimate {estimate}') or {}
+    cov = doc.get('covariance') if isinstance(doc, dict) else None
+    names = [b.get('name') for b in doc.get('base_parameters') or () if isinstance(b, dict)]
+    if cov is None or not names:
+        return None
+    if names != list(base.names):
+        raise IdentificationError(
+            f'{estimate}: its base parameters are not those of robot {robot.name} with these '
+            'settings (other joints or friction model): identify the arm with them')
+    try:
+        covariance = np.array(cov, dtype=float)
+    except (TypeError, ValueError):
+        raise IdentificationError(f'{estimate}: covariance is not a matrix of numbers') from None
+    return ArmPrior.from_covariance(base, covariance)
+
+
 @dataclass
 class PayloadEstimate:
     """A fitted payload: parameters ``phi`` (10, frame of ``link``, about its origin) and
     their covariance; mass (kg), com (3,) m and inertia (6,) kg m^2 about the centre of mass
     (INERTIA_KEYS order), all in the link's frame; ``stddev`` per QUANTITIES name (inf where
-    not excited); ``excited`` the quantities known within tolerance."""
+    not excited); ``excited`` the quantities known within tolerance; ``arm_correction``
+    the fitted correction of the arm's base parameters (ArmPrior; empty without one)."""
     link: str
     phi: np.ndarray
     covariance: np.ndarray
@@ -145,6 +221,7 @@ class PayloadEstimate:
     mass: float = 0.0
     com: np.ndarray = field(default_factory=lambda: np.zeros(3))
     inertia: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    arm_correction: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def not_excited(self) -> list:
@@ -236,21 +313,58 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     raise IdentificationError(f'payload consistency solve failed: {status}')
 
 
-def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
-                tolerance: Mapping[str, float] | None = None, rcond: float = 1e-10
-                ) -> PayloadEstimate:
-    """The payload from the normal equations of residual = Y_payload phi (10 columns), each
-    joint weighted by 1 / its (long-run) noise variance (N m)^2. Directions of the parameter
-    space the data do not determine get no information (covariance inf there); a quantity
-    is ``excited`` when its standard deviation is at most ``tolerance`` (DEFAULT_TOLERANCE:
-    'mass' kg, 'com' m, 'inertia' kg m^2). Never NaN: no data gives nothing excited."""
-    tol = dict(DEFAULT_TOLERANCE, **(tolerance or {}))
-    if ne.num_params != 10:
-        raise IdentificationError(f'payload normal equations need 10 columns, got '
-                                  f'{ne.num_params}')
+def _weights(noise_variance: np.ndarray) -> np.ndarray:
+    """Per joint 1 / noise variance, 0 where the variance is not a positive number."""
     var = np.asarray(noise_variance, dtype=float)
-    w = np.where(np.isfinite(var) & (var > 0), 1.0 / np.maximum(var, 1e-300), 0.0)
-    G, b, _ = ne.combined(w)
+    return np.where(np.isfinite(var) & (var > 0), 1.0 / np.maximum(var, 1e-300), 0.0)
+
+
+def _eliminate_arm(G: np.ndarray, b: np.ndarray, prior: ArmPrior):
+    """(S, h, delta): the payload's weighted normal equations (10) with the arm's correction
+    (the further columns, held by ``prior``) eliminated, and the correction's mean given a
+    payload phi."""
+    C = G[:10, 10:]
+    H = _pinv_sym(G[10:, 10:] + prior.information)
+    hb = b[10:] + prior.vector
+    S = G[:10, :10] - C @ H @ C.T
+    return 0.5 * (S + S.T), b[:10] - C @ H @ hb, lambda phi: H @ (hb - C.T @ phi)
+
+
+def arm_information(ne: NormalEquations, noise_variance: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(information, vector) that normal equations of the payload's and then the arm's base
+    columns (a span of constant payload) bring on the arm's correction, the payload
+    eliminated: ArmPrior.updated's arguments."""
+    G, b, _ = ne.combined(_weights(noise_variance))
+    P = _pinv_sym(G[:10, :10], 1e-10)
+    C = G[10:, :10]
+    info = G[10:, 10:] - C @ P @ C.T
+    return 0.5 * (info + info.T), b[10:] - C @ P @ b[:10]
+
+
+def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
+                tolerance: Mapping[str, float] | None = None, rcond: float = 1e-10,
+                prior: ArmPrior | None = None) -> PayloadEstimate:
+    """The payload from the normal equations of residual = Y_payload phi (10 columns, then
+    the arm's base columns where ``prior`` is given: their correction is fitted with it,
+    and the payload's covariance includes the arm's uncertainty; further columns without
+    a prior are left out), each joint weighted by 1 / its (long-run) noise variance (N m)^2.
+    Directions of the parameter space the data do not determine get no information
+    (covariance inf there); a quantity is ``excited`` when its standard deviation is at most
+    ``tolerance`` (DEFAULT_TOLERANCE: 'mass' kg, 'com' m, 'inertia' kg m^2). Never NaN: no
+    data gives nothing excited."""
+    tol = dict(DEFAULT_TOLERANCE, **(tolerance or {}))
+    arm = 0 if prior is None else prior.base.num_base
+    if ne.num_params < 10 or (prior is not None and ne.num_params != 10 + arm):
+        raise IdentificationError(f'payload normal equations need {10 + arm} columns, got '
+                                  f'{ne.num_params}')
+    G, b, c = ne.combined(_weights(noise_variance))
+    correction = None
+    if prior is not None:
+        G, b, correction = _eliminate_arm(G, b, prior)
+    G, b = G[:10, :10], b[:10]
+    payload_ne = NormalEquations(np.block([[G, b[:, None]], [b[None], np.array([[c]])]])[None],
+                                 np.array([ne.count.max(initial=0)]))
     d = np.sqrt(np.maximum(np.diag(G), 0.0))
     d = np.where(d > 0, d, 1.0)
     Gs = G / np.outer(d, d)
@@ -262,7 +376,7 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
     phi_ls = (cov_s @ (b / d)) / d
     cov = cov_s / np.outer(d, d)
     try:
-        phi = consistent_payload(ne, w, phi_ls) if keep.any() else np.zeros(10)
+        phi = consistent_payload(payload_ne, 1.0, phi_ls) if keep.any() else np.zeros(10)
     except IdentificationError:   # the solvers failed: the least-squares fit, not consistent
         phi = phi_ls
     consistent = bool(np.linalg.eigvalsh(pseudo_inertia(phi))[0] > 0)
@@ -288,7 +402,8 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
         excited = [q for q in excited if not q.startswith('inertia.')]
     vals = quantities(phi) if phi[0] > 0 else np.zeros(10)
     return PayloadEstimate(link, phi, cov, stddev, excited, int(ne.count.max(initial=0)),
-                           consistent, float(vals[0]), vals[1:4], vals[4:])
+                           consistent, float(vals[0]), vals[1:4], vals[4:],
+                           np.zeros(0) if correction is None else correction(phi))
 
 
 def payload_parameters(mass: float, com: Sequence[float] | np.ndarray,

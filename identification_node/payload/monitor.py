@@ -5,8 +5,9 @@ and the joint torque, stamped; PipelineOutput.inputs), smooths them with a short
 smoother of its own (signals.FixedLagSmoother, cut-off ``cutoff`` Hz: the same local cubic
 fit as the estimator's, but with a short delay of its own, whatever window the estimator's
 automatic smoother picks and however long it holds samples to pick it), forms the residual
-of a fixed arm model r = tau - Y phi_arm and the payload's regressor, and runs through
-segments of constant payload:
+of the arm's model r = tau - Y phi_arm and the payload's regressor (with the arm's base
+columns beside it where the arm comes with its uncertainty: payload.fit.ArmPrior), and runs
+through segments of constant payload:
 
 - *fitting*: after the start (or a change, once ``settle`` s have passed), ``fit_time`` s of
   samples are gathered and the payload fitted (payload.fit_payload); then
@@ -15,6 +16,11 @@ segments of constant payload:
   is declared after its onset (2 ``window`` + ``confirm``: so none from after a change),
   refine the segment's fit every ``refresh`` s. A detection
   ends the segment at the estimated onset and starts *fitting* again.
+
+With an ArmPrior, each segment's fit corrects the arm's base parameters within that prior,
+and a segment's end adds what it told of the arm (its payload eliminated) to the prior the
+next segments are fitted with: the arm is refined by every segment, and the payloads'
+covariances include what remains of its uncertainty.
 
 The torque noise is measured too (raw torque minus its smoothed value, at the window
 centres): a fit whose residual is many times that noise means the arm's model does not
@@ -34,12 +40,14 @@ import numpy as np
 from identification_node.config import Payload, Smoother
 from identification_node.errors import IdentificationError
 from identification_node.estimation.residuals import MIN_BLOCKS, ResidualStatistics
+from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 from identification_node.payload.change_detection import (DEFAULT_CONFIRM, DEFAULT_MIN_CHANGE,
                                                           DEFAULT_MIN_Z, DEFAULT_THRESHOLD,
                                                           DEFAULT_WINDOW, Detection, WindowedGLR)
-from identification_node.payload.fit import (Attachment, PayloadEstimate, fit_payload,
-                                             given_payload, payload_regressor)
+from identification_node.payload.fit import (ArmPrior, Attachment, PayloadEstimate,
+                                             arm_information, fit_payload, given_payload,
+                                             payload_regressor)
 from identification_node.pipeline.signals import (FixedLagSmoother, half_window_for_cutoff,
                                                   smoothing_noise_gain)
 
@@ -113,14 +121,21 @@ class Segment:
 
 class PayloadMonitor:
     """See the module docstring. ``phi_arm``: the arm's standard parameters (payload.
-    arm_parameters). Its smoother is made from the first samples' rate."""
+    arm_parameters); ``arm_base``: the arm's base parameters when its uncertainty is to be
+    taken into account (the base columns are then filtered and gathered beside the payload's),
+    with the prior ``arm_prior`` (None: the arm is taken as exact until set_arm gives one).
+    Its smoother is made from the first samples' rate."""
 
     def __init__(self, robot: RobotModel, attach: Attachment, phi_arm: np.ndarray,
-                 config: MonitorConfig | None = None):
+                 config: MonitorConfig | None = None, arm_base: BaseParameters | None = None,
+                 arm_prior: ArmPrior | None = None):
         self.robot, self.attach = robot, attach
-        self.phi_arm = np.asarray(phi_arm, dtype=float)
-        if self.phi_arm.shape != (robot.num_params,) or not np.isfinite(self.phi_arm).all():
-            raise IdentificationError(f'arm parameters must be {robot.num_params} finite values')
+        self.arm_base = arm_base if arm_base is not None else (
+            None if arm_prior is None else arm_prior.base)
+        self.columns = 10 + (0 if self.arm_base is None else self.arm_base.num_base)
+        self.phi_arm = np.zeros(robot.num_params)
+        self._arm_prior: ArmPrior | None = None
+        self.set_arm(phi_arm, arm_prior, reset=False)
         self.config = config or MonitorConfig()
         self.config.validate()
         c = self.config
@@ -144,6 +159,21 @@ class PayloadMonitor:
         self.burst_samples = 0
         self.changes = 0
         self.reset()
+
+    def set_arm(self, phi_arm: np.ndarray, prior: ArmPrior | None = None,
+                reset: bool = True) -> None:
+        """The arm's standard parameters and what is known of their error (None: exact);
+        the payload is forgotten (``reset``)."""
+        phi = np.asarray(phi_arm, dtype=float)
+        if phi.shape != (self.robot.num_params,) or not np.isfinite(phi).all():
+            raise IdentificationError(
+                f'arm parameters must be {self.robot.num_params} finite values')
+        if prior is not None and (self.arm_base is None
+                                  or prior.base.num_base != self.arm_base.num_base):
+            raise IdentificationError("the arm's prior is not of the monitor's base parameters")
+        self.phi_arm, self._arm_prior = phi, prior
+        if reset:
+            self.reset()
 
     @property
     def detector_delay(self) -> float:
@@ -173,8 +203,11 @@ class PayloadMonitor:
 
     # -- state ------------------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the payload: a new segment (no change event) starts at the next sample."""
+        """Forget the payload and what the segments told of the arm: a new segment (no change
+        event) starts at the next sample."""
+        self.prior = self._arm_prior
         self.current: PayloadEstimate | None = None
+        self._theta = np.zeros(self.columns)   # the current payload, then arm correction
         self._noise: np.ndarray | None = None   # the segment's noise variance, (N m)^2
         self._given = False
         self._new_segment(None, None, 0.0)
@@ -185,12 +218,16 @@ class PayloadMonitor:
         est = given_payload(self.attach.link, phi)
         self._new_segment(stamp, None, 0.0)
         self.current, self._given = est, True
+        self._theta = np.zeros(self.columns)
+        self._theta[:10] = est.phi
+        if self.prior is not None:
+            self._theta[10:] = self.prior.mean()
         self.segments[-1].payload = est
         self._state = 'watching'
         return est
 
     def _new_segment(self, stamp: float | None, detected: float | None, settle: float) -> None:
-        self._stats = ResidualStatistics(10, self.robot.dof, self._block)
+        self._stats = ResidualStatistics(self.columns, self.robot.dof, self._block)
         self._pending: list[tuple] = []
         self._state = 'fitting'
         self._given = False
@@ -274,12 +311,15 @@ class PayloadMonitor:
         self._hf_count += len(tc)
         Y = self.robot.regressor(x[:, :n], xd[:, :n], xdd[:, :n], checked=True)
         r = tau_c - Y @ self.phi_arm
-        Yp = payload_regressor(self.attach, Y)
-        tf, z, _, _ = self.smoother.push_checked(tc, np.hstack([Yp.reshape(len(tc), -1), r]))
+        A = payload_regressor(self.attach, Y)
+        if self.arm_base is not None:
+            A = np.concatenate([A, Y[:, :, self.arm_base.base_index]], axis=2)
+        tf, z, _, _ = self.smoother.push_checked(tc, np.hstack([A.reshape(len(tc), -1), r]))
         if len(tf) == 0:
             return []
         stamps = (self._epoch_ns + np.round(tf * 1e9).astype(np.int64))
-        return self._run(stamps, z[:, :10 * n].reshape(len(tf), n, 10), z[:, 10 * n:])
+        c = self.columns
+        return self._run(stamps, z[:, :c * n].reshape(len(tf), n, c), z[:, c * n:])
 
     def _drop_bursts(self, ns: np.ndarray, q: np.ndarray, tau: np.ndarray) -> tuple:
         """Samples stamped closer than half the sampling period to the one before, and the
@@ -307,16 +347,17 @@ class PayloadMonitor:
         Ld = half_window_for_cutoff(DERIVATIVE_BAND * c.cutoff, self.rate, c.order)
         self.derivatives = FixedLagSmoother(2 * n, Ld, c.order, c.max_gap)
         L = half_window_for_cutoff(c.cutoff, self.rate, c.order)
-        self.smoother = FixedLagSmoother(11 * n, L, c.order, c.max_gap)
+        self.smoother = FixedLagSmoother((self.columns + 1) * n, L, c.order, c.max_gap)
         self._block = 2 * L + 1
         self._white_scale = 1.0 / smoothing_noise_gain(L, c.order)
         self._derivative_gain = smoothing_noise_gain(Ld, c.order)
         self.detector.noise_scale = self._white_scale
-        self._stats = ResidualStatistics(10, n, self._block)
+        self._stats = ResidualStatistics(self.columns, n, self._block)
 
     def _run(self, stamps_ns: np.ndarray, Yp: np.ndarray, r: np.ndarray
              ) -> list[PayloadEvent]:
-        """Filtered payload regressor (N, n, 10) and arm residual (N, n) at stamps (ns)."""
+        """Filtered payload regressor (N, n, 10; then the arm's base columns) and arm
+        residual (N, n) at stamps (ns)."""
         t = np.asarray(stamps_ns, dtype=np.int64) * 1e-9
         if t[0] <= self._last_t:   # a restarted stream: keep the payload, restart the clocks
             self._settle_until = -math.inf
@@ -366,7 +407,7 @@ class PayloadMonitor:
         assert self.current is not None   # watching: the segment's payload is known
         if self._noise is None:   # a given payload, and no noise level known yet
             return self._noise_level(t, Yp, r, i)
-        e = r[i:] - Yp[i:] @ self.current.phi
+        e = r[i:] - Yp[i:] @ self._theta
         found = self.detector.push(t[i:], Yp[i:, :, :DETECTOR_COLUMNS], e, self._noise)
         stop = len(t) if found is None else i + int(np.searchsorted(t[i:], found.stamp,
                                                                     side='right'))
@@ -400,8 +441,8 @@ class PayloadMonitor:
         self._stats.add(Yp[i:j], r[i:j])
         if j < len(t):
             assert self.current is not None   # the given payload (called while watching)
-            self._set_noise(self.current.phi)
-            self._stats = ResidualStatistics(10, self.robot.dof, self._block)
+            self._set_noise(self._theta)
+            self._stats = ResidualStatistics(self.columns, self.robot.dof, self._block)
         return j
 
     def _flush(self, before: float, inclusive: bool) -> None:
@@ -417,7 +458,8 @@ class PayloadMonitor:
         self._pending = keep
 
     def _noise_variance(self, phi: np.ndarray) -> np.ndarray:
-        """Per joint the variance (N m)^2 of the residual noise a sum over the segment
+        """Per joint the variance (N m)^2 of the residual of ``phi`` (the columns' parameters:
+        payload, then arm correction) noise a sum over the segment
         averages: its long-run variance once MIN_BLOCKS blocks are in (the smoothed torque
         noise, and model errors at the motion's frequencies; not the noise the derivatives
         bring into the regressor, which is high-frequency), else the white noise that
@@ -441,10 +483,12 @@ class PayloadMonitor:
         the first fit's long-run noise."""
         ne = self._stats.normal_equations()
         tol = self.config.tolerance
-        est = fit_payload(ne, self._noise_variance(np.zeros(10)), self.attach.link, tol)
-        var = self._noise_variance(est.phi)
-        est = fit_payload(ne, var, self.attach.link, tol)
-        self._set_noise(est.phi)
+        est = fit_payload(ne, self._noise_variance(np.zeros(self.columns)), self.attach.link,
+                          tol, prior=self.prior)
+        var = self._noise_variance(self._parameters(est))
+        est = fit_payload(ne, var, self.attach.link, tol, prior=self.prior)
+        self._theta = self._parameters(est)
+        self._set_noise(self._theta)
         assert self._noise is not None   # set just now
         noise = self.torque_noise() ** 2
         ok = np.isfinite(noise) & (noise > 0)
@@ -454,9 +498,21 @@ class PayloadMonitor:
         self.segments[-1].payload = est
         return est
 
+    def _parameters(self, est: PayloadEstimate) -> np.ndarray:
+        """The columns' parameters of a fit: its payload, then its arm correction (0 where
+        the arm is taken as exact)."""
+        theta = np.zeros(self.columns)
+        theta[:10] = est.phi
+        theta[10:10 + est.arm_correction.size] = est.arm_correction
+        return theta
+
     def _close_segment(self) -> None:
+        """The ending segment's final fit; what it told of the arm joins the prior."""
         if not self._given and self._stats.count:
             self._fit()
+            if self.prior is not None and self._noise is not None:
+                self.prior = self.prior.updated(*arm_information(
+                    self._stats.normal_equations(), self._noise))
 
     def finish(self) -> list[Segment]:
         """At the end of the data: the last segment fitted with everything pending; the
@@ -492,10 +548,13 @@ def segments_document(segments: list[Segment]) -> list[dict]:
     return out
 
 
-def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
+def monitor_from_settings(settings, robot: RobotModel,
+                          base: BaseParameters | None = None) -> PayloadMonitor:
     """The PayloadMonitor of the ``payload.*`` parameters (settings.Settings); errors name the
-    parameter."""
-    from identification_node.payload.fit import arm_parameters, attachment
+    parameter. An estimate.yaml as ``payload.arm`` brings its covariance as the arm's prior;
+    with 'estimate' the arm's base columns are gathered, the prior given by set_arm.
+    ``base``: the arm's base parameters (default: the robot's, as the pipeline's)."""
+    from identification_node.payload.fit import arm_parameters, attachment, read_arm_prior
     v = settings.values
     config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
         'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change', 'min_z',
@@ -503,9 +562,14 @@ def monitor_from_settings(settings, robot: RobotModel) -> PayloadMonitor:
         max_gap=v['smoother.max_gap'],
         tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
     attach = attachment(robot, v['payload.link'])
+    arm = v['payload.arm']
+    prior = None
     try:
-        arm = v['payload.arm']
         phi_arm = arm_parameters(robot, '' if arm == ARM_ESTIMATE else arm)
+        if arm:
+            base = base if base is not None else BaseParameters.from_robot(robot)
+            prior = None if arm == ARM_ESTIMATE else read_arm_prior(robot, arm, base)
     except IdentificationError as exc:
         raise IdentificationError(f'parameter payload.arm: {exc}') from None
-    return PayloadMonitor(robot, attach, phi_arm, config)
+    return PayloadMonitor(robot, attach, phi_arm, config, arm_base=base if arm else None,
+                          arm_prior=prior)

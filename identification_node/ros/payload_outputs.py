@@ -35,7 +35,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from identification_node.errors import IdentificationError
-from identification_node.payload.fit import PayloadEstimate, prepare_consistency
+from identification_node.payload.fit import ArmPrior, PayloadEstimate, prepare_consistency
 from identification_node.payload.monitor import ARM_ESTIMATE, PayloadEvent, monitor_from_settings
 from identification_node.payload.validation import checked_payload, max_payload_mass
 from identification_node.ros.diagnostics import NOT_EXCITED, vector
@@ -104,7 +104,7 @@ class PayloadOutputs:
     def __init__(self, node: Node, settings, pipeline, services: ServiceThread,
                  requests: RequestQueue):
         self.node, self.requests = node, requests
-        self.monitor = monitor_from_settings(settings, pipeline.robot)
+        self.monitor = monitor_from_settings(settings, pipeline.robot, pipeline.base)
         prepare_consistency()   # cvxpy's import: seconds, not in a run
         self.pipeline = pipeline
         self._arm_from_estimate = settings['payload.arm'] == ARM_ESTIMATE
@@ -221,8 +221,11 @@ class PayloadOutputs:
         processing lock."""
         if kind == 'payload_reset':
             if self._arm_from_estimate:
-                self.monitor.phi_arm = self.pipeline.standard_parameters()
-            self.monitor.reset()
+                self.monitor.set_arm(self.pipeline.standard_parameters(),
+                                     ArmPrior.from_covariance(self.pipeline.base,
+                                                              self.pipeline.covariance))
+            else:
+                self.monitor.reset()
             self.version += 1
         elif kind == 'payload_set':
             est = self.monitor.set_payload(argument)
