@@ -162,11 +162,6 @@ class ArmPrior:
         info[np.ix_(known, known)] = _pinv_sym(cov[np.ix_(known, known)])
         return cls(base, info, np.zeros(nb))
 
-    @property
-    def columns(self) -> np.ndarray:
-        """The standard regressor columns of the arm's base parameters."""
-        return self.base.base_index
-
     def mean(self) -> np.ndarray:
         """The prior's mean correction delta (nb,)."""
         return _pinv_sym(self.information) @ self.vector
