@@ -136,7 +136,8 @@ def test_drop_in_the_stream_is_not_a_change(ros, tmp_path):
 
 def test_arm_from_the_running_estimate_taken_at_reset(ros):
     """payload.arm: estimate: each ~/payload/reset takes the node's running estimate of the
-    arm (the full parameter set reproducing it) as the model the payload is fitted against."""
+    arm (the full parameter set reproducing it) as the model the payload is fitted against,
+    with its covariance as the prior of the arm's correction (none before)."""
     from rclpy.parameter import Parameter as P
 
     from identification_node.payload.fit import PayloadChange, true_parameter_changes
@@ -158,9 +159,16 @@ def test_arm_from_the_running_estimate_taken_at_reset(ros):
                 sim.qd, sim.tau))
             node.pipeline.process(flush=True)
             expected = node.pipeline.standard_parameters()
-        assert not np.allclose(node.payload.monitor.phi_arm, expected)
+            covariance = node.pipeline.covariance
+        monitor = node.payload.monitor
+        assert not np.allclose(monitor.phi_arm, expected) and monitor.prior is None
         assert ros.call(Trigger, '/payload_arm/payload/reset', Trigger.Request()).success
-        np.testing.assert_allclose(node.payload.monitor.phi_arm, expected)
+        np.testing.assert_allclose(monitor.phi_arm, expected)
+        known = np.isfinite(np.diag(covariance))
+        assert known.any() and monitor.prior is not None
+        np.testing.assert_allclose(
+            monitor.prior.information[np.ix_(known, known)] @ covariance[np.ix_(known, known)],
+            np.eye(int(known.sum())), atol=1e-6)
     finally:
         ros.remove(node)
         node.destroy_node()
