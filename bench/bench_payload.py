@@ -24,7 +24,8 @@ torque noise (18-bit encoders, measured velocities 0.01 rad/s).
    ..., 0.05 kg whose pick is detected within 2 s in every one of 3 seeds, as are all the
    grid's masses above it (payload.min_change, 0.2 kg, bounds it below; above 0.3 kg the
    grid goes on in 0.1 kg steps).
-3. False alarms: --minutes of motion without a change (UR5, friction, 0.2 N m, 1 kHz) and
+3. False alarms: --minutes of motion without a change (UR5, friction, 0.2 N m, 1 kHz; one
+   10 s-period motion, fresh noise each minute) and
    the bundled bags (their own robots and configs, default payload settings, the arm
    identified first from the bag itself by the config's pipeline and passed as the arm);
    the monitor's cost per sample against the pipeline's, in the same run.
@@ -167,7 +168,9 @@ def simulated_false_alarms(minutes: float) -> None:
     declared, samples = 0, 0
     chunk = 60.0
     for k in range(int(np.ceil(minutes * 60 / chunk))):
-        sim = ps.simulate(arm, 1000.0, chunk, 0.2, 100 + k)
+        # one motion throughout (its 10 s period divides the chunk), fresh noise per chunk:
+        # chunks of different motions had joined with jumps of q
+        sim = ps.simulate(arm, 1000.0, chunk, 0.2, 100 + k, motion_seed=100)
         sim.t = sim.t + k * chunk
         t0 = time.perf_counter()
         ps.stream(pipe, sim)

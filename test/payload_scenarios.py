@@ -62,11 +62,12 @@ def make_arm(name: str, friction: bool = True) -> Arm:
 
 
 def simulate(arm: Arm, rate: float, duration: float, torque_std: float, seed: int,
-             changes: list[PayloadChange] = ()) -> SimResult:
-    """``duration`` s at ``rate`` Hz of a seeded Fourier motion, the payload changing at
-    ``changes``."""
+             changes: list[PayloadChange] = (), motion_seed: int | None = None) -> SimResult:
+    """``duration`` s at ``rate`` Hz of a seeded Fourier motion (10 s period; its own seed
+    ``motion_seed``, default ``seed``: the noise's), the payload changing at ``changes``."""
     robot = arm.robot
-    traj = FourierTrajectory.random(robot, harmonics=5, period=10.0, seed=seed)
+    traj = FourierTrajectory.random(robot, harmonics=5, period=10.0,
+                                    seed=seed if motion_seed is None else motion_seed)
     t = np.arange(int(duration * rate)) / rate
     q, qd, qdd = traj.sample(t)
     tau = np.empty_like(q)

@@ -161,6 +161,26 @@ def test_no_motion_says_not_excited_never_nan():
     assert 'NaN' not in json.dumps(empty)
 
 
+def test_a_fit_of_negative_mass_is_no_payload(monkeypatch):
+    """Residuals that a negative mass would explain (an arm model too heavy, a glitch): the
+    payload is none, consistent, with the mass's stddev, and no conic solve is tried."""
+    import identification_node.payload.fit as fit
+    robot = load_robot(SEVEN)
+    att = attachment(robot)
+    q = np.random.default_rng(5).uniform(-1.5, 1.5, (2000, 7))
+    zero = np.zeros_like(q)
+    Yp = payload_regressor(att, robot.regressor(q, zero, zero))
+    residual = Yp @ -_params(0.5, (0.0, 0.0, 0.05), (0.001, 0, 0, 0.001, 0, 0.001))
+    residual += 0.05 * np.random.default_rng(6).standard_normal(residual.shape)
+
+    def refuse(*args):
+        raise AssertionError('consistent_payload called')
+    monkeypatch.setattr(fit, 'consistent_payload', refuse)
+    est = fit_payload(NormalEquations.from_rows(Yp, residual), np.full(7, 0.05 ** 2), 'link7')
+    assert est.mass == 0.0 and not est.phi.any() and est.consistent
+    assert 0 < est.stddev['mass'] < 0.01 and 'mass' in est.excited
+
+
 def test_unknown_or_unmoved_payload_link_refused():
     robot = load_robot(SIX)
     with pytest.raises(IdentificationError, match="payload.link: 'gripper'"):

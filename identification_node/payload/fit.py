@@ -370,11 +370,16 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
     cov_s = (Vk / lam[keep]) @ Vk.T
     phi_ls = (cov_s @ (b / d)) / d
     cov = cov_s / np.outer(d, d)
-    try:
-        phi = consistent_payload(payload_ne, 1.0, phi_ls) if keep.any() else np.zeros(10)
-    except IdentificationError:   # the solvers failed: the least-squares fit, not consistent
-        phi = phi_ls
-    consistent = bool(np.linalg.eigvalsh(pseudo_inertia(phi))[0] > 0)
+    if not keep.any() or phi_ls[0] <= 0:
+        # no data, or a fitted mass that is not positive: the nearest body is none (where
+        # the conic solvers fail on it, SCS took seconds per fit)
+        phi = np.zeros(10)
+    else:
+        try:
+            phi = consistent_payload(payload_ne, 1.0, phi_ls)
+        except IdentificationError:   # the solvers failed: the least-squares fit
+            phi = phi_ls
+    consistent = not phi.any() or bool(np.linalg.eigvalsh(pseudo_inertia(phi))[0] > 0)
     stddev = dict.fromkeys(QUANTITIES, math.inf)
 
     def determined(g: np.ndarray) -> bool:   # g: a gradient in the scaled coordinates
