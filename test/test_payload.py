@@ -359,3 +359,28 @@ def test_arm_prior_makes_the_payload_stddev_honest():
     assert rms(z_exact) > 2.5, rms(z_exact)
     mse = lambda e: float(np.mean(np.square(e)))   # noqa: E731
     assert mse(err_prior) <= mse(err_exact), (mse(err_prior), mse(err_exact))
+
+
+def test_a_segments_arm_information_carries_into_the_next_fit():
+    """Two spans, each with payload parameters of its own: the second span's fit with the
+    prior updated by what the first told of the arm (arm_information) is the joint least
+    squares of both spans' payloads and one arm correction, stacked with the prior."""
+    from identification_node.payload.fit import arm_information
+    sigma = 0.05
+    ne1, prior, _, Yp1, Yb1, r1 = _arm_error_case(21)
+    ne2, _, _, Yp2, Yb2, r2 = _arm_error_case(22)
+    var = np.full(7, sigma ** 2)
+    est = fit_payload(ne2, var, 'link7', prior=prior.updated(*arm_information(ne1, var)))
+    nb = Yb1.shape[2]
+    rows1 = np.concatenate([Yp1, np.zeros_like(Yp1), Yb1], axis=2).reshape(-1, 20 + nb)
+    rows2 = np.concatenate([np.zeros_like(Yp2), Yp2, Yb2], axis=2).reshape(-1, 20 + nb)
+    root = np.linalg.cholesky(prior.information).T
+    stacked = np.vstack([rows1 / sigma, rows2 / sigma,
+                         np.hstack([np.zeros((nb, 20)), root])])
+    x = np.linalg.lstsq(stacked, np.concatenate([r1.ravel(), r2.ravel(), np.zeros(nb)])
+                        / np.r_[np.full(r1.size + r2.size, sigma), np.ones(nb)], rcond=None)[0]
+    assert est.consistent
+    np.testing.assert_allclose(est.phi, x[10:20], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(est.arm_correction, x[20:], rtol=1e-5, atol=1e-9)
+    cov = np.linalg.inv(stacked.T @ stacked)[10:20, 10:20]
+    np.testing.assert_allclose(est.covariance, cov, rtol=1e-6, atol=1e-14)
