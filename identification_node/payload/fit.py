@@ -44,6 +44,9 @@ DEFAULT_TOLERANCE = {'mass': PayloadTolerance.mass, 'com': PayloadTolerance.com,
                      'inertia': PayloadTolerance.inertia}                  # kg m^2
 PSEUDO_INERTIA_EPS = 1e-9   # J(phi) - eps 1 >= 0 (at most; kg m^2): consistent but free to be tiny
 PAYLOAD_CONFIDENCE = 0.99   # the chi-square region in which its prior (the fit itself) chooses
+# s per conic solver: a payload (10 parameters) solves in ~20 ms, on the node's processing
+# thread; a failing solver must not hold it for consistency.time_limit (5 s)
+PAYLOAD_TIME_LIMIT = 0.5
 
 
 @dataclass(frozen=True)
@@ -300,7 +303,8 @@ def consistent_payload(ne: NormalEquations, weights: np.ndarray | float, phi: np
     status = ''
     for solver in SOLVERS:
         options = ConsistencyOptions(margin=PSEUDO_INERTIA_EPS, solver=solver, mass_ratio=0.0,
-                                     confidence=PAYLOAD_CONFIDENCE, mass_weight=0.0)
+                                     confidence=PAYLOAD_CONFIDENCE, mass_weight=0.0,
+                                     time_limit=PAYLOAD_TIME_LIMIT)
         result = ConsistentSolver(base, phi, [Body('payload', 0)], options).solve(ne, weights)
         if result.phi is not None:   # result.ok
             return result.phi
