@@ -574,5 +574,6 @@ def monitor_from_settings(settings, robot: RobotModel,
             prior = None if arm == ARM_ESTIMATE else read_arm_prior(robot, arm, base)
     except IdentificationError as exc:
         raise IdentificationError(f'parameter payload.arm: {exc}') from None
-    return PayloadMonitor(robot, attach, phi_arm, config, arm_base=base if arm else None,
+    gathered = arm == ARM_ESTIMATE or prior is not None   # the arm's columns are of use
+    return PayloadMonitor(robot, attach, phi_arm, config, arm_base=base if gathered else None,
                           arm_prior=prior)
