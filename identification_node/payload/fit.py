@@ -375,8 +375,8 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
     phi_ls = (cov_s @ (b / d)) / d
     cov = cov_s / np.outer(d, d)
     if not keep.any() or phi_ls[0] <= 0:
-        # no data, or a fitted mass that is not positive: the nearest body is none (where
-        # the conic solvers fail on it, SCS took seconds per fit)
+        # no data, or a fitted mass that is not positive: the nearest body is none (and the
+        # conic solvers, which often fail on such a fit, are not worth their time)
         phi = np.zeros(10)
     else:
         try:

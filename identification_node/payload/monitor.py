@@ -413,9 +413,8 @@ class PayloadMonitor:
                                                                     side='right'))
         self._pending.append((t[i:stop], Yp[i:stop], r[i:stop]))
         if found is not None:
-            # the onset is estimated to within a window (late by up to 0.14 s seen), and the
-            # low-pass spreads the change a half window earlier: samples after the change in
-            # the segment it ends biased its fit (10 g of 2 kg, 5 stddev)
+            # the onset is known to within a window, and the low-pass spreads the change
+            # half its window earlier: no sample after the change may join the segment it ends
             self._flush(found.onset - self.config.window, inclusive=False)
             self._close_segment()
             self.changes += 1
