@@ -64,10 +64,7 @@ def run_sequence(arm, model, rate, noise, changes, seed):
     exact. (detection delays or None per change, mass errors %, com errors mm, their z-scores
     (error over the segment's reported stddev: mass, largest CoM axis), false alarms, the
     largest CoM stddev (mm) of each payload segment)."""
-    mon = ps.monitor(arm, model)
-    sim = ps.simulate(arm, rate, changes[-1].time + 5.0, noise, seed, changes)
-    events = ps.watch(mon, sim)
-    segments = mon.finish()
+    _, events, segments = ps.run(arm, model, rate, noise, seed, changes)
     detected = [ps.seconds(e.detected) for e in events if e.kind == 'change']
     delays, used = [], set()
     for c in changes:

@@ -137,6 +137,15 @@ def watch(mon: PayloadMonitor, sim: SimResult, block: float = 0.05) -> list:
     return events
 
 
+def run(arm: Arm, model: IdentifiedArm | np.ndarray, rate: float, torque_std: float,
+        seed: int, changes: list[PayloadChange]) -> tuple[PayloadMonitor, list, list]:
+    """The monitor against ``model`` (``monitor``) watching a simulation of ``changes`` and
+    5 s after the last: (the monitor, its events, its segments)."""
+    mon = monitor(arm, model)
+    events = watch(mon, simulate(arm, rate, changes[-1].time + 5.0, torque_std, seed, changes))
+    return mon, events, mon.finish()
+
+
 def seconds(stamp: float) -> float:
     """A monitor stamp (header seconds) as seconds since the simulation's start."""
     return stamp - T0_NS * 1e-9

@@ -34,10 +34,8 @@ CELLS = [('ur5', 1000.0, 0.1, True, 'pick-place-pick'),
 def check_cell(name: str, rate: float, noise: float, friction: bool, changes: list,
                seed: int = 3) -> None:
     arm = ps.make_arm(name, friction)
-    duration = changes[-1].time + 5.0
-    mon = ps.monitor(arm, ps.identify_arm(arm, rate, noise))
-    events = ps.watch(mon, ps.simulate(arm, rate, duration, noise, seed, changes))
-    segments = mon.finish()
+    mon, events, segments = ps.run(arm, ps.identify_arm(arm, rate, noise), rate, noise, seed,
+                                   changes)
     detected = [ps.seconds(e.detected) for e in events if e.kind == 'change']
     truth = [c.time for c in changes]
     assert len(detected) == len(truth), (detected, truth)
@@ -65,9 +63,7 @@ def test_light_payload_errors_stay_within_their_stddev():
     with the true arm), and the 1 kg payload meets the targets."""
     arm = ps.make_arm('ur5', True)
     changes = SEQUENCES['pick-place-pick']
-    mon = ps.monitor(arm, ps.identify_arm(arm, 250.0, 0.2))
-    ps.watch(mon, ps.simulate(arm, 250.0, changes[-1].time + 5.0, 0.2, 3, changes))
-    segments = mon.finish()
+    *_, segments = ps.run(arm, ps.identify_arm(arm, 250.0, 0.2), 250.0, 0.2, 3, changes)
     assert len(segments) == len(changes) + 1
     for seg, c in zip(segments[1:], changes):
         p = seg.payload
@@ -85,9 +81,7 @@ def test_a_late_onset_leaves_the_segment_before_unbiased():
     stddev). Every segment's mass now lies within 3 stddev."""
     arm = ps.make_arm('ur5', True)
     changes = SEQUENCES['two payloads']
-    mon = ps.monitor(arm, arm.phi)
-    ps.watch(mon, ps.simulate(arm, 2000.0, changes[-1].time + 5.0, 0.2, 13, changes))
-    segments = mon.finish()
+    *_, segments = ps.run(arm, arm.phi, 2000.0, 0.2, 13, changes)
     assert len(segments) == len(changes) + 1
     for seg, c in zip(segments[1:], changes):
         p = seg.payload

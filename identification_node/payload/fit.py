@@ -114,28 +114,6 @@ def payload_regressor(attach: Attachment, Y: np.ndarray) -> np.ndarray:
     return Y[:, :, attach.columns] @ attach.transform
 
 
-def arm_parameters(robot: RobotModel, estimate: str | None = None) -> np.ndarray:
-    """The arm's standard parameters: the model's own, with the ``standard_parameters`` of a
-    saved estimate.yaml (results.save_results) where it names the robot's parameters."""
-    phi = robot.phi_model
-    if not estimate:
-        return phi
-    doc = read_yaml(estimate, f'arm estimate {estimate}') or {}
-    given = doc.get('standard_parameters') if isinstance(doc, dict) else None
-    if not isinstance(given, dict):
-        raise IdentificationError(f'{estimate} has no standard_parameters mapping (an '
-                                  'estimate.yaml written by the node\'s ~/save)')
-    known = set(robot.param_names)
-    used = 0
-    for name, value in given.items():
-        if name in known and isinstance(value, (int, float)) and math.isfinite(value):
-            phi[robot.param_index(name)] = float(value)
-            used += 1
-    if used == 0:
-        raise IdentificationError(f'{estimate}: no standard parameter of robot {robot.name}')
-    return phi
-
-
 @dataclass(frozen=True)
 class ArmPrior:
     """What is known of the error delta = beta_true - beta_arm of the arm's base parameters
@@ -174,23 +152,51 @@ class ArmPrior:
         return ArmPrior(self.base, self.information + information, self.vector + vector)
 
 
-def _pinv_sym(A: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
-    """Pseudo-inverse of a symmetric positive semi-definite matrix, diagonally scaled."""
+def _scaled_eigen(A: np.ndarray, rcond: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(d, lam, V, keep): the eigen-decomposition of a symmetric positive semi-definite A
+    scaled to unit diagonal (A / d d'), ``keep`` the eigenvalues above rcond x the largest
+    (none when that is not positive)."""
     d = np.sqrt(np.maximum(np.diag(A), 0.0))
     d = np.where(d > 0, d, 1.0)
     lam, V = np.linalg.eigh(0.5 * (A + A.T) / np.outer(d, d))
-    keep = lam > rcond * max(lam.max(initial=0.0), 0.0)
+    top = lam.max(initial=0.0)
+    keep = lam > rcond * top if top > 0 else np.zeros(len(lam), dtype=bool)
+    return d, lam, V, keep
+
+
+def _pinv_sym(A: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
+    """Pseudo-inverse of a symmetric positive semi-definite matrix, diagonally scaled."""
+    d, lam, V, keep = _scaled_eigen(A, rcond)
     return ((V[:, keep] / lam[keep]) @ V[:, keep].T) / np.outer(d, d)
 
 
-def read_arm_prior(robot: RobotModel, estimate: str, base: BaseParameters) -> ArmPrior | None:
-    """The ArmPrior of a saved estimate.yaml's ``covariance`` (results.save_results): its
-    base parameters must be the robot's (``base``), else IdentificationError."""
-    doc = read_yaml(estimate, f'arm estimate {estimate}') or {}
-    cov = doc.get('covariance') if isinstance(doc, dict) else None
+def read_arm(robot: RobotModel, estimate: str | None = None,
+             base: BaseParameters | None = None) -> tuple[np.ndarray, ArmPrior | None]:
+    """(the arm's standard parameters, the prior of their error): the model's own, taken as
+    exact, or the ``standard_parameters`` of a saved estimate.yaml (~/save, identify --save)
+    where it names the robot's parameters, with, given the arm's ``base``, the prior of its
+    ``covariance`` (its base parameters must be ``base``'s, else IdentificationError)."""
+    phi = robot.phi_model
+    if not estimate:
+        return phi, None
+    doc = read_yaml(estimate, f'arm estimate {estimate}')
+    given = doc.get('standard_parameters') if isinstance(doc, dict) else None
+    if not isinstance(given, dict):
+        raise IdentificationError(f'{estimate} has no standard_parameters mapping (an '
+                                  'estimate.yaml written by the node\'s ~/save)')
+    known = set(robot.param_names)
+    used = 0
+    for name, value in given.items():
+        if name in known and isinstance(value, (int, float)) and math.isfinite(value):
+            phi[robot.param_index(name)] = float(value)
+            used += 1
+    if used == 0:
+        raise IdentificationError(f'{estimate}: no standard parameter of robot {robot.name}')
+    cov = doc.get('covariance')
     names = [b.get('name') for b in doc.get('base_parameters') or () if isinstance(b, dict)]
-    if cov is None or not names:
-        return None
+    if base is None or cov is None or not names:
+        return phi, None
     if names != list(base.names):
         raise IdentificationError(
             f'{estimate}: its base parameters are not those of robot {robot.name} with these '
@@ -199,7 +205,7 @@ def read_arm_prior(robot: RobotModel, estimate: str, base: BaseParameters) -> Ar
         covariance = np.array(cov, dtype=float)
     except (TypeError, ValueError):
         raise IdentificationError(f'{estimate}: covariance is not a matrix of numbers') from None
-    return ArmPrior.from_covariance(base, covariance)
+    return phi, ArmPrior.from_covariance(base, covariance)
 
 
 @dataclass
@@ -364,12 +370,7 @@ def fit_payload(ne: NormalEquations, noise_variance: np.ndarray, link: str,
     G, b = G[:10, :10], b[:10]
     payload_ne = NormalEquations(np.block([[G, b[:, None]], [b[None], np.array([[c]])]])[None],
                                  np.array([ne.count.max(initial=0)]))
-    d = np.sqrt(np.maximum(np.diag(G), 0.0))
-    d = np.where(d > 0, d, 1.0)
-    Gs = G / np.outer(d, d)
-    lam, V = np.linalg.eigh(0.5 * (Gs + Gs.T))
-    top = lam.max() if lam.size and lam.max() > 0 else 0.0
-    keep = lam > rcond * top if top > 0 else np.zeros(10, dtype=bool)
+    d, lam, V, keep = _scaled_eigen(G, rcond)
     Vk, Vn = V[:, keep], V[:, ~keep]
     cov_s = (Vk / lam[keep]) @ Vk.T
     phi_ls = (cov_s @ (b / d)) / d

@@ -120,8 +120,8 @@ class Segment:
 
 
 class PayloadMonitor:
-    """See the module docstring. ``phi_arm``: the arm's standard parameters (payload.
-    arm_parameters); ``arm_base``: the arm's base parameters when its uncertainty is to be
+    """See the module docstring. ``phi_arm``: the arm's standard parameters (payload.fit.
+    read_arm); ``arm_base``: the arm's base parameters when its uncertainty is to be
     taken into account (the base columns are then filtered and gathered beside the payload's),
     with the prior ``arm_prior`` (None: the arm is taken as exact until set_arm gives one).
     Its smoother is made from the first samples' rate."""
@@ -556,7 +556,7 @@ def monitor_from_settings(settings, robot: RobotModel,
     parameter. An estimate.yaml as ``payload.arm`` brings its covariance as the arm's prior;
     with 'estimate' the arm's base columns are gathered, the prior given by set_arm.
     ``base``: the arm's base parameters (default: the robot's, as the pipeline's)."""
-    from identification_node.payload.fit import arm_parameters, attachment, read_arm_prior
+    from identification_node.payload.fit import attachment, read_arm
     v = settings.values
     config = MonitorConfig(**{k: v[f'payload.{k}'] for k in (
         'fit_time', 'settle', 'refresh', 'window', 'threshold', 'min_change', 'min_z',
@@ -565,12 +565,10 @@ def monitor_from_settings(settings, robot: RobotModel,
         tolerance={k: v[f'payload.tolerance.{k}'] for k in ('mass', 'com', 'inertia')})
     attach = attachment(robot, v['payload.link'])
     arm = v['payload.arm']
-    prior = None
+    if arm and base is None:
+        base = BaseParameters.from_robot(robot)
     try:
-        phi_arm = arm_parameters(robot, '' if arm == ARM_ESTIMATE else arm)
-        if arm:
-            base = base if base is not None else BaseParameters.from_robot(robot)
-            prior = None if arm == ARM_ESTIMATE else read_arm_prior(robot, arm, base)
+        phi_arm, prior = read_arm(robot, '' if arm == ARM_ESTIMATE else arm, base)
     except IdentificationError as exc:
         raise IdentificationError(f'parameter payload.arm: {exc}') from None
     gathered = arm == ARM_ESTIMATE or prior is not None   # the arm's columns are of use
