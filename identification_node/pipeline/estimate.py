@@ -20,7 +20,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 
@@ -77,6 +77,16 @@ def converged(covariance: np.ndarray, gram: np.ndarray, count: float,
                        <= config.converged_ratio * np.sqrt(noise_variance)))
 
 
+class _Pending(NamedTuple):
+    """Rows queued by OnlineEstimate.add, with what weighting them needs."""
+    rows: np.ndarray
+    t: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    stamps_ns: np.ndarray | None
+    q: np.ndarray | None
+
+
 class OnlineEstimate:
     """RLS and residual statistics of ``num_base`` parameters over ``dof`` joints' rows."""
 
@@ -114,12 +124,12 @@ class OnlineEstimate:
     def reset(self) -> None:
         self._rls = RecursiveLeastSquares(self.num_base, forgetting=self.config.forgetting)
         self._residuals = ResidualStatistics(self.num_base, self.dof, self._block)
-        self._updates: list[tuple] = []
+        self._updates: list[_Pending] = []
         self._pending_samples = 0
-        self.excluded = np.zeros(self.dof, dtype=np.int64)   # per joint, near reversals
+        self._excluded = np.zeros(self.dof, dtype=np.int64)   # per joint, near reversals
         self._excluded_restored = 0
         self.terms = ModelTermStatistics(self.dof, self.num_base + 1)
-        self.numerical_failures = 0
+        self._numerical_failures = 0
         self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
         self._next_arm = 0                       # samples at which arming is asked next
         self._last_t = math.nan
@@ -138,50 +148,59 @@ class OnlineEstimate:
 
     def add(self, rows: np.ndarray, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
             stamps_ns: np.ndarray | None = None, q: np.ndarray | None = None) -> None:
-        """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n):
-        weighted (in place) and queued; applied once ``update_batch`` samples are gathered.
-        ``stamps_ns`` (N,) int64, the samples' stamps: the residual blocks restart where they
-        cross a multiple of RESIDUAL_GRID. With the smoothed q (N, n), the residual's
-        model-term sums (model_terms.py) too."""
+        """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n),
+        queued as they are and applied once ``update_batch`` samples are gathered (or a result
+        is read): weighting them and every other step then runs once per batch, not once per
+        call. ``stamps_ns`` (N,) int64, the samples' stamps: the residual blocks restart where
+        they cross a multiple of RESIDUAL_GRID. With the smoothed q (N, n), the residual's
+        model-term sums (model_terms.py) too. The rows are weighted in place when applied."""
+        if len(rows) == 0:
+            return
+        self._last_t = float(t[-1])
+        self._updates.append(_Pending(rows, t, qd, qdd, stamps_ns, q))
+        self._pending_samples += len(rows)
+        if self._pending_samples >= self.config.update_batch:
+            self.apply()
+
+    def apply(self) -> None:
+        """Weight the rows gathered since the last update and feed them to the RLS and the
+        residual statistics in one batch per RESIDUAL_GRID cell (the rows before a cell's
+        start applied, its open residual block closed); each batch's per-joint information
+        is formed once for both (without forgetting)."""
+        if not self._updates:
+            return
+        parts, self._updates, self._pending_samples = self._updates, [], 0
+        rows, t, qd, qdd = (p[0] if len(parts) == 1 else np.concatenate(p)
+                            for p in zip(*((u.rows, u.t, u.qd, u.qdd) for u in parts)))
         w = self._row_weights(t, qd, qdd)
-        self._last_t = float(t[-1]) if len(t) else self._last_t
         used = None
         if w is not None:
             root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
             rows *= root[:, :, None]
             used = root > 0
-        if q is not None:   # rows that overflow (dropped when applied) left out here too
-            f = features(q, qd)
+        if all(u.q is not None for u in parts):   # rows that overflow are left out here too
+            f = features(np.concatenate([u.q for u in parts]), qd)
             if used is not None:
                 f *= used[:, :, None]
             with np.errstate(over='ignore', invalid='ignore'):
                 ok = np.isfinite(np.square(rows).sum(axis=(1, 2)))
             self.terms.add(f[ok], rows[ok])
         cuts: list[int] = []
-        if stamps_ns is not None and len(rows):
-            cell = np.asarray(stamps_ns, dtype=np.int64) // RESIDUAL_GRID
+        if all(u.stamps_ns is not None for u in parts):
+            cell = np.concatenate([np.asarray(u.stamps_ns, dtype=np.int64) for u in parts]
+                                  ) // RESIDUAL_GRID
             before = cell[0] if self._cell is None else self._cell
             cuts = np.flatnonzero(np.diff(cell, prepend=before)).tolist()
             self._cell = int(cell[-1])
         for a, b in zip([0] + cuts, cuts + [len(rows)]):
-            if a in cuts:     # a new cell: the rows before applied, their open block closed
-                self.apply()
+            if a in cuts:     # a new cell: its open residual block closed
                 self._residuals.close_block()
             if b > a:
-                self._updates.append((rows[a:b], None if used is None else used[a:b]))
-                self._pending_samples += b - a
-        if cuts or self._pending_samples >= self.config.update_batch:
-            self.apply()      # (after a cut too: rows may live in the row builder's work array)
+                self._update(rows[a:b], None if used is None else used[a:b])
 
-    def apply(self) -> None:
-        """Feed the rows gathered since the last update to the RLS and residual statistics in
-        one batch: their per-joint information is formed once for both (without forgetting)."""
-        if not self._updates:
-            return
-        parts, self._updates, self._pending_samples = self._updates, [], 0
-        rows = parts[0][0] if len(parts) == 1 else np.concatenate([u[0] for u in parts])
-        used = None if all(u[1] is None for u in parts) else np.concatenate([
-            np.ones(u[0].shape[:2], dtype=bool) if u[1] is None else u[1] for u in parts])
+    def _update(self, rows: np.ndarray, used: np.ndarray | None) -> None:
+        """One batch of weighted rows into the RLS and the residual statistics (rolled back
+        and counted when it fails)."""
         rows, used = self._screened(rows, used)
         if len(rows) == 0:
             return
@@ -196,7 +215,7 @@ class OnlineEstimate:
             ok = False
         if not ok:   # back to the last finite state; the batch is counted and dropped
             self._rls, self._residuals = saved
-            self.numerical_failures += 1
+            self._numerical_failures += 1
             self._reject('numerical_failure', len(rows))
             return
         self._rows_used += len(rows) if used is None else used.sum(axis=0)
@@ -265,15 +284,28 @@ class OnlineEstimate:
         period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         reach = 0.0 if self.smoothed_sign else period * float(self.half_window or 0)
         slow = near_reversal(qd, qdd, self.config.coulomb_exclusion_speed, reach)
-        self.excluded += np.count_nonzero(slow, axis=0)
+        self._excluded += np.count_nonzero(slow, axis=0)
         w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
         w[slow] = 0.0
         return w
 
     @property
+    def excluded(self) -> np.ndarray:
+        """(n,) per joint: equations left out near velocity reversals (rows gathered
+        applied first)."""
+        self.apply()
+        return self._excluded
+
+    @property
     def excluded_rows(self) -> int:
         """Joint equations left out near velocity reversals, all joints."""
         return int(self.excluded.sum()) + self._excluded_restored
+
+    @property
+    def numerical_failures(self) -> int:
+        """Batches rolled back to the last finite state (rows gathered applied first)."""
+        self.apply()
+        return self._numerical_failures
 
     def model_term_warnings(self, joint_names: list[str], extras: tuple) -> list[str]:
         """model_terms.missing_term_warnings of the running estimate."""
