@@ -107,7 +107,7 @@ def stop_process(proc) -> str:
     forced exit (1, said in the log) when a busy machine stretches the shutdown beyond its
     grace (the grace itself: test_node_faults). Returns the node's log (stderr)."""
     proc.send_signal(signal.SIGINT)
-    code = proc.wait(10)
+    code = proc.wait(60)   # a bound for a hang, not a margin: the watchdog exits first
     log = proc.stderr.read()
     assert code == 0 or (code == 1 and 'shutdown did not finish within' in log), (code, log)
     return log
