@@ -11,7 +11,11 @@ itself are measured the same two ways, so the machine's own wake-up penalty show
 pipeline's. Kinds alternate.
 
     .venv/bin/python bench/bench_pipeline_runs.py [--runs 4000] [--period 0.0025] [--repeat 3]
-        [--profile 30]
+        [--warmup 400] [--profile 30]
+
+``--warmup R``: runs before the measured ones (the smoother's window filled, caches warm). The
+default 400 (4 s at 10 ms) measures while the automatic smoother is chosen (the first 5 s) and
+the time offset checked (the first 10 s); 2000 measures the steady state after both.
 
 ``--profile N`` then runs the pipeline's paced runs once more under cProfile and prints the N
 functions with the most time of their own (cProfile's overhead inflates Python-level calls;
@@ -60,6 +64,8 @@ def main() -> None:
     parser.add_argument('--runs', type=int, default=4000)
     parser.add_argument('--period', type=float, default=0.01, help='s between paced runs')
     parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--warmup', type=int, default=400, metavar='R',
+                        help='runs before the measured ones')
     parser.add_argument('--profile', type=int, default=0, metavar='N',
                         help='then profile the paced pipeline runs, print the top N functions')
     args = parser.parse_args()
@@ -72,7 +78,7 @@ def main() -> None:
     from identification_node.wire.cdr import encode_joint_states
 
     robot = load_robot(str(PANDA))
-    warm = 400
+    warm = args.warmup
     per = 1000 * args.period     # messages per run, on average
     N = int(per * (args.runs + warm)) + 3
     sim = simulate_kinematic(robot, None, FourierTrajectory.random(robot, seed=1),

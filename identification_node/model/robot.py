@@ -20,6 +20,7 @@ import contextlib
 import os
 import sys
 import tempfile
+from itertools import repeat
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -33,6 +34,7 @@ JOINT_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
 # ours[k] = pinocchio's dynamic parameters [m, mcx, mcy, mcz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz][k]
 PIN_ORDER = np.array([0, 1, 2, 3, 4, 5, 7, 6, 8, 9])
 BUNDLED_DIR = Path(__file__).resolve().parent.parent / 'robots'
+_REGRESSOR_CHUNK = 128   # samples per stacked pinocchio regressor (bounds the work memory)
 
 
 def bundled_robots() -> list[str]:
@@ -402,9 +404,15 @@ class RobotModel:
             raise IdentificationError(f'out has shape {out.shape}, expected {shape}')
         ni = self.n_inertial
         Q, V, A = self.configuration(q), self._tangent(qd), self._tangent(qdd)
-        for k in range(N):  # one pinocchio call per sample
-            Ypin = pin.computeJointTorqueRegressor(self.model, self.data, Q[k], V[k], A[k])
-            out[k, :, :ni] = Ypin.take(self._flat)
+        model, data, flat = self.model, self.data, self._flat.reshape(-1)
+        for a in range(0, N, _REGRESSOR_CHUNK):
+            b = min(N, a + _REGRESSOR_CHUNK)
+            # one pinocchio call per sample, mapped (no Python statement per sample); the
+            # package's rows and columns of the whole chunk then picked in one take
+            Ypin = np.array(list(map(pin.computeJointTorqueRegressor, repeat(model),
+                                     repeat(data), Q[a:b], V[a:b], A[a:b])))
+            out[a:b, :, :ni] = Ypin.reshape(b - a, -1).take(flat, axis=1).reshape(
+                b - a, self.dof, ni)
         if self.extras:
             out[:, :, ni:] = 0.0
             ne = len(self.extras)
