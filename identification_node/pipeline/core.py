@@ -230,8 +230,9 @@ class IdentificationPipeline:
             if len(r.t) == 0:
                 return PipelineOutput.empty(self.robot.dof)
         stamps_ns = self.samples.counters.stamps_ns(r.t)
-        self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau,
-                             model_features(r.q, r.qd)[..., :3])
+        if self.time_offset.active:
+            self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau,
+                                 model_features(r.q, r.qd)[..., :3])
         if not self.frozen:
             est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns, q=r.q)
             self.used += len(r.t)

@@ -141,10 +141,6 @@ class TimeOffsetCheck:
         partly fitted by a shift of the torque)."""
         if not self.active or len(t) < 2:
             return
-        if terms is not None:
-            M, n, k = terms.shape
-            own = terms[:, :, None, :] * np.eye(n)[None, :, :, None]   # (M, n, n, k)
-            rows = np.concatenate([rows, own.reshape(M, n, n * k)], axis=2)
         if not self._step:   # decimation step from the stream's own rate
             dt = float(np.median(np.diff(t)))
             if not dt > 0:
@@ -153,8 +149,13 @@ class TimeOffsetCheck:
         pick = np.flatnonzero(t >= self._next - 0.5 * self._dt)[::self._step]
         if len(pick):   # every step-th sample, continued across batches
             self._next = t[pick[-1]] + self._step * self._dt
+            rows = rows[pick]
+            if terms is not None:
+                M, n, k = len(pick), *terms.shape[1:]
+                own = terms[pick][:, :, None, :] * np.eye(n)[None, :, :, None]  # (M, n, n, k)
+                rows = np.concatenate([rows, own.reshape(M, n, n * k)], axis=2)
             self._t.append(t[pick])
-            self._rows.append(rows[pick])
+            self._rows.append(rows)
             self._tau.append(tau[pick])
             if self._t[-1][-1] - self._t[0][0] >= self.seconds:
                 self.finish()
