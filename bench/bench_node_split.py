@@ -15,7 +15,10 @@ Runs of the kinds alternate (this machine's CPU readings drift between runs); th
 printed last.
 
     .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
-        [--modes node passthrough relay] [--node-param process_period:=0.01]
+        [--modes node passthrough relay] [--node-param process_period:=0.01] [--no-listener]
+
+``--no-listener``: no listener process, so nothing subscribes to the outputs (the node then
+processes every ``idle_process_period``; the relay still publishes, to nobody).
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_node import PANDA, REPO  # noqa: E402  (also sets a private ROS domain)
 
 PARTS = ('poll', 'pipeline', 'publish')
+LISTENER_ENV = 'BENCH_SPLIT_LISTENER'   # '0': no listener process (set by --no-listener)
 MODES = ('node', 'passthrough', 'relay')
 
 
@@ -142,8 +146,11 @@ def drive(node, received, rate: float, seconds: float, warmup: float,
     executor.add_node(node)
     never = Future()
     total = seconds + warmup
-    helpers = [subprocess.Popen([sys.executable, __file__, '--listen', str(total + 4)], cwd=REPO)]
-    time.sleep(1.0)
+    helpers = []
+    if os.environ.get(LISTENER_ENV, '1') == '1':
+        helpers.append(subprocess.Popen([sys.executable, __file__, '--listen', str(total + 4)],
+                                        cwd=REPO))
+        time.sleep(1.0)
     helpers.append(subprocess.Popen(
         [sys.executable, str(REPO / 'bench' / 'bench_node.py'), '--publish', str(rate),
          str(seconds), str(warmup)], cwd=REPO, stdout=subprocess.DEVNULL))
@@ -167,7 +174,8 @@ def drive(node, received, rate: float, seconds: float, warmup: float,
 def measure(mode: str, args: argparse.Namespace) -> dict:
     out = subprocess.run([sys.executable, __file__, '--run', mode, str(args.rate),
                           str(args.seconds), str(args.warmup), *args.node_param], cwd=REPO,
-                         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, check=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, check=True,
+                         env={**os.environ, LISTENER_ENV: '0' if args.no_listener else '1'})
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -197,11 +205,15 @@ def main() -> None:
     parser.add_argument('--warmup', type=float, default=2.0)
     parser.add_argument('--repeat', type=int, default=3, help='runs of each kind, alternating')
     parser.add_argument('--modes', nargs='+', default=list(MODES), choices=MODES)
+    parser.add_argument('--no-listener', action='store_true',
+                        help='nothing subscribes to ~/predicted_effort (the node then runs at '
+                        'its idle_process_period)')
     parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
                         help='node parameter override (node and passthrough modes)')
     args = parser.parse_args()
     print(f'7-DOF arm at {args.rate:.0f} Hz, {args.seconds:.0f} s per run; {os.cpu_count()} '
-          f'cores; thread CPU per processing run{"".join(" " + p for p in args.node_param)}')
+          f'cores; thread CPU per processing run{"".join(" " + p for p in args.node_param)}'
+          + ('; no listener' if args.no_listener else ''))
     results: dict[str, list] = {mode: [] for mode in args.modes}
     for _ in range(args.repeat):
         for mode, runs in results.items():

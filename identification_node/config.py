@@ -265,6 +265,11 @@ class Config:
                                unit='samples', range=(0, 10**12))
     process_period: float = setting(0.01, 's (wall clock) between batch processing runs '
                                     '(latency vs CPU)', unit='s', check='positive')
+    idle_process_period: float = setting(
+        0.1, 's (wall clock) between processing runs while no output waits for them: nothing '
+        'subscribes to ~/predicted_effort or ~/measured_effort and payload.enabled is false '
+        '(service requests are served at once); at least process_period', unit='s',
+        range=(0.001, 1.0))
     publish: Publish = section(Publish)
     output_directory: str = setting('identification_output', 'directory the save service '
                                     'writes into', check='nonempty')

@@ -391,6 +391,42 @@ def test_effort_topics_are_published_only_to_subscribers(ros):
     ros.remove(node)
 
 
+def test_processing_period_follows_whether_an_output_waits(ros, diag):
+    """With nothing subscribed to the effort outputs the node processes every
+    idle_process_period (no output's latency counts), and get_estimate still answers with
+    every sample sent; once ~/predicted_effort is subscribed, every process_period, and it
+    gets the samples sent after that."""
+    node = start_node(ros, 'idle', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
+                                    'process_period': 0.01, 'idle_process_period': 1.0,
+                                    'smoother.half_window': 10}, 'idle')
+
+    def period():
+        return float((last_status(diag, 'idle') or {}).get('processing_period_s', 'nan'))
+    assert wait_for(lambda: period() == 1.0, 20)
+    sender = ros.client.create_publisher(JointState, '/idle/joint_states', RELIABLE)
+    assert wait_for(lambda: sender.get_subscription_count(), 10)
+    n, names, lag = 200, node.robot.joint_names, 10
+    rng = np.random.default_rng(4)
+    for msg in joint_state_msgs(10**9 + np.arange(n) * 10**6, names,
+                                *rng.normal(size=(3, n, len(names)))):
+        sender.publish(msg)
+    # all but the smoother's first and last half windows used, and answered with
+    assert wait_for(lambda: node.pipeline.used == n - 2 * lag, 10)
+    used = node.estimate().num_samples
+    assert used > 0 and wait_for(lambda: get_estimate(ros, '/idle')['num_samples'] == used, 10)
+    got = Collector(ros, JointState, '/idle/predicted_effort')
+    assert wait_for(lambda: period() == 0.01, 20)
+    for msg in joint_state_msgs(10**9 + np.arange(n, 2 * n) * 10**6, names,
+                                *rng.normal(size=(3, n, len(names)))):
+        sender.publish(msg)
+    assert wait_for(lambda: len(got) >= n, 10)   # the held half window, then all but the last
+    assert [stamp_ns(m) for m in got.snapshot()] == list(
+        10**9 + np.arange(n - lag, 2 * n - lag) * 10**6)
+    got.close()
+    ros.client.destroy_publisher(sender)
+    ros.remove(node)
+
+
 def test_automatic_smoother_is_chosen_after_5_s_of_motion_and_reported(ros, diag):
     """The default: no prediction until 5 s of motion are in, then every sample but the
     chosen window's edges, the choice in /diagnostics."""

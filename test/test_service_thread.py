@@ -98,3 +98,17 @@ def test_commands_are_answered_once_applied_reads_and_saves_by_their_snapshot():
     queue.answer(4, Outcome(estimate='again'))           # nothing is answered twice
     queue.applied(4)
     assert len(log) == 5 and queue.waiting == 0
+
+
+def test_a_request_that_waits_wakes_the_processing_thread():
+    """Commands and reads that wait for a snapshot call ``on_request`` (the node's processing
+    thread then runs at once, whatever its period); a read answered at once does not."""
+    queue, log, woken = RequestQueue(), [], []
+    queue.on_request = lambda: woken.append(1)
+    queue.read(log.append)                        # no snapshot yet: waits
+    assert len(woken) == 1 and log == []
+    queue.answer(0, Outcome(estimate='first'))
+    queue.read(log.append)                        # answered from the snapshot
+    assert len(woken) == 1 and [o.estimate for o in log] == ['first', 'first']
+    queue.command('reset', None, log.append)
+    assert len(woken) == 2

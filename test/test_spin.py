@@ -40,3 +40,21 @@ def test_ends_by_itself_when_no_longer_alive():
     alive[0] = False
     assert wait_for(lambda: 'periodic-alive' not in {t.name for t in threading.enumerate()}, 10)
     thread.stop()    # no-op once ended
+
+
+def test_wakes_at_once_and_follows_a_period_function():
+    period, calls = [3600.0], []
+    thread = PeriodicThread(lambda: period[0], lambda: calls.append(1), 'periodic-follow',
+                            on_error=print)
+    time.sleep(0.05)
+    assert calls == [] and thread.period == 3600.0   # its first call is an hour away
+    thread.wake()
+    assert wait_for(lambda: len(calls) == 1, 10)
+    time.sleep(0.05)
+    assert len(calls) == 1                             # and the next one again
+    period[0] = 0.002
+    thread.wake()
+    assert wait_for(lambda: len(calls) >= 10, 10)      # the new period followed
+    period[0] = 3600.0
+    thread.stop(10)   # at once, whatever its wait
+    assert 'periodic-follow' not in {t.name for t in threading.enumerate()}

@@ -107,7 +107,8 @@ class NodeStatus:
     identified URDF's ``consistency_problems``; per input topic the messages ``lost`` before
     the node took them (its queue overflowing while processing stalled, dropped packets; None:
     not known) and ``dropped`` beyond its queue's bound; incompatible QoS endpoints seen;
-    ``extra``: further values (payload, drive gains), appended in order."""
+    ``extra``: further values (payload, drive gains), appended in order; the wall-clock
+    ``processing_period`` in use (ros/node.py)."""
     input_rate_hz: float
     callback_errors: int
     consistency_enabled: bool
@@ -117,6 +118,7 @@ class NodeStatus:
     dropped: dict[str, int]
     qos_incompatible: int
     extra: dict[str, Any] = field(default_factory=dict)
+    processing_period: float | None = None   # s between processing runs now
 
 
 def identification_status(name: str, hardware_id: str, joint_names: Sequence[str],
@@ -144,7 +146,8 @@ def identification_status(name: str, hardware_id: str, joint_names: Sequence[str
         status.level = DiagnosticStatus.WARN
         status.message += '; missing model term?'
     values = {
-        'input_rate_hz': node.input_rate_hz, 'samples_received': pipeline.received,
+        'input_rate_hz': node.input_rate_hz, 'processing_period_s': node.processing_period,
+        'samples_received': pipeline.received,
         'samples_used': pipeline.used, 'samples_rejected': sum(pipeline.rejected.values()),
         'condition_number': est.condition_number,
         'min_information_eigenvalue': est.min_eigenvalue,

@@ -36,15 +36,25 @@ class EffortOutputs:
         self._listened = (False, False)   # (predicted, measured), checked at most
         self._listeners_checked = -math.inf      # every LISTENER_CHECK_PERIOD s
 
-    def publish(self, out: PipelineOutput) -> None:
-        """Publish the efforts of ``out`` (one processing run's output)."""
-        if len(out.stamps_ns) == 0:
-            return
+    @property
+    def listened(self) -> bool:
+        """Whether anything subscribes to either output (as of at most
+        LISTENER_CHECK_PERIOD s ago)."""
+        self._check_listeners()
+        return any(self._listened)
+
+    def _check_listeners(self) -> None:
         now = time.monotonic()
         if now - self._listeners_checked >= LISTENER_CHECK_PERIOD:
             self._listeners_checked = now
             self._listened = (self.predicted.get_subscription_count() > 0,
                               self.measured.get_subscription_count() > 0)
+
+    def publish(self, out: PipelineOutput) -> None:
+        """Publish the efforts of ``out`` (one processing run's output)."""
+        if len(out.stamps_ns) == 0:
+            return
+        self._check_listeners()
         outputs = [(pub, effort) for pub, effort, listened in zip(
             (self.predicted, self.measured), (out.predicted, out.measured),
             self._listened) if listened]   # none serialized for nobody

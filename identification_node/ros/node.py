@@ -126,9 +126,13 @@ class IdentificationNode(Node):
                           self.errors.guarded(self.refresh_estimate))
         self.create_timer(1.0 / s['publish.diagnostics_rate'],
                           self.errors.guarded(self._publish_diagnostics))
-        self._processing = PeriodicThread(s['process_period'], self._process,
+        self._period = s['process_period']
+        self._idle_period = max(self._period, s['idle_process_period'])
+        self._current_period = self._period
+        self._processing = PeriodicThread(self._processing_period, self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
+        self._requests.on_request = self._processing.wake
         # The middleware's queues emptied even while a processing run takes long (their
         # bound is a count; the node's own is in bytes: input_queue_bytes).
         self._receiving = PeriodicThread(s['process_period'], self._receive,
@@ -207,6 +211,14 @@ class IdentificationNode(Node):
         if events and self.payload is not None:
             self.payload.publish(events)
 
+    def _processing_period(self) -> float:
+        """``process_period`` while an output's latency counts (an effort output has
+        subscribers, or the payload monitor runs), else ``idle_process_period``: nothing
+        waits for the samples' outputs (service commands wake the thread at once)."""
+        busy = self.payload is not None or self.efforts.listened
+        self._current_period = self._period if busy else self._idle_period
+        return self._current_period
+
     def _receive(self) -> None:
         for source in self.inputs:
             source.receive()
@@ -278,7 +290,8 @@ class IdentificationNode(Node):
             consistency_problems=self.estimates.problems,
             lost={s.topic: s.lost for s in self.inputs},
             dropped={s.topic: s.dropped for s in self.inputs},
-            qos_incompatible=self._qos_watch.incompatible, extra=extra)
+            qos_incompatible=self._qos_watch.incompatible, extra=extra,
+            processing_period=self._current_period)
         msg = DiagnosticArray(status=[identification_status(
             f'{self.get_name()}: identification', self.robot.name, self.robot.joint_names,
             status, node)])

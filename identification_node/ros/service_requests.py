@@ -250,6 +250,7 @@ class RequestQueue:
         self._waiting: list[_Waiter] = []
         self._seq_done = -1           # the newest snapshot answered commands up to here
         self._latest = Outcome(error='no estimate yet')
+        self.on_request: Callable[[], None] = lambda: None   # a command or read now waits
 
     def command(self, kind: str, argument: Any, answer: Callable[[Outcome], None]) -> None:
         """Queue command ``kind`` (``'save'``: answered once saved); ``answer(outcome)`` is
@@ -259,17 +260,21 @@ class RequestQueue:
             self._items.append((self._seq, kind, argument))
             self._waiting.append(_Waiter(self._seq, 'save' if kind == 'save' else 'command',
                                          answer))
+        self.on_request()
 
     def read(self, answer: Callable[[Outcome], None]) -> None:
         """``answer(outcome)`` with the newest snapshot, now unless a command before this
         read still waits for its own."""
         with self._lock:
-            if self._seq_done < self._seq or self._seq_done < 0:
+            waits = self._seq_done < self._seq or self._seq_done < 0
+            if waits:
                 self._waiting.append(_Waiter(self._seq, 'read', answer))
                 self._wanted = True
-                return
             latest = self._latest
-        answer(latest)
+        if waits:
+            self.on_request()
+        else:
+            answer(latest)
 
     def want_snapshot(self) -> None:
         """Ask the processing thread for a snapshot at its next run (the periodic refresh)."""

@@ -190,31 +190,46 @@ def _one_line(exc: BaseException) -> str:
 class PeriodicThread:
     """Calls ``func()`` every ``period`` seconds of wall-clock time on a daemon thread of its
     own, on a fixed schedule (a late call moves the schedule instead of bursting to catch up),
-    until ``stop()`` or until ``alive()`` turns false. An exception from ``func`` goes to
-    ``on_error`` and the schedule goes on.
+    until ``stop()`` or until ``alive()`` turns false. ``period`` may be a function, asked
+    before each wait (a schedule that follows the node's state); ``wake()`` runs the next
+    call at once. An exception from ``func`` goes to ``on_error`` and the schedule goes on.
 
     For periodic work that would otherwise be an executor timer: with the EventsExecutor every
     timer tick wakes two threads (its timer thread, then the executor), here one.
     """
 
-    def __init__(self, period: float, func: Callable[[], None], name: str,
-                 on_error: Callable[[BaseException], None],
+    def __init__(self, period: float | Callable[[], float], func: Callable[[], None],
+                 name: str, on_error: Callable[[BaseException], None],
                  alive: Callable[[], bool] = lambda: True) -> None:
-        self.period, self._func, self._on_error, self._alive = period, func, on_error, alive
-        self._stop = threading.Event()
+        self._period = period if callable(period) else (lambda: float(period))
+        self._func, self._on_error, self._alive = func, on_error, alive
+        self._stop = False
+        self._wake = threading.Event()
         self.beat = time.monotonic()    # last progress (monotonic s), for a Watchdog
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+
+    @property
+    def period(self) -> float:
+        """The period the schedule follows now (s)."""
+        return self._period()
+
+    def wake(self) -> None:
+        """Run the next call now instead of at its time (the schedule restarts from it)."""
+        self._wake.set()
 
     def _run(self) -> None:
         due = time.monotonic()
         while True:
             self.beat = time.monotonic()
-            due += self.period
+            due += self._period()
             wait = due - time.monotonic()
             if wait < 0:
                 due, wait = time.monotonic(), 0.0
-            if self._stop.wait(wait) or not self._alive():
+            if self._wake.wait(wait):
+                self._wake.clear()
+                due = time.monotonic()
+            if self._stop or not self._alive():
                 return
             try:
                 self._func()
@@ -224,7 +239,8 @@ class PeriodicThread:
     def stop(self, timeout: float | None = None) -> bool:
         """Stop the schedule and wait for a call in progress to finish (``timeout``: at most
         that many s); whether it did."""
-        self._stop.set()
+        self._stop = True
+        self._wake.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout)
         return not self._thread.is_alive() or self._thread is threading.current_thread()
