@@ -104,6 +104,7 @@ class PolledSubscription:
         self.handle, self.node, self.topic = handle, node, topic
         self.max_bytes = max_bytes
         self.dropped = 0                # messages taken but dropped beyond max_bytes
+        self.taken = 0                  # messages taken from the middleware so far
         self.peak_bytes = 0             # the most this queue held (bytes)
         self._queue: collections.deque[bytes] = collections.deque()
         self._queued_bytes = 0
@@ -156,6 +157,7 @@ class PolledSubscription:
             if numbers:
                 self._count_gaps(numbers)
             self.dropped += dropped
+            self.taken += len(numbers)
         if dropped:
             self.node.get_logger().warning(
                 f'{self.dropped} messages on {self.subscription.topic_name} dropped: more '

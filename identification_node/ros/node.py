@@ -135,7 +135,9 @@ class IdentificationNode(Node):
         self._requests.on_request = self._processing.wake
         # The middleware's queues emptied even while a processing run takes long (their
         # bound is a count; the node's own is in bytes: input_queue_bytes).
-        self._receiving = PeriodicThread(s['process_period'], self._receive,
+        self._fill_time = 0.0   # s until the busiest middleware queue is a quarter full
+        self._received_mark = time.monotonic(), [source.taken for source in self.inputs]
+        self._receiving = PeriodicThread(self._receiving_period, self._receive,
                                          'identification_receive', self._on_processing_error,
                                          alive=self.context.ok)
         # Wall clock: with use_sim_time and no /clock the node's timers stand still.
@@ -219,9 +221,22 @@ class IdentificationNode(Node):
         self._current_period = self._period if busy else self._idle_period
         return self._current_period
 
+    def _receiving_period(self) -> float:
+        """The processing period, but at most the time the busiest middleware queue takes to
+        fill a quarter of its depth at the rate it was last taken at (their depth is a count:
+        beyond it they drop); ``process_period`` while nothing comes in (a burst may start)."""
+        return max(self._period, min(self._current_period, self._fill_time))
+
     def _receive(self) -> None:
         for source in self.inputs:
             source.receive()
+        now, taken = time.monotonic(), [source.taken for source in self.inputs]
+        then, before = self._received_mark
+        self._received_mark = now, taken
+        if now > then:
+            self._fill_time = min((
+                0.25 * source.subscription.qos_profile.depth * (now - then) / (k - k0)
+                for source, k, k0 in zip(self.inputs, taken, before) if k > k0), default=0.0)
 
     # -- commands and snapshots (service_requests.py) ------------------------------------------
     def _apply(self, commands: Commands) -> list[Snapshot]:
