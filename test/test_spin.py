@@ -58,3 +58,18 @@ def test_wakes_at_once_and_follows_a_period_function():
     period[0] = 3600.0
     thread.stop(10)   # at once, whatever its wait
     assert 'periodic-follow' not in {t.name for t in threading.enumerate()}
+
+
+def test_a_failing_period_function_is_reported_and_the_last_period_kept():
+    asked, calls, errors = [], [], []
+
+    def period():
+        asked.append(1)
+        if len(asked) > 1:
+            raise RuntimeError('publisher gone')
+        return 0.002
+    thread = PeriodicThread(period, lambda: calls.append(1), 'periodic-failing',
+                            on_error=errors.append)
+    assert wait_for(lambda: len(calls) >= 5, 10)
+    thread.stop(10)
+    assert errors and all(str(e) == 'publisher gone' for e in errors)

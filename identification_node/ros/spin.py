@@ -219,10 +219,14 @@ class PeriodicThread:
         self._wake.set()
 
     def _run(self) -> None:
-        due = time.monotonic()
-        while True:
+        due, period = time.monotonic(), 1.0   # 1 s while the period function fails at once
+        while not self._stop:   # checked before the period, which may ask what stop tears down
             self.beat = time.monotonic()
-            due += self._period()
+            try:
+                period = self._period()
+            except Exception as exc:   # noqa: BLE001 - reported; the last period kept
+                self._on_error(exc)
+            due += period
             wait = due - time.monotonic()
             if wait < 0:
                 due, wait = time.monotonic(), 0.0
