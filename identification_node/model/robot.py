@@ -273,7 +273,8 @@ class RobotModel:
         # Regressor column block of pinocchio's joint id j starts at 10 * (j - 1).
         cols = np.concatenate([10 * (j - 1) + PIN_ORDER for j in self.joint_ids])
         width = 10 * (m.njoints - 1)
-        self._flat = (self.idx_v[:, None] * width + cols[None, :])
+        # flat index of each of the package's regressor entries in pinocchio's (nv, width)
+        self._flat = (self.idx_v[:, None] * width + cols[None, :]).reshape(-1)
         self._q_neutral = pin.neutral(m)
         self._identity_q = (m.nq == len(jms) and not self.continuous.any()
                             and np.array_equal(self.idx_q, np.arange(m.nq)))
@@ -404,7 +405,7 @@ class RobotModel:
             raise IdentificationError(f'out has shape {out.shape}, expected {shape}')
         ni = self.n_inertial
         Q, V, A = self.configuration(q), self._tangent(qd), self._tangent(qdd)
-        model, data, flat = self.model, self.data, self._flat.reshape(-1)
+        model, data, flat = self.model, self.data, self._flat
         for a in range(0, N, _REGRESSOR_CHUNK):
             b = min(N, a + _REGRESSOR_CHUNK)
             # one pinocchio call per sample, mapped (no Python statement per sample); the

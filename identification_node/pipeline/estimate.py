@@ -87,6 +87,11 @@ class _Pending(NamedTuple):
     q: np.ndarray | None
 
 
+def _joined(arrays) -> np.ndarray:
+    """The arrays of the queued parts, one after the other (the one itself when alone)."""
+    return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+
+
 class OnlineEstimate:
     """RLS and residual statistics of ``num_base`` parameters over ``dof`` joints' rows."""
 
@@ -170,8 +175,8 @@ class OnlineEstimate:
         if not self._updates:
             return
         parts, self._updates, self._pending_samples = self._updates, [], 0
-        rows, t, qd, qdd = (p[0] if len(parts) == 1 else np.concatenate(p)
-                            for p in zip(*((u.rows, u.t, u.qd, u.qdd) for u in parts)))
+        rows, t, qd, qdd = (_joined(p) for p in zip(*((u.rows, u.t, u.qd, u.qdd)
+                                                      for u in parts)))
         w = self._row_weights(t, qd, qdd)
         used = None
         if w is not None:
@@ -179,7 +184,7 @@ class OnlineEstimate:
             rows *= root[:, :, None]
             used = root > 0
         if all(u.q is not None for u in parts):   # rows that overflow are left out here too
-            f = features(np.concatenate([u.q for u in parts]), qd)
+            f = features(_joined([u.q for u in parts]), qd)
             if used is not None:
                 f *= used[:, :, None]
             with np.errstate(over='ignore', invalid='ignore'):
@@ -187,8 +192,8 @@ class OnlineEstimate:
             self.terms.add(f[ok], rows[ok])
         cuts: list[int] = []
         if all(u.stamps_ns is not None for u in parts):
-            cell = np.concatenate([np.asarray(u.stamps_ns, dtype=np.int64) for u in parts]
-                                  ) // RESIDUAL_GRID
+            cell = _joined([np.asarray(u.stamps_ns, dtype=np.int64) for u in parts]
+                           ) // RESIDUAL_GRID
             before = cell[0] if self._cell is None else self._cell
             cuts = np.flatnonzero(np.diff(cell, prepend=before)).tolist()
             self._cell = int(cell[-1])
