@@ -253,7 +253,7 @@ def test_a_group_is_solved_physically_consistent_as_identify(fleet_dir, robot, t
     assert plain['consistency_solver']['status'] == 'disabled'
 
 
-LONG = 250.0        # s of the long bag, at 100 Hz: cut at the residual grid (60 s) 1 to 4 times
+LONG = 250.0        # s of the long bag, at 100 Hz: cut at the residual grid (10 s)
 
 
 @pytest.fixture(scope='module')
@@ -482,14 +482,14 @@ def test_a_segmented_run_equals_the_whole_bags(long_bag, robot, settings):
     from distributed import Client
 
     entries = [fleet.FleetEntry(str(long_bag), 'arm', 'day1')]
-    tasks = fleet.plan_tasks(entries, segment_seconds=50.0)     # rounded to the 60 s grid
+    tasks = fleet.plan_tasks(entries, segment_seconds=55.0)     # rounded to the 10 s grid
     assert [(t.start_ns, t.stop_ns) for t in tasks] == [
         (a, b) for a, b in zip([None, 60e9, 120e9, 180e9, 240e9],
                                [60e9, 120e9, 180e9, 240e9, None])]
     with Client(processes=False, n_workers=1, threads_per_worker=2,
                 dashboard_address='127.0.0.1:0') as client:
         whole = fleet.run_fleet(entries, client, physical_consistency=False)
-        split = fleet.run_fleet(entries, client, segment_seconds=50.0,
+        split = fleet.run_fleet(entries, client, segment_seconds=55.0,
                                 physical_consistency=False)
     assert_same_identification(result_document(split.identifications['arm', 'day1']),
                                result_document(whole.identifications['arm', 'day1']))

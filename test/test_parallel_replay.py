@@ -1,6 +1,7 @@
-"""One bag on several cores (replay/parallel.py, ``identify --workers``): its 60 s segments
-streamed in worker processes and merged give the serial run's estimate and stddev (robust gate
-off), or say how many samples the segments' gates held back (gate on)."""
+"""One bag on several cores (replay/parallel.py, ``identify --workers``): its segments, one per
+worker and cut at the 10 s residual grid, streamed in worker processes and merged give the
+serial run's estimate and stddev (robust gate off), or say how many samples the segments' gates
+held back (gate on)."""
 import json
 
 import numpy as np
@@ -11,13 +12,14 @@ from identification_node.cli import main
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.replay.parallel import parallel_identify, segments
+from identification_node.replay.segments import BagSegment, balanced_segments
 from identification_node.replay.stream import replay_identify
 from identification_node.settings import Settings
 from test_offline import simulate, write_bag
 
 pytestmark = pytest.mark.slow
 EXTRAS = ['fv', 'fc']
-LONG = 200.0     # s at 100 Hz: four cells of the 60 s residual grid
+LONG = 200.0     # s at 100 Hz: twenty cells of the 10 s residual grid
 
 
 @pytest.fixture(scope='module')
@@ -32,6 +34,20 @@ def long_bag(tmp_path_factory, robot):
     return write_bag(tmp_path_factory.mktemp('long') / 'long', robot, t, q, qd, tau)
 
 
+def test_a_bag_is_split_evenly_wherever_its_log_starts():
+    grid = 10 * 10**9
+    start = 1_733_000_003_700_000_000           # a log time between grid multiples
+    halves = balanced_segments(start, start + 100 * 10**9, 2)
+    middle = start - 3_700_000_000 + 5 * grid   # the multiple nearest to 50 s in
+    assert [(t.start_ns, t.stop_ns) for t in halves] == [(None, middle), (middle, None)]
+    thirds = balanced_segments(start, start + 95 * 10**9, 3)
+    lengths = np.diff([start] + [t.stop_ns for t in thirds[:-1]] + [start + 95 * 10**9])
+    assert len(thirds) == 3 and lengths.max() - lengths.min() <= grid
+    assert len(balanced_segments(start, start + 95 * 10**9, 1)) == 1
+    # shorter than the grid between two multiples: one segment, nothing to cut at
+    assert balanced_segments(start, start + 5 * 10**9, 4) == [BagSegment(None, None)]
+
+
 def identify_json(bag, capsys, tmp_path, workers, robust):
     config = tmp_path / f'config_{robust}.yaml'
     config.write_text(yaml.safe_dump({'robot': 'mit_dd_arm', 'extras': EXTRAS,
@@ -43,11 +59,14 @@ def identify_json(bag, capsys, tmp_path, workers, robust):
 
 def test_parallel_identify_equals_the_serial_run_with_the_gate_off(long_bag, robot, tmp_path,
                                                                    capsys):
-    grid = 60 * 10**9
+    grid = 10 * 10**9
     assert [(t.start_ns, t.stop_ns) for t in segments(long_bag, 2)] == [
-        (None, 2 * grid), (2 * grid, None)]       # as many segments as workers
-    assert [(t.start_ns, t.stop_ns) for t in segments(long_bag, 8)] == [
-        (None, grid), (grid, 2 * grid), (2 * grid, 3 * grid), (3 * grid, None)]
+        (None, 10 * grid), (10 * grid, None)]       # as many segments as workers, equal
+    eight = segments(long_bag, 8)    # cut at the multiples nearest to 25, 50, ... 175 s
+    cuts = np.array([t.stop_ns for t in eight[:-1]])
+    assert len(eight) == 8 and eight[-1].stop_ns is None and not np.any(cuts % grid)
+    assert np.abs(cuts - LONG * 1e9 * np.arange(1, 8) / 8).max() <= grid / 2 + 2e7
+    assert [t.start_ns for t in eight[1:]] == [t.stop_ns for t in eight[:-1]]
     serial = identify_json(long_bag, capsys, tmp_path, 1, False)
     parallel = identify_json(long_bag, capsys, tmp_path, 2, False)
     for key in ('unconstrained_estimate', 'stddev', 'noise_std'):

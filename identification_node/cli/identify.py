@@ -101,9 +101,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write estimate.yaml and identified.urdf into DIR (the node's "
                         '~/save)')
     parser.add_argument('--workers', type=int, default=1, metavar='N',
-                        help='rls: stream the bag\'s 60 s segments in N processes and merge '
-                        'their statistics (replay/parallel.py; 0: one per core; default 1). '
-                        'Not with --report, --payload, --start/--end')
+                        help='rls: stream the bag in N equal segments (cut at a 10 s grid) '
+                        'in N processes and merge their statistics (replay/parallel.py; 0: one '
+                        'per core; default 1). Not with --report, --payload, --start/--end')
     parser.add_argument('--save-inconsistent', action='store_true',
                         help='--save writes an estimate that is not physically consistent too '
                         '(refused by default)')

@@ -11,7 +11,7 @@ never fits across a gap larger than max_gap).
 Reduce: statistics add exactly (sums), in a fixed order (bag, segment), whatever order the
 tasks finish in. Bags are separate recordings: residual blocks restart at each bag, as the
 pipeline's do at a stream restart. They also restart wherever the stamps cross a multiple of
-estimate.RESIDUAL_GRID (60 s), and segments are cut only there (plan_tasks), so a segment's
+estimate.RESIDUAL_GRID (10 s), and segments are cut only there (plan_tasks), so a segment's
 blocks are the whole bag's: the merged statistics, estimate and stddev equal the unsplit
 run's. (A cut elsewhere, bag_statistics' own start_ns/stop_ns, keeps rows and estimate but
 shifts the blocks.) Whole bags are the default unit.
@@ -226,7 +226,7 @@ def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = No
                joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                smoothers: dict[str, tuple] | None = None) -> list[MapTask]:
     """One task per bag, or per ``segment_seconds`` of its log time, rounded to a multiple of
-    the residual grid (estimate.RESIDUAL_GRID, 60 s) and cut at multiples of it, where the
+    the residual grid (estimate.RESIDUAL_GRID, 10 s) and cut at multiples of it, where the
     residual blocks restart, so the segments' statistics merge to the whole bag's exactly
     (the first and last segment open-ended, so every row belongs to exactly one);
     ``smoothers``: per robot the smoother parameters of its tasks (choose_smoother)."""

@@ -1,8 +1,9 @@
 """One bag on every core: its segments streamed through the node's pipeline in parallel
 processes and their statistics merged, as fleet.py merges bags.
 
-The bag is cut where fleet cuts a long bag (segments.grid_segments: at multiples of
-estimate.RESIDUAL_GRID, where the residual blocks restart); each segment's pipeline is fed a
+The bag is cut into about equal segments, one per worker, at multiples of
+estimate.RESIDUAL_GRID, where the residual blocks restart (segments.balanced_segments), as
+fleet cuts a long bag; each segment's pipeline is fed a
 margin of the bag on either side and keeps only the rows centred inside it
 (segments.bag_statistics), so its rows are the serial run's. The smoother is chosen once, as the
 serial run chooses it (segments.chosen_smoother), and pinned in every segment. The normal equations
@@ -31,10 +32,9 @@ from dataclasses import dataclass
 
 from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.model.robot import RobotModel
-from identification_node.pipeline.estimate import RESIDUAL_GRID
 from identification_node.replay.segments import (BagSegment, BagStatistics, bag_statistics,
-                                                 chosen_smoother, grid_segments, identification,
-                                                 pinned)
+                                                 balanced_segments, chosen_smoother,
+                                                 identification, pinned)
 from identification_node.results.identification import Checkpoint
 from identification_node.settings import Settings
 
@@ -69,17 +69,14 @@ def _segment(job: _Job) -> BagStatistics:
 
 
 def segments(bag: str | os.PathLike, workers: int) -> list[BagSegment]:
-    """The segments of ``bag`` for ``workers`` processes: cut at multiples of RESIDUAL_GRID,
-    about as many segments as workers (at least one grid cell each); one task when the bag
-    spans fewer than two grid cells."""
+    """The segments of ``bag`` for ``workers`` processes: as many as workers, about equally
+    long, cut at multiples of the residual grid (segments.balanced_segments); fewer when the
+    bag spans fewer grid multiples."""
     from identification_node.bags.reader import open_bag
 
     with open_bag(bag) as reader:
         start, end = reader.start_ns, reader.end_ns
-    span = max(end - start, 0)
-    cells = max(1, -(-span // RESIDUAL_GRID))
-    per = max(1, cells // max(workers, 1))
-    return grid_segments(start, end, per * RESIDUAL_GRID * 1e-9)
+    return balanced_segments(start, max(end, start), workers)
 
 
 def parallel_identify(bag: str | os.PathLike, settings: Settings, robot: RobotModel,

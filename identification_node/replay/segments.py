@@ -27,7 +27,8 @@ from identification_node.settings import Settings
 
 __all__ = ['SMOOTHER', 'model_key', 'BagStatistics', 'segment_margin_ns', 'pinned',
            'bag_smoother', 'chosen_smoother', 'bag_statistics', 'Solve', 'solve_unconstrained',
-           'identification', 'consistent_solver', 'BagSegment', 'grid_segments']
+           'identification', 'consistent_solver', 'BagSegment', 'grid_segments',
+           'balanced_segments']
 
 SMOOTHER = ('smoother.half_window', 'smoother.cutoff')   # BagStatistics.smoother
 
@@ -296,10 +297,22 @@ class BagSegment:
 
 def grid_segments(start_ns: int, end_ns: int, segment_seconds: float) -> list[BagSegment]:
     """The segments of a bag logged from ``start_ns`` to ``end_ns``: ``segment_seconds``
-    rounded to a multiple of the residual grid (estimate.RESIDUAL_GRID, 60 s) and cut at
+    rounded to a multiple of the residual grid (estimate.RESIDUAL_GRID, 10 s) and cut at
     multiples of it, where the residual blocks restart, so the segments' statistics merge to
     the whole bag's exactly; the first and last open-ended, so every row belongs to one."""
     step = max(1, round(segment_seconds * 1e9 / RESIDUAL_GRID)) * RESIDUAL_GRID
-    cuts = list(range((start_ns // step + 1) * step, end_ns, step))
-    bounds = [None] + cuts + [None]
+    return _cut(list(range((start_ns // step + 1) * step, end_ns, step)))
+
+
+def balanced_segments(start_ns: int, end_ns: int, parts: int) -> list[BagSegment]:
+    """At most ``parts`` segments of a bag logged from ``start_ns`` to ``end_ns``, about equally
+    long: each cut at the multiple of the residual grid nearest to an equal split (so they merge
+    exactly, as grid_segments'); the first and last open-ended."""
+    ideal = start_ns + (end_ns - start_ns) * np.arange(1, max(parts, 1)) / max(parts, 1)
+    cuts = np.unique(np.rint(ideal / RESIDUAL_GRID).astype(np.int64) * RESIDUAL_GRID)
+    return _cut([int(c) for c in cuts if start_ns < c < end_ns])
+
+
+def _cut(cuts: list[int]) -> list[BagSegment]:
+    bounds: list[int | None] = [None, *cuts, None]
     return [BagSegment(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
