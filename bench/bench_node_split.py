@@ -16,9 +16,12 @@ printed last.
 
     .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
         [--modes node passthrough relay] [--node-param process_period:=0.01] [--no-listener]
+        [--switch-interval S]
 
-``--no-listener``: no listener process, so nothing subscribes to the outputs (the node then
-processes every ``idle_process_period``; the relay still publishes, to nobody).
+The interpreter's switch interval is the node's (node.main sets it) in every mode;
+``--switch-interval S`` sets another. ``--no-listener``: no listener process, so nothing
+subscribes to the outputs (the node then processes every ``idle_process_period``; the relay
+still publishes, to nobody).
 """
 from __future__ import annotations
 
@@ -35,6 +38,7 @@ from bench_node import PANDA, REPO  # noqa: E402  (also sets a private ROS domai
 
 PARTS = ('poll', 'pipeline', 'publish')
 LISTENER_ENV = 'BENCH_SPLIT_LISTENER'   # '0': no listener process (set by --no-listener)
+SWITCH_ENV = 'BENCH_SPLIT_SWITCH'       # the interpreter's switch interval, s (--switch-interval)
 MODES = ('node', 'passthrough', 'relay')
 
 
@@ -96,6 +100,7 @@ def run_node(mode: str, rate: float, seconds: float, warmup: float,
     node_class = node_module.IdentificationNode
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    sys.setswitchinterval(float(os.environ.get(SWITCH_ENV) or node_module.SWITCH_INTERVAL))
     if mode == 'relay':
         return run_relay(rate, seconds, warmup)
     node_params = [Parameter(name, value=yaml.safe_load(value))
@@ -175,7 +180,8 @@ def measure(mode: str, args: argparse.Namespace) -> dict:
     out = subprocess.run([sys.executable, __file__, '--run', mode, str(args.rate),
                           str(args.seconds), str(args.warmup), *args.node_param], cwd=REPO,
                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, check=True,
-                         env={**os.environ, LISTENER_ENV: '0' if args.no_listener else '1'})
+                         env={**os.environ, LISTENER_ENV: '0' if args.no_listener else '1',
+                              SWITCH_ENV: str(args.switch_interval or '')})
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -208,6 +214,9 @@ def main() -> None:
     parser.add_argument('--no-listener', action='store_true',
                         help='nothing subscribes to ~/predicted_effort (the node then runs at '
                         'its idle_process_period)')
+    parser.add_argument('--switch-interval', type=float, metavar='S',
+                        help="the interpreter's switch interval (default: the node's, "
+                        'node.SWITCH_INTERVAL; node and relay alike)')
     parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
                         help='node parameter override (node and passthrough modes)')
     args = parser.parse_args()

@@ -23,6 +23,10 @@ should not grow with the bag. BLAS runs single-threaded (OPENBLAS_NUM_THREADS=1,
 tests; set it to override): on 2 shared cores, BLAS threads spin against each other and make
 both pipelines several times slower and erratic.
 
+Last, pinocchio's regressor alone as ours calls it (RobotModel.regressor, us per sample) and
+the Python binding's own cost per call (a one-joint model): what a compiled loop over samples
+calling pinocchio's C++ regressor could save at most.
+
     .venv/bin/python bench/bench_replay.py [--samples 100000] [--repeat 3] [--workers N]
 """
 from __future__ import annotations
@@ -35,6 +39,7 @@ import subprocess
 import sys
 import time
 import tracemalloc
+from itertools import repeat
 from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
@@ -186,6 +191,33 @@ def _rss_child(name: str, bag: Path) -> None:
     print((_status_kib('VmHWM') - base) / 1024)
 
 
+def regressor_cost(samples: int = 20_000) -> tuple[float, float]:
+    """(us per sample of RobotModel.regressor on the bench's arm, us per call of pinocchio's
+    computeJointTorqueRegressor on a one-joint model: the Python binding's own cost, what a
+    compiled loop over samples would save at most), best of 3."""
+    import pinocchio as pin
+    from identification_node.settings import Settings, read_parameter_file
+
+    robot = Settings.from_dict(read_parameter_file(CONFIG)).load_robot()
+    rng = np.random.default_rng(0)
+    q, qd, qdd = (rng.uniform(-1, 1, (samples, robot.dof)) for _ in range(3))
+    one = pin.Model()
+    joint = one.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), 'j')
+    one.appendBodyToJoint(joint, pin.Inertia.Random(), pin.SE3.Identity())
+    data, x = one.createData(), rng.uniform(-1, 1, (samples, 1))
+    best = [np.inf, np.inf]
+    for _ in range(3):
+        start = time.perf_counter()
+        robot.regressor(q, qd, qdd, checked=True)
+        best[0] = min(best[0], time.perf_counter() - start)
+        start = time.perf_counter()
+        for a in range(0, samples, 128):   # as RobotModel.regressor calls it, results dropped
+            list(map(pin.computeJointTorqueRegressor, repeat(one), repeat(data),
+                     x[a:a + 128], x[a:a + 128], x[a:a + 128]))
+        best[1] = min(best[1], time.perf_counter() - start)
+    return best[0] / samples * 1e6, best[1] / samples * 1e6
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--samples', type=int, default=100_000)
@@ -228,6 +260,12 @@ def main() -> None:
           f'{ours[3] / naive[3]:.3f}x (tracemalloc), {ours[4] / naive[4]:.3f}x (RSS)')
     print(f'ours on {half_n} samples: tracemalloc peak {half_mem[0]:.1f} MiB, peak RSS '
           f'{half_mem[1]:.1f} MiB (on {ours[0]}: {ours[3]:.1f} MiB, {ours[4]:.1f} MiB)')
+    per_sample, binding = regressor_cost()
+    total = ours[1] / ours[0] * 1e6
+    print(f'pinocchio\'s regressor in ours: {per_sample:.2f} us per sample of ours\' '
+          f'{total:.2f} us; the binding\'s own cost (a one-joint model\'s call) {binding:.2f} '
+          f'us: a compiled loop over samples would make ours at most '
+          f'{total / (total - binding):.2f}x faster')
 
 
 if __name__ == '__main__':

@@ -3,12 +3,12 @@ processes and their statistics merged, as fleet.py merges bags.
 
 The bag is cut into about equal segments, one per worker, at multiples of
 estimate.RESIDUAL_GRID, where the residual blocks restart (segments.balanced_segments), as
-fleet cuts a long bag; each segment's pipeline is fed a
-margin of the bag on either side and keeps only the rows centred inside it
-(segments.bag_statistics), so its rows are the serial run's. The smoother is chosen once, as the
-serial run chooses it (segments.chosen_smoother), and pinned in every segment. The normal equations
-and residual statistics add (BagStatistics.__add__), so the estimate, covariance and noise of
-the merge are those of the serial run.
+fleet cuts a long bag; each segment's pipeline is fed a margin of the bag on either side and
+keeps only the rows centred inside it (segments.bag_statistics), so its rows are the serial
+run's. The smoother is chosen once, as the serial run chooses it (segments.chosen_smoother),
+and pinned in every segment. The normal equations and residual statistics add
+(BagStatistics.__add__), so the estimate, covariance and noise of the merge are those of the
+serial run.
 
 Why a result can differ from the serial run: the robust gate (robust.py) arms once the running
 estimate has converged and then holds back samples beyond k sigma of it. Its decisions depend

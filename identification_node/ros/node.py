@@ -327,10 +327,13 @@ class IdentificationNode(Node):
         super().destroy_node()
 
 
+# While the executor thread runs Python (the 1 Hz refresh takes a few ms), the processing thread
+# gets the GIL after this interval (s) instead of the default 5 ms: the latency tail.
+SWITCH_INTERVAL = 0.0005
+
+
 def main(args: list[str] | None = None) -> int:
-    # While the executor thread runs Python (the 1 Hz refresh takes a few ms), the processing
-    # thread gets the GIL after this interval instead of the default 5 ms: the latency tail.
-    sys.setswitchinterval(0.0005)
+    sys.setswitchinterval(SWITCH_INTERVAL)
     return run_node(IdentificationNode, 'identification_node', args, polled=True)
 
 
