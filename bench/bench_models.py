@@ -5,9 +5,10 @@ friction, encoder/velocity/torque noise; held out = another Fourier motion): phy
 consistent or not and the solver path, held-out torque error of the estimate and of the
 unconstrained fit (percent, raw torque) and their ratio, link masses against the truth and
 the URDF, whether every mass is within +-30 % of the truth or between the URDF and the truth,
-and the RMS of (estimate - truth) / stddev over the base parameters. ``--recordings``: the real
-TX40 and Kinova Gen3 runs of ../shared/data instead (bench/recordings.py), masses against the
-URDF only.
+and the RMS of (estimate - truth) / stddev over the base parameters. Per arm first: the
+links whose mass alone the joint torques determine (corpus.masses_in_data). ``--recordings``:
+the real TX40 and Kinova Gen3 runs of ../shared/data instead (bench/recordings.py), masses
+against the URDF only.
 
     .venv/bin/python bench/bench_models.py [--arms ur5,panda] [--rates 100,500]
         [--duration 60] [--seeds 1] [--recordings] [--config FILE]
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from corpus import ARMS, RATES, Case, identify_case  # noqa: E402
+from corpus import ARMS, RATES, Case, case_robot, identify_case, masses_in_data  # noqa: E402
 
 
 def _masses(ratios) -> str:
@@ -44,6 +45,10 @@ def simulated(args) -> int:
     failures = 0
     with tempfile.TemporaryDirectory() as tmp:
         for arm in arms:
+            alone = masses_in_data(case_robot(arm))
+            print(f"{arm}: link masses the torques determine alone: {', '.join(alone) or 'none'}"
+                  ' (the others only in combinations: the prior and physical consistency '
+                  'split them)')
             for rate, seed in ((r, k) for r in rates for k in range(args.seeds)):
                 case = Case(arm, rate, args.duration, seed)
                 start = time.perf_counter()

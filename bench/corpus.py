@@ -101,6 +101,22 @@ def make_case(case: Case, directory: Path) -> dict:
             'dir': out}
 
 
+def masses_in_data(robot) -> list[str]:
+    """The links whose mass alone is a combination of base parameters (the joint torques
+    determine it, whatever the other parameters); every other mass is determined only together
+    with other links' masses and first moments, and the prior and physical consistency split
+    that combination."""
+    base = BaseParameters.from_robot(robot)
+    out = []
+    for k, link in enumerate(robot.link_names):
+        e = np.zeros(base.K.shape[1])
+        e[10 * k] = 1.0
+        c = np.linalg.lstsq(base.K.T, e, rcond=None)[0]
+        if np.linalg.norm(base.K.T @ c - e) < 1e-8:
+            out.append(link)
+    return out
+
+
 def plausible_masses(masses: np.ndarray, true: np.ndarray, urdf: np.ndarray) -> np.ndarray:
     """Per link: the mass within PERTURBATION of the truth, or between the URDF's and the
     truth (both to MASS_SLACK)."""
