@@ -3,6 +3,7 @@ worker and cut at the 10 s residual grid, streamed in worker processes and merge
 serial run's estimate and stddev (robust gate off), or say how many samples the segments' gates
 held back (gate on)."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -76,6 +77,24 @@ def test_parallel_identify_equals_the_serial_run_with_the_gate_off(long_bag, rob
     assert parallel['num_samples'] == serial['num_samples']
     assert parallel['messages'] == serial['messages'] and not parallel['warnings']
     assert parallel['smoother'] == serial['smoother']
+
+
+def test_the_serial_runs_warnings_come_out_of_the_merge_too(robot, tmp_path, capsys):
+    """Torque 50 ms late against the motion and a torque offset the model has no column for:
+    the time-offset check (on the stream's first 10 s: the first segment's) and the missing
+    model term warn as in the serial run, and the equations left out per joint add up."""
+    t, q, qd, tau = simulate(robot, FourierTrajectory.random(robot, seed=6, period=10.0), 60.0,
+                             rate=100.0, seed=22)
+    lag = 5   # samples at 100 Hz: the torque 0.05 s late
+    bag = write_bag(tmp_path / 'late', robot, t[lag:], q[lag:], qd[lag:], tau[:-lag] + 0.5)
+    serial = identify_json(bag, capsys, tmp_path, 1, False)
+    parallel = identify_json(bag, capsys, tmp_path, 2, False)
+    assert any(re.search(r'the torque is 0\.0(4[5-9]|5[0-5]) s late', w)
+               for w in serial['warnings']), serial['warnings']
+    assert any('torque offset (fo) missing?' in w for w in serial['warnings'])
+    assert parallel['warnings'] == serial['warnings']
+    assert parallel['excluded_equations'] == serial['excluded_equations']
+    assert sum(serial['excluded_equations'].values()) > 0   # Coulomb: reversals left out
 
 
 def test_the_gate_of_each_segment_is_reported(long_bag, robot):

@@ -9,6 +9,7 @@ from typing import Mapping, NamedTuple
 import numpy as np
 
 from identification_node.errors import IdentificationError
+from identification_node.estimation.model_terms import ModelTermStatistics
 from identification_node.estimation.model_terms import features as model_features
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
@@ -19,7 +20,7 @@ from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.estimate import EstimateReport, OnlineEstimate
 from identification_node.pipeline.rows import RowBuilder, smooths_sign
 from identification_node.pipeline.status import PipelineStatus
-from identification_node.pipeline.time_offset import TimeOffsetCheck
+from identification_node.pipeline.time_offset import TimeOffset, TimeOffsetCheck
 from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.wire.records import JointStateRecord
 
@@ -241,16 +242,21 @@ class IdentificationPipeline:
 
     def restore(self, rls: RecursiveLeastSquares, residuals: ResidualStatistics,
                 used: int, received: int = 0, rejected: Mapping[str, int] | None = None,
-                excluded_rows: int = 0, restarts: int = 0, last_stamp_ns: int | None = None
-                ) -> None:
+                excluded: np.ndarray | None = None, restarts: int = 0,
+                last_stamp_ns: int | None = None, terms: ModelTermStatistics | None = None,
+                time_offset: TimeOffset | None = None) -> None:
         """Take the sufficient statistics of processed data (e.g. merged over many bags,
         fleet.py): the estimate, covariance, noise and convergence then follow exactly as
-        for data streamed in. Nothing stays queued; the counters are the given ones."""
+        for data streamed in, and so do the warnings of equations left out per joint
+        (``excluded`` (n,)), of missing model terms (``terms``) and of the torque's time offset
+        (``time_offset``, the check's result). Nothing stays queued; the counters are the
+        given ones."""
         if (rls.num_params, residuals.p, residuals.n) != (
                 self.base.num_base, self.base.num_base, self.robot.dof):
             raise IdentificationError('statistics of another robot or parameter set')
         self.reset()
-        self.estimator.restore(rls, residuals, excluded_rows)
+        self.estimator.restore(rls, residuals, excluded, terms)
+        self.time_offset.result = time_offset
         counters = self.samples.counters
         counters.received, counters.restarts = int(received), int(restarts)
         counters.rejected.update(rejected or {})

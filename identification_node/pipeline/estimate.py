@@ -135,7 +135,6 @@ class OnlineEstimate:
         self._updates: list[_Pending] = []
         self._pending_samples = 0
         self._excluded = np.zeros(self.dof, dtype=np.int64)   # per joint, near reversals
-        self._excluded_restored = 0
         self.terms = ModelTermStatistics(self.dof, self.num_base + 1)
         self._numerical_failures = 0
         self._rows_used = np.zeros(self.dof)   # per joint: rows of weight > 0 in the sums
@@ -276,12 +275,17 @@ class OnlineEstimate:
         self._cell = None
 
     def restore(self, rls: RecursiveLeastSquares, residuals: ResidualStatistics,
-                excluded_rows: int = 0) -> None:
-        """Take the estimator and residual sums of processed data (e.g. merged over many
-        bags, fleet.py); nothing gathered stays pending."""
+                excluded: np.ndarray | None = None,
+                terms: ModelTermStatistics | None = None) -> None:
+        """Take the estimator, residual and model-term sums and the equations left out per
+        joint (n,) of processed data (e.g. merged over many bags, fleet.py); nothing gathered
+        stays pending."""
         self.reset()
         self._rls, self._residuals = rls, residuals
-        self._excluded_restored = int(excluded_rows)   # per joint not known
+        if excluded is not None:
+            self._excluded = np.asarray(excluded, dtype=np.int64).copy()
+        if terms is not None:
+            self.terms = terms
 
     def _row_weights(self, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray | None:
         """Per (sample, joint) weights: the joint weights, and zero for a joint's equation
@@ -307,7 +311,7 @@ class OnlineEstimate:
     @property
     def excluded_rows(self) -> int:
         """Joint equations left out near velocity reversals, all joints."""
-        return int(self.excluded.sum()) + self._excluded_restored
+        return int(self.excluded.sum())
 
     @property
     def numerical_failures(self) -> int:

@@ -8,7 +8,10 @@ keeps only the rows centred inside it (segments.bag_statistics), so its rows are
 run's. The smoother is chosen once, as the serial run chooses it (segments.chosen_smoother),
 and pinned in every segment. The normal equations and residual statistics add
 (BagStatistics.__add__), so the estimate, covariance and noise of the merge are those of the
-serial run.
+serial run; so are its warnings: the missing-term sums and the equations left out per joint
+add, and the torque's time offset is checked by the first segment only, on the stream's first
+``time_offset.seconds`` as the serial run checks it (when that segment is shorter, on all of
+it).
 
 Why a result can differ from the serial run: the robust gate (robust.py) arms once the running
 estimate has converged and then holds back samples beyond k sigma of it. Its decisions depend

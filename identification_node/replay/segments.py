@@ -14,6 +14,7 @@ import numpy as np
 from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import ConsistentSolver
+from identification_node.estimation.model_terms import ModelTermStatistics
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
@@ -21,6 +22,7 @@ from identification_node.model.robot import RobotModel
 from identification_node.pipeline import IdentificationPipeline
 from identification_node.pipeline.estimate import RESIDUAL_GRID
 from identification_node.pipeline.rows import RowBuilder
+from identification_node.pipeline.time_offset import TimeOffset
 from identification_node.replay.stream import identify_bag
 from identification_node.results.identification import Checkpoint, ReplayResult
 from identification_node.settings import Settings
@@ -45,8 +47,11 @@ def model_key(robot: RobotModel) -> str:
 class BagStatistics:
     """Sufficient statistics of the rows of some bags (or segments): per-joint normal
     equations of the weighted rows [Yb | tau] (as RecursiveLeastSquares.normal_equations),
-    residual sums over samples and blocks, samples in the estimator, the pipeline's counters,
-    the first and last row stamps (ns), and the model they belong to (model_key)."""
+    residual sums over samples and blocks, samples in the estimator, the pipeline's counters
+    and equations left out per joint (n,), the first and last row stamps (ns), the model they
+    belong to (model_key), the missing-term sums (model_terms.py) and the time-offset check's
+    result of the first stream start among them (time_offset.py: a segment that starts
+    inside its bag does not check)."""
     bags: tuple
     model: str
     normal_equations: NormalEquations
@@ -56,11 +61,13 @@ class BagStatistics:
     messages: int
     received: int
     rejected: dict
-    excluded_rows: int
+    excluded: np.ndarray
     restarts: int
     first_ns: int | None
     last_ns: int | None
     smoother: tuple = ()     # (parameter, value) pairs of the smoother the rows went through
+    terms: ModelTermStatistics | None = None
+    time_offset: TimeOffset | None = None
 
     def __add__(self, other: BagStatistics) -> BagStatistics:
         if self.model != other.model:
@@ -81,8 +88,11 @@ class BagStatistics:
             self.messages + other.messages, self.received + other.received,
             {k: self.rejected.get(k, 0) + other.rejected.get(k, 0)
              for k in {**self.rejected, **other.rejected}},
-            self.excluded_rows + other.excluded_rows, self.restarts + other.restarts,
-            min(stamps) if stamps else None, max(lasts) if lasts else None, self.smoother)
+            self.excluded + other.excluded, self.restarts + other.restarts,
+            min(stamps) if stamps else None, max(lasts) if lasts else None, self.smoother,
+            other.terms if self.terms is None else
+            self.terms if other.terms is None else self.terms + other.terms,
+            other.time_offset if self.time_offset is None else self.time_offset)
 
 
 class _SegmentPipeline(IdentificationPipeline):
@@ -162,7 +172,8 @@ def segment_margin_ns(settings: Settings) -> int:
 
 
 def pinned(settings: Settings, smoother: tuple) -> Settings:
-    """``settings`` with smoother parameters ((name, value) pairs, bag_smoother) set."""
+    """``settings`` with parameters ((name, value) pairs) set: the smoother's (bag_smoother),
+    or others."""
     if not smoother:
         return settings
     return Settings({**settings.values, **dict(smoother)},
@@ -207,6 +218,8 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
             f"{settings['forgetting_factor']}): forgotten statistics do not add up")
     smoother = bag_smoother(bag, settings, robot, joint_states, motor_currents)
     settings = pinned(settings, smoother)
+    if start_ns is not None:   # not the stream's start: its torque offset is not checked
+        settings = pinned(settings, (('time_offset.warn', 0.0),))
     pipeline = settings.build(robot)
     windowed = None
     if start_ns is not None or stop_ns is not None:
@@ -237,9 +250,10 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
     return BagStatistics(
         (str(bag),), model_key(robot), equations, pipeline.residuals,
         int(rls.num_samples), int(pipeline.used), int(messages), int(pipeline.received),
-        {k: v for k, v in pipeline.rejected.items() if v}, int(pipeline.excluded_rows),
+        {k: v for k, v in pipeline.rejected.items() if v}, pipeline.excluded_equations,
         int(pipeline.restarts), span[0] if span else None, span[-1] if span else None,
-        smoother=smoother or tuple((k, settings[k]) for k in SMOOTHER))
+        smoother=smoother or tuple((k, settings[k]) for k in SMOOTHER),
+        terms=pipeline.estimator.terms, time_offset=pipeline.time_offset.result)
 
 
 # -- solve ----------------------------------------------------------------------------------------
@@ -271,7 +285,8 @@ def identification(stats: BagStatistics, settings: Settings, robot: RobotModel,
     ne = stats.normal_equations
     rls = RecursiveLeastSquares.from_normal_equations(ne, stats.num_samples, theta=solve(ne))
     pipeline.restore(rls, stats.residuals, stats.used, stats.received, stats.rejected,
-                     stats.excluded_rows, stats.restarts, stats.last_ns)
+                     stats.excluded, stats.restarts, stats.last_ns, stats.terms,
+                     stats.time_offset)
     est = pipeline.estimate()
     history = [Checkpoint(est.num_samples, est.stamp, est.values, est.stddev)]
     ident = from_replay(ReplayResult(label or ', '.join(stats.bags), pipeline, stats.messages,
