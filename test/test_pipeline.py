@@ -14,6 +14,7 @@ from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.pipeline import signals
 from identification_node.pipeline.estimate import OnlineEstimate
+from identification_node.pipeline.window import SegmentWindow
 from identification_node.wire.records import JointStateRecord
 
 RATE = 1000.0
@@ -122,6 +123,31 @@ def test_three_phase_currents_converge_to_truth():
     Yb = BASE.base_regressor(ROBOT.regressor(sim.q[k], sim.qd[k], sim.qdd[k]))
     rms = np.sqrt(np.mean((Yb @ est.values - raw) ** 2, axis=0))
     assert np.all(rms <= 1.2 * torque_std), (rms, torque_std)
+
+
+def test_a_segment_window_gives_the_whole_streams_rows_inside_it():
+    """Three-phase currents offset from the joint states, a fixed smoother: the windowed
+    pipeline, fed the whole stream, takes only the messages within its margin, and its rows
+    are the unwindowed pipeline's rows inside [start, stop), no more; the messages inside are
+    counted. CDR input (the node's) is refused: its stamps are known only once decoded."""
+    converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
+    sim = simulate(duration=4.0, noise=SensorNoise(current_std=0.02), converter=converter)
+    js, cur = joint_records(sim, effort=False), current_records(sim, converter)
+    config = PipelineConfig(torque=THREE_PHASE, half_window=15)
+    whole = feed(IdentificationPipeline(ROBOT, config, BASE), js, cur)
+    start, stop = T0_NS + 1_500_000_000, T0_NS + 2_500_000_000
+    p = IdentificationPipeline(ROBOT, config, BASE)
+    p.window = SegmentWindow(start, stop, margin_ns=100_000_000)
+    part = feed(p, js, cur)
+    inside = (whole['stamps_ns'] >= start) & (whole['stamps_ns'] < stop)
+    np.testing.assert_array_equal(part['stamps_ns'], whole['stamps_ns'][inside])
+    for key in ('q', 'qd', 'qdd', 'measured'):
+        np.testing.assert_allclose(part[key], whole[key][inside], rtol=0, atol=1e-9)
+    both = [r.stamp_ns for r in js + cur]
+    assert p.window.messages == sum(start <= s < stop for s in both)
+    assert p.received == 1200    # the joint states of [start - 0.1 s, stop + 0.1 s) at 1 kHz
+    with pytest.raises(IdentificationError, match='segment window takes decoded'):
+        p.add_joint_state_cdr([b''])
 
 
 def test_differentiated_positions_without_velocity():

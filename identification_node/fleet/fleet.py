@@ -3,10 +3,10 @@
 Map: each bag, or each time segment of a long bag, streams through the node's pipeline
 (replay.identify_bag) and leaves its sufficient statistics (BagStatistics): the per-joint
 normal equations of its rows (NormalEquations), the residual sums over samples and over blocks
-(ResidualStatistics, for the honest stddev) and the counters. A segment's pipeline is fed
-``half_window * max_gap + hold_time + align_tolerance`` seconds of the bag on either side and
-keeps only the rows centred inside the segment, so its rows are the whole bag's (the smoother
-never fits across a gap larger than max_gap).
+(ResidualStatistics, for the honest stddev) and the counters. A segment's pipeline (its
+stage pipeline.SegmentWindow) is fed ``half_window * max_gap + hold_time + align_tolerance``
+seconds of the bag on either side and keeps only the rows centred inside the segment, so its
+rows are the whole bag's (the smoother never fits across a gap larger than max_gap).
 
 Reduce: statistics add exactly (sums), in a fixed order (bag, segment), whatever order the
 tasks finish in. Bags are separate recordings: residual blocks restart at each bag, as the

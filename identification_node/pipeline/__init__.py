@@ -14,6 +14,8 @@ everything queued, in batches, one stage per module:
    and convergence; ``core`` composes them and predicts the torque.
 
 Stages 1-4 together are ``TorqueSamples``, which batch identification (offline) runs too.
+``window`` (SegmentWindow, optional) makes a pipeline process one time segment of a stream:
+messages fed before stage 1, rows kept before stage 6 (parallel replay and fleet).
 """
 from identification_node.pipeline.config import PipelineConfig
 from identification_node.pipeline.core import IdentificationPipeline, PipelineOutput
@@ -22,6 +24,8 @@ from identification_node.pipeline.samples import Samples
 from identification_node.pipeline.status import PipelineStatus
 from identification_node.pipeline.torque_samples import TorqueSamples
 from identification_node.pipeline.validate import REJECT_REASONS
+from identification_node.pipeline.window import SegmentWindow
 
 __all__ = ['IdentificationPipeline', 'PipelineConfig', 'PipelineOutput', 'PipelineStatus',
-           'EstimateReport', 'REJECT_REASONS', 'Samples', 'TorqueSamples', 'converged']
+           'EstimateReport', 'REJECT_REASONS', 'Samples', 'SegmentWindow', 'TorqueSamples',
+           'converged']

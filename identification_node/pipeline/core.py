@@ -22,6 +22,7 @@ from identification_node.pipeline.rows import RowBuilder, smooths_sign
 from identification_node.pipeline.status import PipelineStatus
 from identification_node.pipeline.time_offset import TimeOffset, TimeOffsetCheck
 from identification_node.pipeline.torque_samples import TorqueSamples
+from identification_node.pipeline.window import SegmentWindow
 from identification_node.wire.records import JointStateRecord
 
 
@@ -86,29 +87,47 @@ class IdentificationPipeline:
         # the model's parameters, degenerate inertials replaced (prior.py); notes say which
         self.prior, self.prior_notes = safe_prior(robot)
         self.frozen = False
+        # window.SegmentWindow: one time segment of the stream only (None: all of it); set
+        # before the first message (parallel replay and fleet)
+        self.window: SegmentWindow | None = None
         self.reset()
 
     # -- input: called on the ROS side, so nothing but a copy ------------------------------------
     def add_joint_state(self, record: JointStateRecord) -> None:
-        self.samples.add_joint_state(record)
+        if self.window is None or self.window.feed(record.stamp_ns):
+            self.samples.add_joint_state(record)
 
     def add_joint_states(self, block: JointStateRecord) -> None:
         """Joint states sharing names and layout, at once: stamp_ns (M,) int64, position,
         velocity and effort (M, k) ((M, 0) when absent). The same as adding the M records
         one by one (bag replay reads such blocks)."""
+        if self.window is not None:
+            fed = self.window.feed(block.stamp_ns)
+            if not fed.all():
+                if not fed.any():
+                    return
+                block = type(block)(np.asarray(block.stamp_ns)[fed], block.names,
+                                    *(np.asarray(a)[fed] for a in block[2:]))
         self.samples.add_joint_states(block)
 
     def add_joint_state_cdr(self, messages: list[bytes]) -> None:
         """sensor_msgs/JointState messages as CDR bytes, in arrival order (as the node takes
         them); decoded when processed (one that cannot be decoded is counted 'malformed')."""
+        self._unwindowed('joint states')
         self.samples.add_joint_state_cdr(messages)
 
     def add_currents(self, record: JointStateRecord) -> None:
-        self.samples.add_currents(record)
+        if self.window is None or self.window.feed(record.stamp_ns):
+            self.samples.add_currents(record)
 
     def add_currents_cdr(self, messages: list[bytes]) -> None:
         """Motor current messages (sensor_msgs/JointState) as CDR bytes, in arrival order."""
+        self._unwindowed('currents')
         self.samples.add_currents_cdr(messages)
+
+    def _unwindowed(self, what: str) -> None:
+        if self.window is not None:   # their stamps are known only once decoded
+            raise IdentificationError(f'a segment window takes decoded {what}, not CDR bytes')
 
     def add_malformed(self) -> None:
         """Count a message that could not even be decoded (received, and rejected)."""
@@ -218,6 +237,10 @@ class IdentificationPipeline:
         half_window = self.row_builder.half_window   # None while the smoother is chosen
         if half_window is not None and est.half_window != half_window:
             est.set_smoother(half_window, self.config.smoother_order)
+        if self.window is not None and len(r.t):
+            inside = self.window.keep(self.samples.counters.stamps_ns(r.t))
+            if not inside.all():
+                r = type(r)(*(a[inside] for a in r))
         if len(r.t) == 0:
             return PipelineOutput.empty(self.robot.dof)
         predicted = r.rows[:, :, :self.base.num_base] @ est.theta

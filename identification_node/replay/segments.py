@@ -7,7 +7,7 @@ import hashlib
 import math
 import os
 from dataclasses import dataclass
-from typing import Callable, cast
+from typing import Callable
 
 import numpy as np
 
@@ -19,10 +19,9 @@ from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.estimation.residuals import ResidualStatistics
 from identification_node.estimation.rls import RecursiveLeastSquares
 from identification_node.model.robot import RobotModel
-from identification_node.pipeline import IdentificationPipeline
 from identification_node.pipeline.estimate import RESIDUAL_GRID
-from identification_node.pipeline.rows import RowBuilder
 from identification_node.pipeline.time_offset import TimeOffset
+from identification_node.pipeline.window import SegmentWindow
 from identification_node.replay.stream import identify_bag
 from identification_node.results.identification import Checkpoint, ReplayResult
 from identification_node.settings import Settings
@@ -95,74 +94,6 @@ class BagStatistics:
             other.time_offset if self.time_offset is None else self.time_offset)
 
 
-class _SegmentPipeline(IdentificationPipeline):
-    """The pipeline fed only the samples within ``margin_ns`` of [start_ns, stop_ns) (None:
-    open), keeping the rows centred inside it; ``messages`` counts those inside."""
-
-    def __init__(self, robot, config, base, start_ns: int | None, stop_ns: int | None,
-                 margin_ns: int):
-        super().__init__(robot, config, base)
-        lo = -2 ** 62 if start_ns is None else start_ns
-        hi = 2 ** 62 if stop_ns is None else stop_ns
-        self._window = (lo, hi)
-        self._feed = (lo - margin_ns, hi + margin_ns)
-        self.messages = 0
-        # a RowBuilder by delegation
-        self.row_builder = cast(RowBuilder, _WindowRows(self.row_builder, self.samples.counters,
-                                                        lo, hi))
-
-    def _keep(self, stamps_ns) -> np.ndarray:
-        self.messages += int(np.count_nonzero(_inside(stamps_ns, *self._window)))
-        return _inside(stamps_ns, *self._feed)
-
-    def add_joint_state(self, record) -> None:
-        if self._keep(record.stamp_ns):
-            super().add_joint_state(record)
-
-    def add_currents(self, record) -> None:
-        if self._keep(record.stamp_ns):
-            super().add_currents(record)
-
-    def add_joint_states(self, block) -> None:
-        keep = self._keep(np.asarray(block.stamp_ns))
-        if keep.all():
-            super().add_joint_states(block)
-        elif keep.any():
-            super().add_joint_states(type(block)(np.asarray(block.stamp_ns)[keep], block.names,
-                                                 *(np.asarray(a)[keep] for a in block[2:])))
-
-
-class _WindowRows:
-    """A RowBuilder keeping only the rows centred in [lo, hi) ns (stamps of ``counters``)."""
-
-    def __init__(self, rows, counters, lo: int, hi: int):
-        self._rows, self._counters, self._window = rows, counters, (lo, hi)
-
-    def __getattr__(self, name: str):   # the smoother's choice, counters: the RowBuilder's
-        return getattr(self._rows, name)
-
-    def reset(self) -> None:
-        self._rows.reset()
-
-    def drain(self, measured_velocity: bool):
-        r = self._rows.drain(measured_velocity)
-        return None if r is None else self._inside(r)
-
-    def __call__(self, *args, **kwargs):
-        return self._inside(self._rows(*args, **kwargs))
-
-    def _inside(self, r):
-        if len(r.t):
-            keep = _inside(self._counters.stamps_ns(r.t), *self._window)
-            if not keep.all():
-                r = type(r)(*(a[keep] for a in r))
-        return r
-
-
-def _inside(stamps_ns, lo: int, hi: int):
-    return (stamps_ns >= lo) & (stamps_ns < hi)
-
-
 def segment_margin_ns(settings: Settings) -> int:
     """Samples on either side a segment needs: the smoother's half window can span
     half_window * max_gap, currents wait hold_time, alignment reaches align_tolerance."""
@@ -221,12 +152,9 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
     if start_ns is not None:   # not the stream's start: its torque offset is not checked
         settings = pinned(settings, (('time_offset.warn', 0.0),))
     pipeline = settings.build(robot)
-    windowed = None
-    if start_ns is not None or stop_ns is not None:
-        windowed = _SegmentPipeline(robot, pipeline.config, pipeline.base, start_ns, stop_ns,
-                                    segment_margin_ns(settings))
-        pipeline = windowed
-    segment = windowed is not None
+    segment = start_ns is not None or stop_ns is not None
+    if segment:
+        pipeline.window = SegmentWindow(start_ns, stop_ns, segment_margin_ns(settings))
     span: list[int] = []     # first and last row stamps, or none
 
     def stamps(out) -> None:
@@ -242,8 +170,8 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
             raise
         messages = 0
     rls = pipeline.rls
-    if windowed is not None:   # the margins' messages are counted by their own segments
-        messages = windowed.messages
+    if pipeline.window is not None:   # the margins' messages are counted by their segments
+        messages = pipeline.window.messages
     # an estimator without rows knows no joints yet: the zero sums of this robot's instead
     equations = (rls.normal_equations() if rls.num_samples else
                  NormalEquations.zeros(pipeline.base.num_base, robot.dof))
