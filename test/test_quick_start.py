@@ -73,7 +73,7 @@ def test_the_readme_quick_start_identifies_the_simulated_arm(ros):
                                   'rejected.before_joint_states')
                     and int(v) > allowed.get(k, 0)}
         assert not rejected, (rejected, lost)
-        assert int(values.get('rejected.outlier', 0)) < 0.05 * int(values['samples_used'])
+        assert int(values.get('rejected.outlier', 0)) < 0.05 * int(values['samples_used']), values
         assert values['converged'] == 'true' and float(values['condition_number']) < 1e8
     finally:
         diag.close()
