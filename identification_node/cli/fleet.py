@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='flag changes of more than K standard deviations (default 5)')
     parser.add_argument('--segment', type=float, metavar='S',
                         help='map each S seconds of a bag as its own task (long bags); '
-                        'rounded to whole minutes, cut at whole minutes of the stamps')
+                        'rounded to a multiple of 10 s, cut at multiples of 10 s of the stamps')
     parser.add_argument('--timeout', type=float, default=5.0, metavar='S',
                         help='seconds to wait for --scheduler (default 5)')
     parser.add_argument('--no-physical-consistency', action='store_true',
