@@ -66,6 +66,9 @@ def main() -> None:
     parser.add_argument('--repeat', type=int, default=3)
     parser.add_argument('--warmup', type=int, default=400, metavar='R',
                         help='runs before the measured ones')
+    parser.add_argument('--jitter', type=float, default=0.0, metavar='US',
+                        help='header stamps off their 1 ms grid by up to US microseconds '
+                        '(uniform; a driver stamping on receipt, as bench_node\'s publisher)')
     parser.add_argument('--profile', type=int, default=0, metavar='N',
                         help='then profile the paced pipeline runs, print the top N functions')
     args = parser.parse_args()
@@ -83,7 +86,8 @@ def main() -> None:
     N = int(per * (args.runs + warm)) + 3
     sim = simulate_kinematic(robot, None, FourierTrajectory.random(robot, seed=1),
                              np.arange(N) * 1e-3, SensorNoise(torque_std=0.2))
-    messages = encode_joint_states(10**18 + np.arange(N) * 10**6, robot.joint_names,
+    jitter = np.random.default_rng(2).uniform(0, 1e3 * args.jitter, N).astype(np.int64)
+    messages = encode_joint_states(10**18 + np.arange(N) * 10**6 + jitter, robot.joint_names,
                                    sim.q_meas, sim.qd_meas, sim.tau_meas)
     starts = np.round(per * np.arange(args.runs + warm + 1)).astype(int)
     torque = {j: JointTorqueConfig(source='measured') for j in robot.joint_names}
@@ -101,7 +105,8 @@ def main() -> None:
              'reference workload': lambda: lambda k: reference_work(),
              'sleep alone': None}
     print(f'7-DOF arm, 1 kHz, runs of {per:g} messages; thread CPU per run (us), back to back and '
-          f'{1e3 * args.period:g} ms apart; {args.runs} runs, median of {args.repeat}')
+          f'{1e3 * args.period:g} ms apart; {args.runs} runs, median of {args.repeat}; stamps '
+          + (f'jittered by up to {args.jitter:g} us' if args.jitter else 'on a 1 ms grid'))
     results: dict[str, list] = {kind: [] for kind in kinds}
     for _ in range(args.repeat):
         for kind, make in kinds.items():
