@@ -25,12 +25,15 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import os
 import pstats
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # as the node's entry point, before numpy
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_node import PANDA  # noqa: E402

@@ -117,7 +117,8 @@ class CurrentAlignment:
             horizon = math.inf
         done = cur.stamps < horizon
         stale = done & ~used & ~cur.used
-        early = cur.stamps < self._first_js - self.align_tolerance
+        # older than the stream's first joint state, which took the nearest: none could match
+        early = cur.stamps < self._first_js
         self.counters.reject('before_joint_states', np.count_nonzero(stale & early))
         self.counters.reject('unmatched_current', np.count_nonzero(stale & ~early))
         cur.used |= used
