@@ -77,13 +77,13 @@ def main() -> None:
     args = parser.parse_args()
 
     from identification_node.excitation.trajectories import FourierTrajectory
-    from identification_node.model.robot import load_robot
+    from identification_node.settings import Settings
     from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
-    from identification_node.model.torque import JointTorqueConfig
-    from identification_node.pipeline import IdentificationPipeline, PipelineConfig
     from identification_node.wire.cdr import encode_joint_states
 
-    robot = load_robot(str(PANDA))
+    # the node's defaults (friction and offset columns, the automatic smoother, ...)
+    settings = Settings.from_dict({'robot': str(PANDA), 'torque_source': ['measured']})
+    robot = settings.load_robot()
     warm = args.warmup
     per = 1000 * args.period     # messages per run, on average
     N = int(per * (args.runs + warm)) + 3
@@ -93,10 +93,9 @@ def main() -> None:
     messages = encode_joint_states(10**18 + np.arange(N) * 10**6 + jitter, robot.joint_names,
                                    sim.q_meas, sim.qd_meas, sim.tau_meas)
     starts = np.round(per * np.arange(args.runs + warm + 1)).astype(int)
-    torque = {j: JointTorqueConfig(source='measured') for j in robot.joint_names}
 
     def pipeline_work():
-        pipeline = IdentificationPipeline(robot, PipelineConfig(torque=torque))
+        pipeline = settings.build(robot)
 
         def work(k: int) -> None:
             pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])

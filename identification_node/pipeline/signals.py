@@ -89,6 +89,14 @@ def value_weights(half_window: int, order: int) -> np.ndarray:
     return np.linalg.solve(V.T @ V, V.T)[0]
 
 
+@functools.lru_cache(maxsize=64)
+def _cumulative_value_weights(half_window: int, order: int) -> np.ndarray:
+    """(2L + 2,) read-only: [0, cumsum(value_weights)], once per window (every run asks)."""
+    cum = np.concatenate([[0.0], np.cumsum(value_weights(half_window, order))])
+    cum.flags.writeable = False
+    return cum
+
+
 def smoothed_sign(v: np.ndarray, a: np.ndarray, half_window: int, order: int,
                   period: float) -> np.ndarray:
     """What the smoother makes of sign(v(t)) at the window centre, for a velocity crossing
@@ -97,7 +105,7 @@ def smoothed_sign(v: np.ndarray, a: np.ndarray, half_window: int, order: int,
     rad/s and rad/s^2) and the sample period (s). Equal to sign(v) where no reversal lies in
     the window; a Coulomb column of it is what the smoothed torque holds of sign friction."""
     L = int(half_window)
-    cum = np.concatenate([[0.0], np.cumsum(value_weights(L, int(order)))])   # cum[k]: i < k - L
+    cum = _cumulative_value_weights(L, int(order))   # cum[k]: weights of i < k - L
     with np.errstate(divide='ignore', invalid='ignore'):
         x = -v / (a * period)        # the zero crossing, in samples from the centre
     x = np.where(np.isfinite(x), np.clip(x, -L - 1.0, L + 1.0), L + 1.0)
