@@ -29,8 +29,8 @@ class SegmentWindow:
         """Mask of the messages (stamps (M,)) the pipeline takes, or for one stamp (int)
         whether it does; counts those inside."""
         if isinstance(stamps_ns, (int, np.integer)):   # one message: no array calls
-            self.messages += self.inside[0] <= stamps_ns < self.inside[1]
-            return self.fed[0] <= stamps_ns < self.fed[1]
+            self.messages += int(self.inside[0] <= stamps_ns < self.inside[1])
+            return bool(self.fed[0] <= stamps_ns < self.fed[1])
         stamps_ns = np.asarray(stamps_ns)
         self.messages += int(np.count_nonzero(self.keep(stamps_ns)))
         return (stamps_ns >= self.fed[0]) & (stamps_ns < self.fed[1])
