@@ -237,23 +237,25 @@ class IdentificationPipeline:
         half_window = self.row_builder.half_window   # None while the smoother is chosen
         if half_window is not None and est.half_window != half_window:
             est.set_smoother(half_window, self.config.smoother_order)
-        if self.window is not None and len(r.t):
-            inside = self.window.keep(self.samples.counters.stamps_ns(r.t))
-            if not inside.all():
-                r = type(r)(*(a[inside] for a in r))
         if len(r.t) == 0:
             return PipelineOutput.empty(self.robot.dof)
+        stamps_ns = self.samples.counters.stamps_ns(r.t)
         predicted = r.rows[:, :, :self.base.num_base] @ est.theta
         # the smoothed motion and torque within bounds too (accelerations are checked here
         # only; a spike that passed the raw gates spreads over the smoothing window)
-        plausible = self.bounds.ok(r.q, r.qd, r.qdd, r.tau) & np.isfinite(predicted).all(axis=1)
-        if not plausible.all():
-            self.samples.counters.reject('implausible', np.count_nonzero(~plausible))
-            r = type(r)(*(a[plausible] for a in r))
-            predicted = predicted[plausible]
+        keep = self.bounds.ok(r.q, r.qd, r.qdd, r.tau) & np.isfinite(predicted).all(axis=1)
+        implausible = ~keep
+        if self.window is not None:   # a segment's rows only: the others are its neighbours'
+            inside = self.window.keep(stamps_ns)
+            keep &= inside
+            implausible &= inside
+        if implausible.any():
+            self.samples.counters.reject('implausible', np.count_nonzero(implausible))
+        if not keep.all():
+            r = type(r)(*(a[keep] for a in r))
+            predicted, stamps_ns = predicted[keep], stamps_ns[keep]
             if len(r.t) == 0:
                 return PipelineOutput.empty(self.robot.dof)
-        stamps_ns = self.samples.counters.stamps_ns(r.t)
         if self.time_offset.active:
             self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau,
                                  model_features(r.q, r.qd)[..., :3])

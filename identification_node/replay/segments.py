@@ -102,13 +102,13 @@ def segment_margin_ns(settings: Settings) -> int:
                           + v['align_tolerance']) * 1e9)) + 1
 
 
-def pinned(settings: Settings, smoother: tuple) -> Settings:
+def pinned(settings: Settings, values: tuple) -> Settings:
     """``settings`` with parameters ((name, value) pairs) set: the smoother's (bag_smoother),
     or others."""
-    if not smoother:
+    if not values:
         return settings
-    return Settings({**settings.values, **dict(smoother)},
-                    settings.given | {k for k, _ in smoother})
+    return Settings({**settings.values, **dict(values)},
+                    settings.given | {k for k, _ in values})
 
 
 def bag_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
@@ -152,9 +152,9 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
     if start_ns is not None:   # not the stream's start: its torque offset is not checked
         settings = pinned(settings, (('time_offset.warn', 0.0),))
     pipeline = settings.build(robot)
-    segment = start_ns is not None or stop_ns is not None
-    if segment:
-        pipeline.window = SegmentWindow(start_ns, stop_ns, segment_margin_ns(settings))
+    window = None
+    if start_ns is not None or stop_ns is not None:
+        window = pipeline.window = SegmentWindow(start_ns, stop_ns, segment_margin_ns(settings))
     span: list[int] = []     # first and last row stamps, or none
 
     def stamps(out) -> None:
@@ -166,12 +166,12 @@ def bag_statistics(bag: str | os.PathLike, settings: Settings, robot: RobotModel
                               checkpoints=1, on_output=stamps, pipeline=pipeline)
         messages = result.messages
     except IdentificationError:
-        if not segment or pipeline.used:   # a segment may hold no rows (a gap)
+        if window is None or pipeline.used:   # a segment may hold no rows (a gap)
             raise
         messages = 0
     rls = pipeline.rls
-    if pipeline.window is not None:   # the margins' messages are counted by their segments
-        messages = pipeline.window.messages
+    if window is not None:   # the margins' messages are counted by their own segments
+        messages = window.messages
     # an estimator without rows knows no joints yet: the zero sums of this robot's instead
     equations = (rls.normal_equations() if rls.num_samples else
                  NormalEquations.zeros(pipeline.base.num_base, robot.dof))
