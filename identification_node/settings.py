@@ -28,8 +28,9 @@ __all__ = ['Settings', 'read_parameter_file']
 
 def read_parameter_file(path: str | Path) -> dict[str, Any]:
     """The parameters of a ROS parameter YAML file (first node's ros__parameters) or of a
-    plain YAML mapping, flattened."""
-    return parameters_of(read_yaml(path, f'parameter file {path}'), f'parameter file {path}')
+    plain YAML mapping, flattened; scalars read as rcl reads them (safe_yaml.ros_scalar)."""
+    return parameters_of(read_yaml(path, f'parameter file {path}', ros=True),
+                         f'parameter file {path}')
 
 
 @dataclass

@@ -164,3 +164,69 @@ def test_descriptors_are_typed_and_ranged_from_the_tree():
     assert config.descriptor('kt', [1.0], '').type is float
     assert config.descriptor('smoother.order', 3, '').range == (2, 4)
     assert config.descriptor('coulomb_velocity', 0.0, '').range == (0.0, math.inf)
+
+
+# plain scalars of a parameter file, and what rcl_yaml_param_parser makes of them
+RCL_SCALARS = {'1e-3': 1e-3, '-2.5E+2': -250.0, '.5': 0.5, '5.': 5.0, 'inf': math.inf,
+               '-.inf': -math.inf, '.NaN': math.nan, '0x1.8p1': 3.0, 'y': True, 'N': False,
+               'off': False, 'Yes': True, '010': 8, '0x1F': 31, '+5': 5, '-0': 0,
+               '~': '~', 'null': 'null', '1_000': '1_000', '1e999': '1e999', 'abc': 'abc',
+               "'1e-3'": '1e-3', '"y"': 'y', '9223372036854775808': 9.223372036854775808e18}
+
+
+def _scalar_file(directory: Path) -> Path:
+    path = directory / 'scalars.yaml'
+    path.write_text('/**:\n  ros__parameters:\n'
+                    + ''.join(f'    p{k}: {text}\n' for k, text in enumerate(RCL_SCALARS))
+                    + '    doubles: [1e-3, 2.0, -.inf]\n    on: 1\n')
+    return path
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, list):
+        return isinstance(b, list) and len(a) == len(b) and all(map(_same, a, b))
+    if isinstance(a, float) and math.isnan(a):
+        return isinstance(b, float) and math.isnan(b)
+    return type(a) is type(b) and a == b
+
+
+def test_parameter_files_are_read_as_rcl_reads_them(tmp_path):
+    """`identify --config FILE` takes FILE as `ros2 run --params-file FILE` does: 1e-3 a
+    number (PyYAML: a string), y a bool, ~ and 1_000 strings, names strings ('on')."""
+    given = read_parameter_file(_scalar_file(tmp_path))
+    expected = {f'p{k}': v for k, v in enumerate(RCL_SCALARS.values())}
+    expected.update({'doubles': [1e-3, 2.0, -math.inf], 'on': 1})
+    assert set(given) == set(expected)
+    assert [n for n in expected if not _same(given[n], expected[n])] == []
+    text = 'consistency:\n  weight: 1e-2\n  total_mass: [1e1, 2e1]\n'
+    (tmp_path / 'plain.yaml').write_text(text)
+    settings = Settings.from_dict(read_parameter_file(tmp_path / 'plain.yaml'))
+    assert settings['consistency.weight'] == 0.01
+    assert settings['consistency.total_mass'] == [10.0, 20.0]
+
+
+@pytest.mark.ros
+def test_rcl_reads_the_scalar_table_so(tmp_path, monkeypatch):
+    """The table above is rcl's: the same file through rclpy's --params-file."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.node import Node
+    from ros_helpers import domain_id, release_domain
+
+    path = _scalar_file(tmp_path)
+    domain = domain_id(__name__)
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
+    context = rclpy.Context()
+    try:
+        rclpy.init(args=['--ros-args', '--params-file', str(path)], context=context,
+                   domain_id=domain)
+        node = Node('rcl_scalars', context=context,
+                    automatically_declare_parameters_from_overrides=True)
+        names = [n for n in node.list_parameters([], 10).names if n != 'use_sim_time']
+        got = {p.name: p.value for p in node.get_parameters(names)}
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+        release_domain(domain)
+    got = {n: list(v) if isinstance(v, (list, tuple)) or hasattr(v, 'tolist') else v
+           for n, v in got.items()}
+    assert [n for n, v in read_parameter_file(path).items() if not _same(v, got.get(n))] == []

@@ -134,7 +134,7 @@ def check_parameter_files(args: list[str] | None) -> None:
     for flag, path in zip(args, args[1:]):
         if flag != '--params-file':
             continue
-        data = read_yaml(path, f'parameter file {path}')
+        data = read_yaml(path, f'parameter file {path}', ros=True)
         if not isinstance(data, dict):
             raise IdentificationError(f'parameter file {path} does not hold a mapping of '
                                       'node names to ros__parameters')
@@ -164,7 +164,7 @@ def given_parameter_names(args: list[str] | None, node: Any) -> set[str]:
         if flag in ('-p', '--param') and ':=' in value:
             names.add(value.split(':=', 1)[0].rpartition(':')[2])
         elif flag == '--params-file':
-            sections = [k for k in read_yaml(value) if k in keys]
+            sections = [k for k in read_yaml(value, ros=True) if k in keys]
             for key in sections:
                 names |= set(parameter_dict_from_yaml_file(value, target_nodes=[key]))
     return names
