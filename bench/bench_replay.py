@@ -8,7 +8,8 @@ once per sample count and cached in bench/.cache/ (gitignored).
 (a) ours: ``identify_bag`` with config/crs_a465.yaml (measured torque, fv and fc identified),
     the estimate read at the end.
 (a') ours on every core (``--workers N``, default the machine's cores; 1: not run): the same
-    settings through replay/parallel.py, the bag's 60 s segments in N processes (fork),
+    settings through replay/parallel.py, the bag cut into N about equal segments (at
+    multiples of the 10 s residual grid) in N processes (fork),
     their statistics merged (``identify BAG --workers N``).
 (b) naive, as a user would write it: rosbags AnyReader deserializing every message, joints
     reordered by name, qdd = np.gradient(qd, t) over the whole arrays, pinocchio
@@ -103,7 +104,8 @@ def run_parallel(bag: Path, workers: int) -> tuple[int, np.ndarray]:
     robot = settings.load_robot()
     ident = parallel_identify(bag, settings, robot, workers)
     if ident is None:
-        raise SystemExit(f'{bag} is too short to cut into segments (two 60 s cells needed)')
+        raise SystemExit(f'{bag} is too short to cut into segments (two residual-grid '
+                         'cells needed)')
     return ident.messages, ident.theta
 
 
