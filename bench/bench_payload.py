@@ -19,7 +19,9 @@ torque noise (18-bit encoders, measured velocities 0.01 rad/s).
    mass error (percent) and centre-of-mass error (mm) of the fitted segments, the largest
    of those errors in the fit's own reported stddev (z: mass, and per CoM axis), changes
    declared that did not happen, and the largest CoM stddev the fits reported (what the
-   data can tell: above 2.5 mm a 5 mm error is no surprise).
+   data can tell: above 2.5 mm a 5 mm error is no surprise); then the largest CoM error of
+   the axes the fits report (stddev within payload.tolerance.com, 5 mm: what a user gets as
+   a value) and how many CoM axes they withhold as "not excited".
 2. Threshold: per rate (UR5, friction, 0.1 N m) the smallest mass of the grid 0.3, 0.25,
    ..., 0.05 kg whose pick is detected within 2 s in every one of 3 seeds, as are all the
    grid's masses above it (payload.min_change, 0.2 kg, bounds it below; above 0.3 kg the
@@ -63,7 +65,8 @@ def run_sequence(arm, model, rate, noise, changes, seed):
     """``model``: the arm identified (payload_scenarios.identify_arm) or parameters taken as
     exact. (detection delays or None per change, mass errors %, com errors mm, their z-scores
     (error over the segment's reported stddev: mass, largest CoM axis), false alarms, the
-    largest CoM stddev (mm) of each payload segment)."""
+    largest CoM stddev (mm) of each payload segment, the com errors (mm) of the axes the fit
+    reports (excited: stddev within payload.tolerance.com), the CoM axes it withholds)."""
     _, events, segments = ps.run(arm, model, rate, noise, seed, changes)
     detected = [ps.seconds(e.detected) for e in events if e.kind == 'change']
     delays, used = [], set()
@@ -72,7 +75,7 @@ def run_sequence(arm, model, rate, noise, changes, seed):
                and k not in used]
         delays.append(detected[hit[0]] - c.time if hit else None)
         used.update(hit[:1])
-    mass, com, z, com_sd = [], [], [], []
+    mass, com, z, com_sd, reported, withheld = [], [], [], [], [], 0
     if len(segments) == len(changes) + 1:
         for seg, c in zip(segments[1:], changes):
             p = seg.payload
@@ -83,7 +86,10 @@ def run_sequence(arm, model, rate, noise, changes, seed):
                 sd = np.array([p.stddev[f'com.{a}'] for a in 'xyz'])
                 z.append(float(np.max(np.abs(p.com - c.com) / sd)))
                 com_sd.append(1e3 * float(sd.max()))
-    return delays, mass, com, z, len(detected) - len(used), com_sd
+                shown = np.array([f'com.{a}' in p.excited for a in 'xyz'])
+                withheld += int(np.count_nonzero(~shown))
+                reported += [1e3 * float(e) for e in np.abs(p.com - c.com)[shown]]
+    return delays, mass, com, z, len(detected) - len(used), com_sd, reported, withheld
 
 
 def parse_case(text: str) -> tuple[float, bool]:
@@ -98,16 +104,17 @@ def matrix(arms, rates, cases=CASES) -> None:
     print('1. matrix (shipped defaults; arm identified first): per cell all four sequences')
     print(f"{'arm':>8} {'rate':>5} {'noise':>5} {'fric':>4} {'detected':>9} "
           f"{'max delay s':>11} {'mass err %':>10} {'com err mm':>10} {'max z':>6} "
-          f"{'false':>5} {'com sd mm':>9}")
+          f"{'false':>5} {'com sd mm':>9} {'reported com err mm':>19} {'withheld':>8}")
     for name in arms:
         for rate in rates:
             for noise, friction in cases:
                 arm = ps.make_arm(name, friction)
                 model = ps.identify_arm(arm, rate, noise)
                 n = found = false = 0
-                delays, mass, com, zs, sds = [], [], [], [], []
+                delays, mass, com, zs, sds, shown, held = [], [], [], [], [], [], 0
                 for k, changes in enumerate(SEQUENCES.values()):
-                    d, m, c, z, f, sd = run_sequence(arm, model, rate, noise, changes, 10 + k)
+                    d, m, c, z, f, sd, r, w = run_sequence(arm, model, rate, noise, changes,
+                                                           10 + k)
                     n += len(d)
                     found += sum(x is not None for x in d)
                     delays += [x for x in d if x is not None]
@@ -116,11 +123,14 @@ def matrix(arms, rates, cases=CASES) -> None:
                     zs += z
                     false += f
                     sds += sd
+                    shown += r
+                    held += w
                 print(f'{name:>8} {rate:5.0f} {noise:5.2f} {"yes" if friction else "no":>4} '
                       f'{found:>4}/{n:<4} {max(delays, default=np.nan):11.3f} '
                       f'{max(mass, default=np.nan):10.2f} {max(com, default=np.nan):10.2f} '
                       f'{max(zs, default=np.nan):6.2f} {false:>5} '
-                      f'{max(sds, default=np.nan):9.2f}', flush=True)
+                      f'{max(sds, default=np.nan):9.2f} {max(shown, default=np.nan):19.2f} '
+                      f'{held:>8}', flush=True)
 
 
 def threshold(rates) -> None:
