@@ -524,3 +524,28 @@ def test_mass_ratio_bound_holds_and_is_reported(six):
         ne, 400.0)
     assert free.phi[10] > 3.5 * robot.phi_model[10]   # what the data ask for
     assert not any('bound' in n for n in free.notes) and free.excess < 1e-3
+
+
+def test_model_error_widens_the_region_by_its_covariance(panda):
+    """region(model_error=D): the metric M'M is the inverse of the data's covariance plus
+    sum d d' (closed form against a direct inverse), D = 0 leaves it as it was, and the
+    solve stays within the widened region."""
+    from scipy.stats import chi2
+
+    robot, base = panda
+    sigma = 0.05
+    Yb, tau = data(robot, base, truth(robot), 20.0, 0.8, sigma, seed=1)
+    ne = NormalEquations.from_rows(Yb, tau)
+    solver = ConsistentSolver.for_robot(robot, base, ConsistencyOptions(confidence=REGION))
+    M0, centre, q, _ = solver.region(ne, sigma ** -2)
+    rng = np.random.default_rng(3)
+    D = rng.normal(size=(2, base.num_base)) * np.sqrt(np.diag(np.linalg.pinv(M0.T @ M0)))
+    M, centre_d, q_d, _ = solver.region(ne, sigma ** -2, 5.0 * D)
+    expected = np.linalg.inv(np.linalg.inv(M0.T @ M0) + 25.0 * D.T @ D)
+    np.testing.assert_allclose(M.T @ M, expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
+    np.testing.assert_allclose(centre_d, centre)
+    assert q_d == q == chi2.ppf(REGION, base.num_base)
+    np.testing.assert_allclose(solver.region(ne, sigma ** -2, 0.0 * D)[0], M0)
+    widened = solver.solve(ne, sigma ** -2, 5.0 * D)
+    assert widened.ok and widened.excess < 1e-3
+    assert np.sum((M @ (widened.theta - centre)) ** 2) <= q * (1 + 1e-5)

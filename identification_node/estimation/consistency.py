@@ -330,12 +330,15 @@ class ConsistentSolver:
         np.fill_diagonal(cov, var)
         return R, z, cov, (s, V, keep)
 
-    def region(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
+    def region(self, equations: NormalEquations, weights: np.ndarray | float = 1.0,
+               model_error: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         """(M (b, b), c (b,), q, covariance (b, b)): the data's confidence region
         ||M (beta - c)||^2 <= q about the unconstrained solution c, each direction's variance
         floored at (STDDEV_FLOOR x its typical size)^2 (rows of M are 0 where undetermined);
-        q the chi-square quantile of ``confidence`` at the determined directions' count."""
+        q the chi-square quantile of ``confidence`` at the determined directions' count.
+        ``model_error`` (k, b) or (b,), base-parameter offsets: the region of the covariance
+        plus sum_i d_i d_i' (each a rank-one update of M'M, Sherman-Morrison)."""
         from scipy.stats import chi2
 
         R, z, cov, (s, V, keep) = self._factor(equations, weights)
@@ -343,15 +346,22 @@ class ConsistentSolver:
         floor = STDDEV_FLOOR * (np.abs(V.T) @ self._typical)
         sd = np.sqrt(1.0 / np.where(keep, s, 1.0) + floor ** 2)
         M = np.where(keep[:, None], V.T / sd[:, None], 0.0)
+        for d in np.atleast_2d(model_error) if model_error is not None else ():
+            v = M @ d
+            size = float(v @ v)
+            if size > 0 and np.isfinite(size):   # M'M becomes ((M'M)^-1 + d d')^-1
+                u = v / np.sqrt(size)
+                M = M - (1.0 - 1.0 / np.sqrt(1.0 + size)) * np.outer(u, u @ M)
         q = float(chi2.ppf(self.options.confidence, max(int(keep.sum()), 1)))
         return M, centre, q, cov
 
-    def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0
-              ) -> ConsistentEstimate:
+    def solve(self, equations: NormalEquations, weights: np.ndarray | float = 1.0,
+              model_error: np.ndarray | None = None) -> ConsistentEstimate:
         """The consistent estimate for ``equations`` (base-parameter order) with per-joint
-        ``weights`` (inverse noise variances: the unconstrained WLS's objective)."""
+        ``weights`` (inverse noise variances: the unconstrained WLS's objective); the region
+        widened by ``model_error`` (``region``)."""
         start = time.perf_counter()
-        M, centre, q, cov = self.region(equations, weights)
+        M, centre, q, cov = self.region(equations, weights, model_error)
         stddev = np.sqrt(np.diag(cov))
         self._M.value, self._m.value, self._q.value = M, M @ centre, q
         first = self.options.solver
