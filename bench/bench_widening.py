@@ -10,10 +10,10 @@ data's covariance (ConsistentSolver.solve's ``model_error``, scaled by ``--scale
 solve repeated. Printed per case: excess, whether every link mass is plausible (within 30 % of
 the truth or between URDF and truth) and the held-out error ratio to the unconstrained fit,
 for the defaults and widened; then the misses of each (a case misses when a mass is not
-plausible or the ratio exceeds 1.03).
+plausible or the ratio exceeds 1.03). ``--always``: every case widened.
 
     .venv/bin/python bench/bench_widening.py [--arms ur5,panda] [--rates 100,500]
-        [--seeds 3] [--duration 30] [--scale 1]
+        [--seeds 3] [--duration 30] [--scale 1] [--always]
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def _settings(arm: str, **more) -> Settings:
     return Settings.from_dict({**({'joints': list(joints)} if joints else {}), **more})
 
 
-def run_case(case: Case, directory: Path, scale: float) -> dict:
+def run_case(case: Case, directory: Path, scale: float, always: bool = False) -> dict:
     """The case identified with the defaults and, where the solve's excess is > 0, widened."""
     truth = make_case(case, directory)
     train, heldout = str(truth['dir'] / 'train'), str(truth['dir'] / 'heldout')
@@ -62,7 +62,7 @@ def run_case(case: Case, directory: Path, scale: float) -> dict:
     result = {'excess': ident.consistent.excess,
               'default': row(ident.consistent.phi, held['estimate']['stacked'])}
     result['widened'] = result['default']
-    if ident.consistent.excess > EXCESS_TOLERANCE * q:
+    if always or ident.consistent.excess > EXCESS_TOLERANCE * q:
         L = ident.details['smoother_half_window']
         fits = [identify(train, IdentifyConfig(_settings(case.arm, **{
             'smoother.half_window': int(round(h))}), physical_consistency=False)).ident.theta
@@ -82,6 +82,7 @@ def main() -> int:
     parser.add_argument('--seeds', type=int, default=3, help='seeds 0..N-1 per arm and rate')
     parser.add_argument('--duration', type=float, default=30.0, help='s per motion')
     parser.add_argument('--scale', type=float, default=1.0, help='k: model error k d')
+    parser.add_argument('--always', action='store_true', help='widen every case')
     args = parser.parse_args()
     arms = args.arms.split(',') if args.arms else list(ARMS)
     rates = [float(r) for r in args.rates.split(',')] if args.rates else list(RATES)
@@ -92,7 +93,7 @@ def main() -> int:
             for rate in rates:
                 for seed in range(args.seeds):
                     case = Case(arm, rate, args.duration, seed)
-                    r = run_case(case, Path(tmp), args.scale)
+                    r = run_case(case, Path(tmp), args.scale, args.always)
                     cells = []
                     for kind in ('default', 'widened'):
                         ok, ratio = r[kind]
