@@ -143,6 +143,8 @@ def load_yaml(text: str | bytes, what: str = 'YAML', max_nodes: int = MAX_NODES,
         return loader.construct_document(node)
     except yaml.YAMLError as exc:
         raise IdentificationError(f'{what} is not valid YAML: {yaml_problem(exc)}') from None
+    except (ValueError, TypeError, OverflowError) as exc:   # a tagged or implicit value's
+        raise IdentificationError(f'{what} is not valid YAML: {exc}') from None
     except RecursionError:
         raise IdentificationError(f'{what}: nested too deeply to be read') from None
     finally:

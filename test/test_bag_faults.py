@@ -68,7 +68,9 @@ def test_a_truncated_sqlite3_bag_is_reported_as_sqlite3(tmp_path, capsys, fracti
     (b'rosbag2_bagfile_information:\n  version: [9\n  x: }{\n', 'not valid YAML'),
     (bytes(range(256)) * 8, 'not UTF-8'),
     (b'- a list\n', 'no rosbag2_bagfile_information'),
-    (b'rosbag2_bagfile_information: 3\n', 'no rosbag2_bagfile_information')])
+    (b'rosbag2_bagfile_information: 3\n', 'no rosbag2_bagfile_information'),
+    (b'rosbag2_bagfile_information:\n  starting_time: 2001-13-45\n', 'not valid YAML: month'),
+    (b'rosbag2_bagfile_information:\n  version: ' + b'9' * 5000 + b'\n', 'not valid YAML')])
 def test_garbage_metadata_is_one_line(tmp_path, capsys, content, words):
     bag = tmp_path / 'bag'
     shutil.copytree(MCAP, bag)

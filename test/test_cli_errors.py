@@ -137,6 +137,7 @@ def test_structure_samples_is_validated_not_allocated(capsys):
     (b'- a\n- list\n', 'does not hold a mapping'),
     (b'node:\n  ros__parameters: [1, 2]\n', 'ros__parameters is not a mapping'),
     (b'a: [1, 2\nb: 3\n', 'not valid YAML'),
+    (b'a: !!float "abc"\n', 'not valid YAML: could not convert'),
     (bomb(40).encode(), 'YAML bomb')])
 @pytest.mark.parametrize('verb', ['identify', 'simulate', 'node'])
 def test_bad_config_files_are_one_line(tmp_path, capsys, content, words, verb):
