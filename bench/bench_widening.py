@@ -3,14 +3,14 @@
 Per case (bench/corpus.py, defaults as identify runs them): the consistent solve's excess
 (the chi-square beyond the data's region its constraints cost; beyond the solver's tolerance,
 1e-3 of the region's quantile: no physical arm lies in the region, the data disagree with
-one). Where it is, the estimate's sensitivity to the
-smoother's window, d = (theta(L g) - theta(L / g)) / 2 from the unconstrained fits at the
-neighbouring half windows of the automatic choice L (g = rows.AUTO_GRID), is added to the
-data's covariance (ConsistentSolver.solve's ``model_error``, scaled by ``--scale``) and the
-solve repeated. Printed per case: excess, whether every link mass is plausible (within 30 % of
-the truth or between URDF and truth) and the held-out error ratio to the unconstrained fit,
-for the defaults and widened; then the misses of each (a case misses when a mass is not
-plausible or the ratio exceeds 1.03). ``--always``: every case widened.
+one). Where it is, the estimate's sensitivity to the smoother's window, d = (theta(L g) -
+theta(L / g)) / 2 from the unconstrained fits at the neighbouring half windows of the
+automatic choice L (g = rows.AUTO_GRID), is added to the data's covariance
+(ConsistentSolver.solve's ``model_error``, scaled by ``--scale``) and the solve repeated.
+Printed per case: excess, whether every link mass is plausible (within 30 % of the truth or
+between URDF and truth) and the held-out error ratio to the unconstrained fit, for the
+defaults and widened; then the misses of each (a case misses when a mass is not plausible or
+the ratio exceeds 1.03). ``--always``: every case widened.
 
     .venv/bin/python bench/bench_widening.py [--arms ur5,panda] [--rates 100,500]
         [--seeds 3] [--duration 30] [--scale 1] [--always]
@@ -34,7 +34,7 @@ from identification_node.replay.validation import evaluate, evaluation_settings 
 from identification_node.settings import Settings  # noqa: E402
 
 HELD_OUT_RATIO = 1.03
-EXCESS_TOLERANCE = 1e-3   # of the region's chi-square quantile: the solver's
+EXCESS_TOLERANCE = 1e-3   # of the region's chi-square quantile: the solver's tolerance
 
 
 def _settings(arm: str, **more) -> Settings:
@@ -43,7 +43,8 @@ def _settings(arm: str, **more) -> Settings:
 
 
 def run_case(case: Case, directory: Path, scale: float, always: bool = False) -> dict:
-    """The case identified with the defaults and, where the solve's excess is > 0, widened."""
+    """The case identified with the defaults and, where the solve's excess is beyond its
+    tolerance (``always``: in any case), widened; a widened solve that fails misses."""
     truth = make_case(case, directory)
     train, heldout = str(truth['dir'] / 'train'), str(truth['dir'] / 'heldout')
     settings = _settings(case.arm)
@@ -69,6 +70,9 @@ def run_case(case: Case, directory: Path, scale: float, always: bool = False) ->
             for h in (L / AUTO_GRID, L * AUTO_GRID)]
         d = scale * (fits[1] - fits[0]) / 2
         widened = solver.solve(ident.fit_equations, ident.fit_weights, d)
+        if not widened.ok:
+            result['widened'] = (False, np.inf)
+            return result
         error = evaluate(heldout, evaluation_settings(settings, ident), ident.robot,
                          ident.base, {'estimate': widened.theta}).errors['estimate'].stacked
         result['widened'] = row(widened.phi, error)
