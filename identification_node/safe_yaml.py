@@ -53,10 +53,11 @@ def ros_scalar(text: str) -> bool | int | float | str:
     exponents, inf, nan, hex floats; not out of range), else the string itself."""
     if text in _TRUE or text in _FALSE:
         return text in _TRUE
-    if _INTEGER.fullmatch(text) and len(text) <= 25:   # longer: beyond int64 in any base
+    if _INTEGER.fullmatch(text):
         sign, digits = (-1, text[1:]) if text[0] == '-' else (1, text.lstrip('+'))
         base = 16 if digits[1:2] in ('x', 'X') else 8 if digits[:1] == '0' else 10
-        integer = sign * int(digits, base)
+        body = (digits[2:] if base == 16 else digits).lstrip('0') or '0'
+        integer = sign * int(body, base) if len(body) <= 22 else 2 ** 63   # more: beyond int64
         if -2 ** 63 <= integer < 2 ** 63:
             return integer
     if text in _SPECIAL:
