@@ -89,9 +89,13 @@ class BagStatistics:
              for k in {**self.rejected, **other.rejected}},
             self.excluded + other.excluded, self.restarts + other.restarts,
             min(stamps) if stamps else None, max(lasts) if lasts else None, self.smoother,
-            other.terms if self.terms is None else
-            self.terms if other.terms is None else self.terms + other.terms,
+            _sum(self.terms, other.terms),
             other.time_offset if self.time_offset is None else self.time_offset)
+
+
+def _sum(a, b):
+    """a + b, or the one that is not None."""
+    return b if a is None else a if b is None else a + b
 
 
 def segment_margin_ns(settings: Settings) -> int:
