@@ -19,6 +19,10 @@ ARMS: dict[str, tuple[str, list[str] | None]] = {
     'kinova': ('kinova_description/robots/kinova.urdf', None),
     'xarm7': ('xarm_description/urdf/xarm7.urdf', None),
     'z1': ('z1_description/urdf/z1.urdf', None),
+    # arms on a larger robot, a hand (TIAGo) or gripper (Baxter) of locked joints at the wrist
+    'tiago': ('tiago_description/robots/tiago.urdf', [f'arm_{i}_joint' for i in range(1, 8)]),
+    'baxter': ('baxter_description/urdf/baxter.urdf',
+               ['left_s0', 'left_s1', 'left_e0', 'left_e1', 'left_w0', 'left_w1', 'left_w2']),
 }
 
 

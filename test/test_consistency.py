@@ -24,6 +24,7 @@ from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.estimation.prior import safe_prior
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.identifiability import BaseParameters
+from identification_node.model.pseudo_inertia import locked_scale
 from identification_node.model.robot import load_robot
 from identification_node.model.urdf_export import consistency_problems, identified_urdf
 from identification_node.ros.solver_worker import SolverProcess
@@ -99,6 +100,45 @@ def test_pseudo_inertia_is_positive_definite_exactly_for_physical_bodies():
     # inequality is outside, as urdf_export.consistency_problems says
     bad = np.r_[1.0, 0, 0, 0, 1.0, 0, 0, 0.1, 0, 0.1]   # Ixx > Iyy + Izz
     assert np.linalg.eigvalsh(pseudo_inertia(bad))[0] < 0
+
+
+def _point_body(rng, n: int, spread: float, centre=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """The 10 parameters (about the origin) of n random point masses near ``centre``."""
+    points = np.asarray(centre) + rng.normal(size=(n, 3)) * spread
+    masses = rng.uniform(0.1, 1.0, n)
+    return from_pseudo_inertia(sum(m * np.outer(np.r_[p, 1], np.r_[p, 1])
+                                   for m, p in zip(masses, points)))
+
+
+def test_locked_scale_minimises_the_divergences_of_the_split():
+    """A link with locked bodies (a hand on a light wrist link), its identified block the whole
+    scaled by f: the split s of locked_scale leaves a physical own body, and minimises
+    d(A - s B || J0) + d(s B || B) as a direct scan of that sum (log-determinants) finds it.
+    At f = 0.6 the description's hand alone does not fit: s < 1 there."""
+    rng = np.random.default_rng(3)
+    own0 = _point_body(rng, 5, 0.03)
+    hand = _point_body(rng, 6, 0.04, centre=(0.0, 0.0, 0.12)) * 3.0
+    J0, B = pseudo_inertia(own0), pseudo_inertia(hand)
+    for f in (0.6, 1.0, 1.4):
+        total = f * (own0 + hand)
+        A = pseudo_inertia(total)
+        s = locked_scale(total, hand, J0)
+        assert np.linalg.eigvalsh(A - s * B)[0] > 0
+
+        def divergences(x):
+            ok = np.linalg.eigvalsh(A - x * B)[0] > 0
+            own = -np.linalg.slogdet(np.linalg.solve(J0, A - x * B))[1] + np.trace(
+                np.linalg.solve(J0, A - x * B)) - 4
+            return own + 4 * (x - 1 - np.log(x)) if ok else np.inf
+
+        grid = np.linspace(1e-3, 3.0, 30001)
+        values = np.array([divergences(x) for x in grid])
+        best = grid[np.argmin(values)]
+        assert abs(best - s) <= 2 * (grid[1] - grid[0]), (f, s, best)
+        if f == 0.6:
+            assert np.linalg.eigvalsh(A - B)[0] < 0 and s < 1
+    assert locked_scale(own0, np.zeros(10), J0) == 1.0      # nothing locked
+    assert locked_scale(-own0, hand, J0) == 1.0             # no physical split exists
 
 
 def test_well_excited_consistent_lies_in_the_confidence_region(panda):
@@ -183,9 +223,14 @@ def test_identified_urdf_round_trip_with_locked_fingers():
     source, out = ET.parse(FIXTURES / 'panda_hand.urdf').getroot(), ET.fromstring(text)
     links = {el.get('name'): el for el in out.findall('link')}
     assert set(links) == {el.get('name') for el in source.findall('link')}
-    for finger in ('leftfinger', 'rightfinger'):   # locked: their own inertial, untouched
-        assert ET.tostring(links[finger].find('inertial')) == ET.tostring(
-            source.find(f"link[@name='{finger}']/inertial"))
+    shares = []
+    for finger in ('leftfinger', 'rightfinger'):   # locked: their own inertial, scaled as one
+        new, old = links[finger].find('inertial'), source.find(f"link[@name='{finger}']/inertial")
+        assert new.find('origin').attrib == old.find('origin').attrib
+        shares.append(float(new.find('mass').get('value')) / float(old.find('mass').get('value')))
+        for key, value in old.find('inertia').attrib.items():
+            assert float(new.find('inertia').get(key)) == pytest.approx(shares[-1] * float(value))
+    assert shares[0] == pytest.approx(shares[1]) and shares[0] > 0
     assert links['hand'].find('inertial') is None   # fixed to link7: inside its identified one
     model = pin.buildModelFromXML(text)
     assert model.nv == 9

@@ -12,12 +12,8 @@ phi (robot.py's order) minimising
 it), its own pseudo-inertia J_i - eps_i 1 >= 0 (Wensing, Kim and Slotine 2017: mass > 0,
 inertia about the centre of mass positive definite, triangle inequalities), optional mass
 bounds (absolute, a ratio to the description's, the total) and a box for its centre of mass,
-and fv, fc, Ia >= 0 for the per-joint columns x. The pseudo-inertia of a block [m, mx, my, mz,
-Ixx, Ixy, Ixz, Iyy, Iyz, Izz] (inertia I about the frame origin) is
-
-    J = [[Sigma, h], [h', m]],  Sigma = tr(I)/2 1 - I,  h = (mx, my, mz).
-
-d is the log-det (Bregman) divergence of Lee, Wensing and Park 2020,
+and fv, fc, Ia >= 0 for the per-joint columns x. J is a block's pseudo-inertia
+(model/pseudo_inertia.py). d is the log-det (Bregman) divergence of Lee, Wensing and Park 2020,
 d(J || J0) = -log det(J0^-1 J) + tr(J0^-1 J) - 4, toward the description's own inertials. The
 data never determine a link's mass alone, only combinations with its neighbours' masses and
 first moments; d alone spreads a change of such a combination over every link in it, moving
@@ -31,8 +27,10 @@ model error, a biased sensor) the excess t is paid at 1/gamma per unit of chi-sq
 solve is the weighted least squares with a prior of weight gamma. G_f is G with each
 direction's variance floored at ``STDDEV_FLOOR`` of its parameters' typical size (from the
 prior): noise-free data would ask the solver for a resolution below its tolerance. A body's own
-part excludes constant bodies merged into it (``fixed``, e.g. fingers of locked joints, which
-keep their own inertials in the exported URDF).
+part excludes the links of locked joints merged into it (``fixed`` F, e.g. a hand's fingers):
+they are s_i F, s_i > 0 a variable of the solve with the divergence d(s_i J_F || J_F) beside
+d(J_i || J0_i), so a link lighter than its description's locked parts alone stays reachable;
+the split is model/pseudo_inertia.py's ``locked_scale``, which the exported URDF writes.
 
 Solved by cvxpy on a parametrised problem built once (re-solving with new normal equations,
 the node at every refresh, skips the canonicalisation): the configured solver, then the other
@@ -55,6 +53,8 @@ from identification_node.config import Consistency, default
 from identification_node.errors import IdentificationError
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
+from identification_node.model.pseudo_inertia import (FROM_J, from_pseudo_inertia, locked_scale,
+                                                      pseudo_inertia, repaired)
 
 NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
@@ -63,37 +63,12 @@ NONNEGATIVE = ('fv', 'fc', 'Ia')
 SOLVERS = ('CLARABEL', 'SCS')
 PROJECTION = 'projection'   # method of the last resort
 
-# phi block (10,) = _FROM_J @ vec(J) (J symmetric 4x4, row-major flattening)
-_FROM_J = np.zeros((10, 16))
-for _row, _terms in enumerate([
-        [(3, 3, 1)], [(0, 3, 1)], [(1, 3, 1)], [(2, 3, 1)],
-        [(1, 1, 1), (2, 2, 1)], [(0, 1, -1)], [(0, 2, -1)],
-        [(0, 0, 1), (2, 2, 1)], [(1, 2, -1)], [(0, 0, 1), (1, 1, 1)]]):
-    for _a, _b, _c in _terms:
-        _FROM_J[_row, 4 * _a + _b] = _c
-
-
-def pseudo_inertia(phi10: np.ndarray) -> np.ndarray:
-    """The 4x4 pseudo-inertia of a link block (about the frame origin; kg m^2, kg m, kg)."""
-    m, h = phi10[0], np.asarray(phi10[1:4])
-    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi10[4:]
-    inertia = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
-    J = np.empty((4, 4))
-    J[:3, :3] = 0.5 * np.trace(inertia) * np.eye(3) - inertia
-    J[:3, 3] = J[3, :3] = h
-    J[3, 3] = m
-    return J
-
-
-def from_pseudo_inertia(J: np.ndarray) -> np.ndarray:
-    """The link block [m, mx, ..., Izz] of a pseudo-inertia (inverse of pseudo_inertia)."""
-    return _FROM_J @ np.asarray(J, dtype=float).reshape(16)
-
 
 @dataclass(frozen=True)
 class Body:
     """One rigid body of the solve: its 10 columns start at ``start`` in phi. ``fixed``: the
-    standard parameters (10,) of constant bodies merged into it (its own part is the rest);
+    standard parameters (10,) of the locked bodies merged into it, at their description's
+    inertials (scaled in the solve: pseudo_inertia.locked_scale; its own part is the rest);
     ``mass`` (lo, hi) bounds and ``com_box`` ((3,) lo, (3,) hi, m, in the body frame) apply to
     the whole body (own part plus fixed)."""
     name: str
@@ -181,12 +156,6 @@ class ConsistencyOptions:
                     f'parameter consistency.{name} = {value!r} must be {expected}')
 
 
-def _repaired(J: np.ndarray, floor: float) -> np.ndarray:
-    """The nearest pseudo-inertia with eigenvalues >= floor (eigenvalues raised)."""
-    ev, V = np.linalg.eigh(0.5 * (J + J.T))
-    return (V * np.maximum(ev, floor)) @ V.T
-
-
 class ConsistentSolver:
     """The constrained solve for standard parameters ``param_names`` with base map ``base``
     (K), prior ``phi_prior`` (the description's own), rigid ``bodies`` and the per-joint
@@ -227,6 +196,7 @@ class ConsistentSolver:
         constraints, regulariser = [], 0
         phi = np.zeros(p)
         self.eps, self._mass_bounds, masses = [], [], []
+        self._own_priors: list[np.ndarray] = []   # per body: its own part's prior pseudo-inertia
         for body, Jt in zip(self.bodies, self._J):
             own_prior = phi_prior[body.start:body.start + 10] - body.fixed
             J0 = pseudo_inertia(own_prior)
@@ -234,7 +204,7 @@ class ConsistentSolver:
             degenerate = not ev[0] > 1e-9 * max(ev[-1], 0.0)   # also singular to rounding
             eps = eps_opt if degenerate else min(eps_opt, 1e-2 * ev[0])
             if degenerate:
-                J0 = _repaired(J0, max(1e-3 * ev[-1], 10 * eps))
+                J0 = repaired(J0, max(1e-3 * ev[-1], 10 * eps))
                 self.notes.append(f'{body.name}: the prior is not physically consistent '
                                   '(pseudo-inertia eigenvalues '
                                   + ', '.join(f'{e:.4g}' for e in ev)
@@ -246,7 +216,12 @@ class ConsistentSolver:
             Dinv2 = np.diag(1.0 / np.diag(D) ** 2)
             constraints.append(Jt >> eps * Dinv2)
             regulariser += -cp.log_det(Jt) + cp.trace((D @ np.linalg.inv(J0) @ D) @ Jt)
-            total = _FROM_J @ cp.vec(D @ Jt @ D, order='C') + body.fixed
+            total = FROM_J @ cp.vec(D @ Jt @ D, order='C')
+            self._own_priors.append(J0)
+            if body.fixed[0] > 0:   # the locked bodies' share s F: d(s J_F || J_F) (+ 4)
+                share = cp.Variable(nonneg=True, name=f'locked_{body.name}')
+                regulariser += 4 * (share - cp.log(share))
+                total = total + share * body.fixed
             masses.append(total[0])
             S = np.zeros((p, 10))
             S[body.start:body.start + 10] = np.eye(10)
@@ -291,8 +266,8 @@ class ConsistentSolver:
     @classmethod
     def for_robot(cls, robot, base: BaseParameters,
                   options: ConsistencyOptions | None = None) -> ConsistentSolver:
-        """The solver for a RobotModel: one body per identified link (its locked subtrees
-        fixed at their URDF inertials), the description's parameters as the prior."""
+        """The solver for a RobotModel: one body per identified link (with its locked
+        subtrees, scaled as one), the description's parameters as the prior."""
         from identification_node.estimation.prior import safe_prior
 
         options = options or ConsistencyOptions()
@@ -386,7 +361,7 @@ class ConsistentSolver:
             method = ''
         else:
             status = 'projected' if method == PROJECTION else 'optimal'
-            notes += moved + self.active_bounds(phi)
+            notes += moved + self.active_bounds(phi) + self.locked_notes(phi)
             if method == PROJECTION:
                 notes.append('no conic solver succeeded (' + '; '.join(attempts) + '): the '
                              'unconstrained estimate projected onto physical bodies is given')
@@ -435,17 +410,40 @@ class ConsistentSolver:
         non-negative columns clipped at 0; notes on what moved beyond rounding."""
         phi = np.array(phi, dtype=float)
         notes = []
-        for body, eps in zip(self.bodies, self.eps):
+        for k, (body, eps) in enumerate(zip(self.bodies, self.eps)):
             sl = slice(body.start, body.start + 10)
-            J = pseudo_inertia(phi[sl] - body.fixed)
+            locked = self._locked(k, phi)
+            J = pseudo_inertia(phi[sl] - locked)
             ev = np.linalg.eigvalsh(J)
             if ev[0] < eps:
-                phi[sl] = from_pseudo_inertia(_repaired(J, eps)) + body.fixed
+                phi[sl] = from_pseudo_inertia(repaired(J, eps)) + locked
                 if ev[0] < -1e-9 * max(1.0, ev[-1]):
                     notes.append(f'{body.name}: pseudo-inertia eigenvalue {ev[0]:.3g} raised to '
                                  f'the margin {eps:.3g} (projection)')
         phi[self._nonneg] = np.maximum(phi[self._nonneg], 0.0)
         return phi, notes
+
+    def _locked(self, k: int, phi: np.ndarray) -> np.ndarray:
+        """Body k's locked share s F in ``phi`` (zero when nothing is locked into it)."""
+        body = self.bodies[k]
+        if not body.fixed[0] > 0:
+            return body.fixed
+        sl = slice(body.start, body.start + 10)
+        return locked_scale(phi[sl], body.fixed, self._own_priors[k]) * body.fixed
+
+    def locked_notes(self, phi: np.ndarray) -> list[str]:
+        """Notes naming the bodies whose locked parts do not fit at their description's
+        inertials (the own part would not be physical): the scale they are given instead."""
+        out = []
+        for k, body in enumerate(self.bodies):
+            sl = slice(body.start, body.start + 10)
+            if body.fixed[0] > 0 and np.linalg.eigvalsh(
+                    pseudo_inertia(phi[sl] - body.fixed))[0] <= 0:
+                s = locked_scale(phi[sl], body.fixed, self._own_priors[k])
+                out.append(f'{body.name}: the locked links merged into it do not fit at their '
+                           f'description\'s inertials ({body.fixed[0]:.4g} kg): scaled by '
+                           f'{s:.3g}, as identified.urdf writes them')
+        return out
 
     def active_bounds(self, phi: np.ndarray, rtol: float = 1e-4) -> list[str]:
         """Notes naming the mass bounds ``phi`` is at (within ``rtol``)."""
@@ -467,8 +465,8 @@ class ConsistentSolver:
         """What in ``phi`` breaks the hard constraints beyond ``tol`` (empty when feasible):
         each body's own pseudo-inertia positive definite, the non-negative columns."""
         out = []
-        for body in self.bodies:
-            J = pseudo_inertia(phi[body.start:body.start + 10] - body.fixed)
+        for i, body in enumerate(self.bodies):
+            J = pseudo_inertia(phi[body.start:body.start + 10] - self._locked(i, phi))
             ev = np.linalg.eigvalsh(J)
             if ev[0] <= -tol * max(1.0, ev[-1]):
                 out.append(f'{body.name}: pseudo-inertia eigenvalue {ev[0]:.3g}')

@@ -17,6 +17,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pinocchio as pin
 
+from identification_node.model.pseudo_inertia import locked_scale, pseudo_inertia
 from identification_node.model.robot import PIN_ORDER, RobotModel
 
 
@@ -173,11 +174,14 @@ def merged_bodies(robot: RobotModel, i: int) -> tuple[np.ndarray, np.ndarray | N
 
 
 def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
-    """The robot's URDF with each identified link's <inertial> replaced by ``phi``'s values."""
+    """The robot's URDF with each identified link's <inertial> replaced by ``phi``'s values:
+    the links merged into it on fixed joints lose theirs, those of locked joints keep theirs,
+    scaled by their share (pseudo_inertia.locked_scale; 1 when they fit as described)."""
     if robot.kind != 'urdf':
         raise ValueError('identified URDF output needs a URDF robot description')
     root = ET.fromstring(robot.description)
     links = {el.get('name'): el for el in root.findall('link')}
+    scaled = []
     for i, (jid, name) in enumerate(zip(robot.joint_ids, robot.link_names)):
         merged = _merged_links(robot, jid, name)
         locked = _locked_links(root, name, merged)
@@ -186,11 +190,19 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
             merged_inertial = None if old is None else old.find('inertial')
             if old is not None and merged_inertial is not None:
                 old.remove(merged_inertial)
+        block, fixed = phi[10 * i:10 * i + 10], merged_bodies(robot, i)[0]
+        share = locked_scale(block, fixed, pseudo_inertia(robot.phi_model[10 * i:10 * i + 10]
+                                                          - fixed))
+        if share != 1.0:
+            for other in sorted(locked):
+                _scale_inertial(links[other], share)
+            if abs(share - 1.0) > 1e-3:
+                scaled.append(f'{name} {share:.4g}')
         link = links[name]
         old = link.find('inertial')
         if old is not None:
             link.remove(old)
-        m, c, Ic = link_inertia(phi[10 * i:10 * i + 10] - merged_bodies(robot, i)[0])
+        m, c, Ic = link_inertia(block - share * fixed)
         inertial = ET.Element('inertial')
         ET.SubElement(inertial, 'origin', xyz=' '.join(f'{v:.9g}' for v in c), rpy='0 0 0')
         ET.SubElement(inertial, 'mass', value=f'{m:.9g}')
@@ -200,6 +212,10 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
                 'iyy': (1, 1), 'iyz': (1, 2), 'izz': (2, 2)}.items()})
         link.insert(0, inertial)
     _write_friction(robot, root, phi)
+    if scaled:
+        note = (note + '; ' if note else '') + (
+            'inertials of locked links scaled with the link they are merged into: '
+            + ', '.join(scaled))
     kept = [e for e in ('fo', 'Ia') if e in robot.extras]
     if kept:
         note = (note + '; ' if note else '') + ', '.join(
@@ -209,6 +225,18 @@ def identified_urdf(robot: RobotModel, phi: np.ndarray, note: str = '') -> str:
         root.insert(0, ET.Comment(f' {note} '))
     ET.indent(root, space='  ')
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding='unicode') + '\n'
+
+
+def _scale_inertial(link: ET.Element, factor: float) -> None:
+    """A link's <mass> and <inertia> multiplied by ``factor`` (its centre of mass kept)."""
+    el = link.find('inertial')
+    for tag, keys in (('mass', ('value',)),
+                      ('inertia', ('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz'))):
+        item = None if el is None else el.find(tag)
+        for key in keys:
+            value = None if item is None else item.get(key)
+            if item is not None and value is not None:
+                item.set(key, f'{factor * float(value):.9g}')
 
 
 def _write_friction(robot: RobotModel, root: ET.Element, phi: np.ndarray) -> None:
