@@ -19,7 +19,12 @@ ARMS: dict[str, tuple[str, list[str] | None]] = {
     'kinova': ('kinova_description/robots/kinova.urdf', None),
     'xarm7': ('xarm_description/urdf/xarm7.urdf', None),
     'z1': ('z1_description/urdf/z1.urdf', None),
-    # arms on a larger robot, a hand (TIAGo) or gripper (Baxter) of locked joints at the wrist
+    'ur3': ('ur_description/urdf/ur3_robot.urdf', None),
+    'so101': ('so_arm_description/urdf/so101.urdf',   # 0.6 kg hobby arm, its gripper locked
+              ['shoulder_pan', 'shoulder_lift', 'elbow_flex', 'wrist_flex', 'wrist_roll']),
+    # arms on a larger robot, a hand (TIAGo, Talos) or gripper (Baxter) of locked joints
+    'talos': ('talos_data/robots/talos_left_arm.urdf',
+              [f'arm_left_{i}_joint' for i in range(2, 8)]),
     'tiago': ('tiago_description/robots/tiago.urdf', [f'arm_{i}_joint' for i in range(1, 8)]),
     'baxter': ('baxter_description/urdf/baxter.urdf',
                ['left_s0', 'left_s1', 'left_e0', 'left_e1', 'left_w0', 'left_w1', 'left_w2']),
