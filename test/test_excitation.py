@@ -1,6 +1,7 @@
 """Excitation design: criteria, limits, the paper's initial guess and Table I, SLSQP results
 checked on fine grids (torques by pinocchio's RNEA), a simulated identification, and the CLI."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -223,9 +224,12 @@ def test_shrink_into_tight_effort_limits(crs):
     traj, scale, ratios = shrink_into_limits(table1_trajectory(robot), robot, limits)
     assert 0 < scale < 1 and ratios['effort'] <= VERIFY_RATIO
     assert_within_limits(traj, robot, limits)
-    with pytest.raises(IdentificationError, match='effort'):
+    with pytest.raises(IdentificationError, match='effort') as info:
         shrink_into_limits(table1_trajectory(robot), robot,
                            limits.updated({'joint2': {'effort': 1e-3}}))
+    # the joint whose static torque exceeds its limit is named, the others are not
+    assert re.search(r'\(joint2 [0-9.e+]+ x the limit\); --no-effort', str(info.value))
+    assert 'joint1' not in str(info.value) and 'joint3' not in str(info.value)
 
 
 @pytest.mark.parametrize('criterion', CRITERIA)

@@ -427,7 +427,9 @@ def test_start_configuration(designs):
 @pytest.mark.parametrize('extra, match', [
     (['--robot', 'crs_a465', '--limits', 'EFFORT'], 'infeasible'),
     (['--urdf', PANDA, '--min-distance', '2.0', '--harmonics', '2', '--period', '4'],
-     'no feasible excitation'),
+     'no feasible excitation found (collision between'),
+    (['--urdf', PANDA, '--srdf', SRDF, '--min-distance', '2.0', '--harmonics', '2',
+      '--period', '4'], 'no feasible excitation found (collision between'),
     (['--robot', 'mit_dd_arm', '--srdf', SRDF], 'no collision geometry'),
     (['--robot', 'mit_dd_arm', '--start', '1,2'], 'start configuration'),
     (['--robot', 'mit_dd_arm', '--margin', '1.5'], 'margin'),
@@ -446,6 +448,9 @@ def test_cli_infeasible_or_bad_gives_a_clear_error_and_no_files(tmp_path, capsys
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith('error:') and match in err
+    # a self-collision without an SRDF points to it
+    hint = "the robot's SRDF (--srdf) leaves out those in contact by design"
+    assert (hint in err) == ('--min-distance' in extra and '--srdf' not in extra), err
     assert not (tmp_path / 'o').exists() or not any((tmp_path / 'o').iterdir())
 
 

@@ -77,6 +77,7 @@ class CollisionChecker:
             _to_hulls(geom, self.meshes)
         self._hulls = self if convex or not self.meshes else None
         self._args = (robot, dirs, srdf, self.min_distance, floor, boxes)
+        self.srdf = srdf   # None: every pair on non-adjacent joints is checked
         geom.addAllCollisionPairs()   # every pair on different joints
         parents = self.model.parents
         # index pairs first: the elements of geom.collisionPairs refer into its vector
@@ -109,6 +110,7 @@ class CollisionChecker:
         self.data = self.model.createData()
         self.pairs = [(geom.geometryObjects[p.first].name, geom.geometryObjects[p.second].name)
                       for p in geom.collisionPairs]
+        self._own = {geom.geometryObjects[k].name for k in robot_objects}
         self._joints = np.array([[geom.geometryObjects[p.first].parentJoint,
                                   geom.geometryObjects[p.second].parentJoint]
                                  for p in geom.collisionPairs], dtype=int).reshape(-1, 2)
@@ -116,6 +118,10 @@ class CollisionChecker:
     @property
     def num_pairs(self) -> int:
         return len(self.pairs)
+
+    def self_pair(self, pair: tuple[str, str] | None) -> bool:
+        """Whether a pair of :meth:`clearance` is two of the robot's own geometries."""
+        return pair is not None and set(pair) <= self._own
 
     def hulls(self) -> CollisionChecker:
         """This checker with every mesh replaced by its convex hull (itself when it has no

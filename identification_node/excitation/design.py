@@ -232,6 +232,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                   ' s; verifying the best iterates on dense grids')
     names = list(robot.joint_names)
     reasons: list[str] = []
+    self_collision = [False]   # whether the last reason is a collision of two of the robot's links
 
     def verified(x: np.ndarray) -> tuple | None:
         """(criterion, periodic, framed, scale, clearance) of x brought inside every limit,
@@ -242,6 +243,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
             framed = frame_excitation(cand, robot, work, start_q, periods, phis)
         except IdentificationError as exc:   # cannot be brought inside the limits
             reasons.append(str(exc))
+            self_collision[0] = False
             return None
         clearance = None
         if checker is not None:
@@ -251,6 +253,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 if clearance['distance'] < checker.min_distance:
                     reasons.append(f'collision between {clearance["pair"][0]} and '
                                    f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)')
+                    self_collision[0] = checker.self_pair(clearance['pair'])
                     return None
         return (report_value(design.value(to_x(cand))[0], criterion), cand, framed, s,
                 clearance)
@@ -290,10 +293,13 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 break
     if best is None:
         why = reasons[-1] if reasons else 'no iterate met the constraints'
+        srdf = ('; without an SRDF every pair of links not on adjacent joints is checked: the '
+                "robot's SRDF (--srdf) leaves out those in contact by design"
+                if checker is not None and checker.srdf is None and self_collision[0] else '')
         raise IdentificationError(
             f'no feasible excitation found ({why}): loosen the limits or their margin, lower '
             'the minimum distance, or try another start configuration, seed or fewer '
-            'harmonics')
+            'harmonics' + srdf)
     value, traj, framed, scale, clearance = best
     is_initial = initial_kept
     warnings = []

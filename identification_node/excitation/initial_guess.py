@@ -124,9 +124,14 @@ def shrink_into_limits(traj: FourierTrajectory, robot, limits: ExcitationLimits,
         if worst_ratio(ratios) <= target:
             return cur, scale, ratios
         scale *= float(np.clip(target / worst_ratio(ratios), 0.5, 0.995))
+    effort = ratios['per_joint']['effort']
+    over = ', '.join(f'{name} {r:.3g} x' for name, r in zip(limits.joint_names, effort)
+                     if r > target)
     raise IdentificationError('infeasible limits: the trajectory cannot be scaled into the '
                               'effort limits (with their margin): the static torque near the '
-                              'centre of the position ranges exceeds them')
+                              f'centre of the position ranges exceeds them ({over} the limit); '
+                              '--no-effort leaves torque limits out, or narrow the position '
+                              'limits (--limits) to where gravity asks less')
 
 
 def scale_motion(traj: FourierTrajectory, limits: ExcitationLimits, scale: float
