@@ -21,7 +21,8 @@ torque noise (18-bit encoders, measured velocities 0.01 rad/s).
    declared that did not happen, and the largest CoM stddev the fits reported (what the
    data can tell: above 2.5 mm a 5 mm error is no surprise); then the largest CoM error of
    the axes the fits report (stddev within payload.tolerance.com, 5 mm: what a user gets as
-   a value) and how many CoM axes they withhold as "not excited".
+   a value) and how many CoM axes they withhold as "not excited"; last, the largest mass and
+   CoM errors of the payloads of 1 kg and more (1, 2 and 3 kg: the issue's reference mass).
 2. Threshold: per rate (UR5, friction, 0.1 N m) the smallest mass of the grid 0.3, 0.25,
    ..., 0.05 kg whose pick is detected within 2 s in every one of 3 seeds, as are all the
    grid's masses above it (payload.min_change, 0.2 kg, bounds it below; above 0.3 kg the
@@ -55,6 +56,7 @@ from identification_node.payload.monitor import PayloadMonitor, monitor_from_set
 from identification_node.settings import Settings, read_parameter_file  # noqa: E402
 from test_payload_matrix import SEQUENCES  # noqa: E402
 
+REFERENCE_MASS = 1.0   # kg: the issue's reference payload (detected within 0.5 s)
 CASES = ((0.05, True), (0.2, True), (0.1, False))   # torque noise N m, joint friction
 BAGS = (('mit_paper_moves', 'identification.yaml'), ('mit_exciting', 'identification.yaml'),
         ('mit_paper_moves_sqlite3', 'identification.yaml'),
@@ -66,7 +68,8 @@ def run_sequence(arm, model, rate, noise, changes, seed):
     exact. (detection delays or None per change, mass errors %, com errors mm, their z-scores
     (error over the segment's reported stddev: mass, largest CoM axis), false alarms, the
     largest CoM stddev (mm) of each payload segment, the com errors (mm) of the axes the fit
-    reports (excited: stddev within payload.tolerance.com), the CoM axes it withholds)."""
+    reports (excited: stddev within payload.tolerance.com), the CoM axes it withholds, and the
+    mass errors % and CoM errors mm of the payloads of REFERENCE_MASS and more)."""
     _, events, segments = ps.run(arm, model, rate, noise, seed, changes)
     detected = [ps.seconds(e.detected) for e in events if e.kind == 'change']
     delays, used = [], set()
@@ -76,6 +79,7 @@ def run_sequence(arm, model, rate, noise, changes, seed):
         delays.append(detected[hit[0]] - c.time if hit else None)
         used.update(hit[:1])
     mass, com, z, com_sd, reported, withheld = [], [], [], [], [], 0
+    heavy_mass, heavy_com = [], []
     if len(segments) == len(changes) + 1:
         for seg, c in zip(segments[1:], changes):
             p = seg.payload
@@ -83,13 +87,17 @@ def run_sequence(arm, model, rate, noise, changes, seed):
             z.append(abs(p.mass - c.mass) / p.stddev['mass'])
             if c.mass:
                 com.append(1e3 * np.abs(p.com - c.com).max())
+                if c.mass >= REFERENCE_MASS:
+                    heavy_mass.append(mass[-1])
+                    heavy_com.append(com[-1])
                 sd = np.array([p.stddev[f'com.{a}'] for a in 'xyz'])
                 z.append(float(np.max(np.abs(p.com - c.com) / sd)))
                 com_sd.append(1e3 * float(sd.max()))
                 shown = np.array([f'com.{a}' in p.excited for a in 'xyz'])
                 withheld += int(np.count_nonzero(~shown))
                 reported += [1e3 * float(e) for e in np.abs(p.com - c.com)[shown]]
-    return delays, mass, com, z, len(detected) - len(used), com_sd, reported, withheld
+    return (delays, mass, com, z, len(detected) - len(used), com_sd, reported, withheld,
+            heavy_mass, heavy_com)
 
 
 def parse_case(text: str) -> tuple[float, bool]:
@@ -104,7 +112,8 @@ def matrix(arms, rates, cases=CASES) -> None:
     print('1. matrix (shipped defaults; arm identified first): per cell all four sequences')
     print(f"{'arm':>8} {'rate':>5} {'noise':>5} {'fric':>4} {'detected':>9} "
           f"{'max delay s':>11} {'mass err %':>10} {'com err mm':>10} {'max z':>6} "
-          f"{'false':>5} {'com sd mm':>9} {'reported com err mm':>19} {'withheld':>8}")
+          f"{'false':>5} {'com sd mm':>9} {'reported com err mm':>19} {'withheld':>8} "
+          f"{'1 kg+ mass %':>12} {'1 kg+ com mm':>12}")
     for name in arms:
         for rate in rates:
             for noise, friction in cases:
@@ -112,9 +121,12 @@ def matrix(arms, rates, cases=CASES) -> None:
                 model = ps.identify_arm(arm, rate, noise)
                 n = found = false = 0
                 delays, mass, com, zs, sds, shown, held = [], [], [], [], [], [], 0
+                heavy_mass, heavy_com = [], []
                 for k, changes in enumerate(SEQUENCES.values()):
-                    d, m, c, z, f, sd, r, w = run_sequence(arm, model, rate, noise, changes,
-                                                           10 + k)
+                    d, m, c, z, f, sd, r, w, hm, hc = run_sequence(arm, model, rate, noise,
+                                                                   changes, 10 + k)
+                    heavy_mass += hm
+                    heavy_com += hc
                     n += len(d)
                     found += sum(x is not None for x in d)
                     delays += [x for x in d if x is not None]
@@ -130,7 +142,8 @@ def matrix(arms, rates, cases=CASES) -> None:
                       f'{max(mass, default=np.nan):10.2f} {max(com, default=np.nan):10.2f} '
                       f'{max(zs, default=np.nan):6.2f} {false:>5} '
                       f'{max(sds, default=np.nan):9.2f} {max(shown, default=np.nan):19.2f} '
-                      f'{held:>8}', flush=True)
+                      f'{held:>8} {max(heavy_mass, default=np.nan):12.2f} '
+                      f'{max(heavy_com, default=np.nan):12.2f}', flush=True)
 
 
 def threshold(rates) -> None:
