@@ -214,6 +214,10 @@ def test_collision_checker_pairs_srdf_obstacles_and_gradients():
     assert ('link3_0', 'link5_0') in plain.pairs and ('link3_0', 'link4_0') not in plain.pairs
     srdf = CollisionChecker(robot, srdf=SRDF)
     assert srdf.srdf_removed == 3
+    # no pair of this arm touches in every configuration; at a 2 m minimum distance all do
+    lo, hi = robot.position_limits.T
+    assert plain.always_close(lo, hi) == []
+    assert CollisionChecker(robot, min_distance=2.0).always_close(lo, hi) == plain.pairs
     disabled = {('link4_0', 'link6_0'), ('link5_0', 'hand_0'), ('link5_0', 'hand_1')}
     assert set(plain.pairs) - set(srdf.pairs) == disabled
     # the floor: distance = lowest point of the primitive above the floor's height
@@ -448,9 +452,12 @@ def test_cli_infeasible_or_bad_gives_a_clear_error_and_no_files(tmp_path, capsys
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith('error:') and match in err
-    # a self-collision without an SRDF points to it
-    hint = "the robot's SRDF (--srdf) leaves out those in contact by design"
-    assert (hint in err) == ('--min-distance' in extra and '--srdf' not in extra), err
+    # pairs within the minimum distance wherever the arm is: named, with the SRDF as the way out
+    stuck = '--min-distance' in extra
+    assert ('are within the minimum distance in every configuration sampled' in err) == stuck
+    assert ("the robot's SRDF (--srdf) leaves such pairs out" in err) == (
+        stuck and '--srdf' not in extra), err
+    assert ('disable them in the SRDF' in err) == (stuck and '--srdf' in extra), err
     assert not (tmp_path / 'o').exists() or not any((tmp_path / 'o').iterdir())
 
 

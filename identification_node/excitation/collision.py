@@ -119,6 +119,21 @@ class CollisionChecker:
     def num_pairs(self) -> int:
         return len(self.pairs)
 
+    def always_close(self, lower: np.ndarray, upper: np.ndarray, samples: int = 200,
+                     seed: int = 0) -> list[tuple[str, str]]:
+        """The pairs closer than min_distance in every one of ``samples`` random joint
+        positions within [lower, upper] (n,) (rad, m): in contact by design, so no motion
+        meets the constraint (the hulls' bounds first, the exact distances of the pairs they
+        leave)."""
+        if not self.num_pairs:
+            return []
+        q = np.random.default_rng(seed).uniform(lower, upper, size=(samples, self.robot.dof))
+        close = np.flatnonzero((self.hulls().distances(q) < self.min_distance).all(axis=0))
+        if len(close) and self.hulls() is not self:
+            exact = self.distances(q[:20])[:, close]
+            close = close[(exact < self.min_distance).all(axis=0)]
+        return [self.pairs[i] for i in close]
+
     def self_pair(self, pair: tuple[str, str] | None) -> bool:
         """Whether a pair of :meth:`clearance` is two of the robot's own geometries."""
         return pair is not None and set(pair) <= self._own

@@ -293,9 +293,21 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 break
     if best is None:
         why = reasons[-1] if reasons else 'no iterate met the constraints'
-        srdf = ('; without an SRDF every pair of links not on adjacent joints is checked: the '
-                "robot's SRDF (--srdf) leaves out those in contact by design"
-                if checker is not None and checker.srdf is None and self_collision[0] else '')
+        srdf = ''
+        if checker is not None and self_collision[0]:
+            lo, hi = np.asarray(work.position_limits, dtype=float).T
+            stuck = checker.always_close(np.where(np.isfinite(lo), lo, -math.pi),
+                                         np.where(np.isfinite(hi), hi, math.pi))
+            fix = ('disable them in the SRDF' if checker.srdf is not None else
+                   "the robot's SRDF (--srdf) leaves such pairs out")
+            if stuck:
+                srdf = ('; ' + ', '.join(f'{a} - {b}' for a, b in stuck[:3])
+                        + (f' and {len(stuck) - 3} more' if len(stuck) > 3 else '')
+                        + ' are within the minimum distance in every configuration sampled '
+                        f'(they touch by design: {fix})')
+            elif checker.srdf is None:
+                srdf = ('; without an SRDF every pair of links not on adjacent joints is '
+                        f'checked: {fix}')
         raise IdentificationError(
             f'no feasible excitation found ({why}): loosen the limits or their margin, lower '
             'the minimum distance, or try another start configuration, seed or fewer '
