@@ -293,25 +293,26 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 break
     if best is None:
         why = reasons[-1] if reasons else 'no iterate met the constraints'
-        srdf = ''
+        hint = ''
         if checker is not None and self_collision[0]:
             lo, hi = np.asarray(work.position_limits, dtype=float).T
-            stuck = checker.always_close(np.where(np.isfinite(lo), lo, -math.pi),
-                                         np.where(np.isfinite(hi), hi, math.pi))
+            stuck = [p for p in checker.always_close(np.where(np.isfinite(lo), lo, -math.pi),
+                                                     np.where(np.isfinite(hi), hi, math.pi))
+                     if checker.self_pair(p)]
             fix = ('disable them in the SRDF' if checker.srdf is not None else
                    "the robot's SRDF (--srdf) leaves such pairs out")
             if stuck:
-                srdf = ('; ' + ', '.join(f'{a} - {b}' for a, b in stuck[:3])
+                hint = ('; ' + ', '.join(f'{a} - {b}' for a, b in stuck[:3])
                         + (f' and {len(stuck) - 3} more' if len(stuck) > 3 else '')
                         + ' are within the minimum distance in every configuration sampled '
                         f'(they touch by design: {fix})')
             elif checker.srdf is None:
-                srdf = ('; without an SRDF every pair of links not on adjacent joints is '
+                hint = ('; without an SRDF every pair of links not on adjacent joints is '
                         f'checked: {fix}')
         raise IdentificationError(
             f'no feasible excitation found ({why}): loosen the limits or their margin, lower '
             'the minimum distance, or try another start configuration, seed or fewer '
-            'harmonics' + srdf)
+            'harmonics' + hint)
     value, traj, framed, scale, clearance = best
     is_initial = initial_kept
     warnings = []
