@@ -54,7 +54,7 @@ from identification_node.errors import IdentificationError
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.pseudo_inertia import (FROM_J, from_pseudo_inertia, locked_scale,
-                                                      pseudo_inertia, repaired)
+                                                      pseudo_inertia, regularised, repaired)
 
 NOTE_LEVEL = 0.99          # a consistent estimate beyond this region of the data is reported
 STDDEV_FLOOR = 1e-5        # relative: the region's resolution, of a parameter's typical size
@@ -201,10 +201,9 @@ class ConsistentSolver:
             own_prior = phi_prior[body.start:body.start + 10] - body.fixed
             J0 = pseudo_inertia(own_prior)
             ev = np.linalg.eigvalsh(J0)
-            degenerate = not ev[0] > 1e-9 * max(ev[-1], 0.0)   # also singular to rounding
+            J0, degenerate = regularised(J0, 10 * eps_opt)
             eps = eps_opt if degenerate else min(eps_opt, 1e-2 * ev[0])
             if degenerate:
-                J0 = repaired(J0, max(1e-3 * ev[-1], 10 * eps))
                 self.notes.append(f'{body.name}: the prior is not physically consistent '
                                   '(pseudo-inertia eigenvalues '
                                   + ', '.join(f'{e:.4g}' for e in ev)

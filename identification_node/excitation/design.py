@@ -231,8 +231,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         watch.say(what=f'{watch.iteration} iterations in {time.perf_counter() - start_time:.0f}'
                   ' s; verifying the best iterates on dense grids')
     names = list(robot.joint_names)
-    reasons: list[str] = []
-    self_collision = [False]   # whether the last reason is a collision of two of the robot's links
+    reasons: list[tuple[str, bool]] = []   # why a candidate failed; a self-collision?
 
     def verified(x: np.ndarray) -> tuple | None:
         """(criterion, periodic, framed, scale, clearance) of x brought inside every limit,
@@ -242,8 +241,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                             phis=phis)
             framed = frame_excitation(cand, robot, work, start_q, periods, phis)
         except IdentificationError as exc:   # cannot be brought inside the limits
-            reasons.append(str(exc))
-            self_collision[0] = False
+            reasons.append((str(exc), False))
             return None
         clearance = None
         if checker is not None:
@@ -251,9 +249,9 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                           lambda: framed_clearance(framed, robot, checker, tick=watch.tick)):
                 clearance = check()   # the design's samples first: cheap
                 if clearance['distance'] < checker.min_distance:
-                    reasons.append(f'collision between {clearance["pair"][0]} and '
-                                   f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)')
-                    self_collision[0] = checker.self_pair(clearance['pair'])
+                    reasons.append((f'collision between {clearance["pair"][0]} and '
+                                    f'{clearance["pair"][1]} ({clearance["distance"]:.4g} m)',
+                                    checker.self_pair(clearance['pair'])))
                     return None
         return (report_value(design.value(to_x(cand))[0], criterion), cand, framed, s,
                 clearance)
@@ -292,9 +290,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                 best, initial_kept = found, False
                 break
     if best is None:
-        why = reasons[-1] if reasons else 'no iterate met the constraints'
+        why, self_collision = reasons[-1] if reasons else ('no iterate met the constraints',
+                                                           False)
         hint = ''
-        if checker is not None and self_collision[0]:
+        if checker is not None and self_collision:
             lo, hi = np.asarray(work.position_limits, dtype=float).T
             stuck = [p for p in checker.always_close(np.where(np.isfinite(lo), lo, -math.pi),
                                                      np.where(np.isfinite(hi), hi, math.pi))

@@ -26,7 +26,8 @@ import numpy as np
 from scipy.linalg import eigh
 from scipy.optimize import brentq
 
-__all__ = ['FROM_J', 'from_pseudo_inertia', 'locked_scale', 'pseudo_inertia', 'repaired']
+__all__ = ['FROM_J', 'from_pseudo_inertia', 'locked_scale', 'pseudo_inertia', 'regularised',
+           'repaired']
 
 # phi block (10,) = FROM_J @ vec(J) (J symmetric 4x4, row-major flattening)
 FROM_J = np.zeros((10, 16))
@@ -61,6 +62,16 @@ def repaired(J: np.ndarray, floor: float) -> np.ndarray:
     return (V * np.maximum(ev, floor)) @ V.T
 
 
+def regularised(J: np.ndarray, floor: float = 0.0) -> tuple[np.ndarray, bool]:
+    """A prior's pseudo-inertia made positive definite, and whether it had to be: unchanged
+    when its smallest eigenvalue exceeds 1e-9 of its largest, else (singular to rounding: no
+    physical body) its eigenvalues raised to max(1e-3 x the largest, ``floor``)."""
+    ev = np.linalg.eigvalsh(J)
+    if ev[0] > 1e-9 * max(ev[-1], 0.0):
+        return J, False
+    return repaired(J, max(1e-3 * ev[-1], floor)), True
+
+
 def locked_scale(total: np.ndarray, locked: np.ndarray, prior: np.ndarray) -> float:
     """The scale s of the locked bodies' block ``locked`` (10,) within a link's identified
     block ``total`` (10,), given the description's own body ``prior`` (4x4 pseudo-inertia;
@@ -73,8 +84,7 @@ def locked_scale(total: np.ndarray, locked: np.ndarray, prior: np.ndarray) -> fl
     A = pseudo_inertia(np.asarray(total, dtype=float))
     if not np.isfinite(A).all() or np.linalg.eigvalsh(A)[0] <= 0:
         return 1.0
-    ev = np.linalg.eigvalsh(prior)
-    J0 = prior if ev[0] > 1e-9 * max(ev[-1], 0.0) else repaired(prior, 1e-3 * max(ev[-1], 1e-12))
+    J0 = regularised(prior, 1e-15)[0]
     lam = eigh(B, A, eigvals_only=True)          # det(A - s B) = det A prod(1 - s lam)
     if not lam[-1] > 0:
         return 1.0

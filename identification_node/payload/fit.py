@@ -26,9 +26,10 @@ import pinocchio as pin
 from identification_node.config import PayloadTolerance
 from identification_node.errors import IdentificationError
 from identification_node.estimation.consistency import (SOLVERS, Body, ConsistencyOptions,
-                                                        ConsistentSolver, pseudo_inertia)
+                                                        ConsistentSolver)
 from identification_node.estimation.normal_equations import NormalEquations
 from identification_node.model.identifiability import BaseParameters
+from identification_node.model.pseudo_inertia import pseudo_inertia
 from identification_node.model.robot import RobotModel
 from identification_node.model.urdf_export import link_inertia
 from identification_node.safe_yaml import load_yaml, read_yaml
