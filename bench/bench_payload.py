@@ -1,11 +1,12 @@
 """Payload detection with the shipped defaults: the matrix, the threshold in kg, false alarms.
 
     .venv/bin/python bench/bench_payload.py [--arms ur5 panda kinova fixture]
-        [--rates 250 500 1000 2000] [--cases 0.05:yes 0.2:yes 0.1:no] [--minutes 30]
+        [--rates 250 500 1000 2000] [--cases 0.05:yes 0.2:yes 0.1:no] [--seed 10] [--minutes 30]
         [--skip-matrix] [--skip-threshold] [--skip-bags] [--recording]
 
 Each part runs only the cells asked for (--arms, --rates, --cases: torque noise N m and
-joint friction yes/no); --minutes 0 skips the simulated false-alarm run.
+joint friction yes/no); --minutes 0 skips the simulated false-alarm run; --seed 20 runs the
+matrix on other draws (seeds 20-23: the sequences' motions and noise).
 
 Every run: the arm (example-robot-data's UR5, Panda with its 7 arm joints, Kinova, or the
 project's 7-DOF fixture), with or without joint friction, is identified first by the node's
@@ -58,6 +59,7 @@ from test_payload_matrix import SEQUENCES  # noqa: E402
 
 REFERENCE_MASS = 1.0   # kg: the issue's reference payload (detected within 0.5 s)
 CASES = ((0.05, True), (0.2, True), (0.1, False))   # torque noise N m, joint friction
+MATRIX_SEED = 10   # the sequences' motions and noise: seeds 10-13 (--seed: other draws)
 BAGS = (('mit_paper_moves', 'identification.yaml'), ('mit_exciting', 'identification.yaml'),
         ('mit_paper_moves_sqlite3', 'identification.yaml'),
         ('crs_a465_fourier', 'crs_a465.yaml'))
@@ -108,8 +110,9 @@ def parse_case(text: str) -> tuple[float, bool]:
     return float(noise), friction == 'yes'
 
 
-def matrix(arms, rates, cases=CASES) -> None:
-    print('1. matrix (shipped defaults; arm identified first): per cell all four sequences')
+def matrix(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
+    print('1. matrix (shipped defaults; arm identified first): per cell all four sequences'
+          f'{"" if seed == MATRIX_SEED else f" (seeds {seed}-{seed + 3})"}')
     print(f"{'arm':>8} {'rate':>5} {'noise':>5} {'fric':>4} {'detected':>9} "
           f"{'max delay s':>11} {'mass err %':>10} {'com err mm':>10} {'max z':>6} "
           f"{'false':>5} {'com sd mm':>9} {'reported com err mm':>19} {'withheld':>8} "
@@ -124,7 +127,7 @@ def matrix(arms, rates, cases=CASES) -> None:
                 heavy_mass, heavy_com = [], []
                 for k, changes in enumerate(SEQUENCES.values()):
                     d, m, c, z, f, sd, r, w, hm, hc = run_sequence(arm, model, rate, noise,
-                                                                   changes, 10 + k)
+                                                                   changes, seed + k)
                     heavy_mass += hm
                     heavy_com += hc
                     n += len(d)
@@ -287,6 +290,8 @@ def main() -> int:
     parser.add_argument('--rates', nargs='+', type=float, default=[250, 500, 1000, 2000])
     parser.add_argument('--cases', nargs='+', type=parse_case, default=list(CASES),
                         metavar='NOISE:FRICTION', help='e.g. 0.2:yes 0.1:no')
+    parser.add_argument('--seed', type=int, default=MATRIX_SEED,
+                        help="the matrix's first seed (one per sequence: motion and noise)")
     parser.add_argument('--minutes', type=float, default=30.0, help='0: skip the simulated run')
     parser.add_argument('--skip-matrix', action='store_true')
     parser.add_argument('--skip-threshold', action='store_true')
@@ -295,7 +300,7 @@ def main() -> int:
                         help='4.: the Kinova Gen3 recordings of ../shared/data')
     args = parser.parse_args()
     if not args.skip_matrix:
-        matrix(args.arms, args.rates, args.cases)
+        matrix(args.arms, args.rates, args.cases, args.seed)
     if not args.skip_threshold:
         threshold(args.rates)
     if args.minutes > 0:
