@@ -23,7 +23,8 @@ torque noise (18-bit encoders, measured velocities 0.01 rad/s).
    data can tell: above 2.5 mm a 5 mm error is no surprise); then the largest CoM error of
    the axes the fits report (stddev within payload.tolerance.com, 5 mm: what a user gets as
    a value) and how many CoM axes they withhold as "not excited"; last, the largest mass and
-   CoM errors of the payloads of 1 kg and more (1, 2 and 3 kg: the issue's reference mass).
+   CoM errors of the payloads of 1 kg and more (1, 2 and 3 kg: the issue's reference mass),
+   and the largest delay of the changes of 1 kg and more (picks and places).
 2. Threshold: per rate (UR5, friction, 0.1 N m) the smallest mass of the grid 0.3, 0.25,
    ..., 0.05 kg whose pick is detected within 2 s in every one of 3 seeds, as are all the
    grid's masses above it (payload.min_change, 0.2 kg, bounds it below; above 0.3 kg the
@@ -116,7 +117,7 @@ def matrix(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
     print(f"{'arm':>8} {'rate':>5} {'noise':>5} {'fric':>4} {'detected':>9} "
           f"{'max delay s':>11} {'mass err %':>10} {'com err mm':>10} {'max z':>6} "
           f"{'false':>5} {'com sd mm':>9} {'reported com err mm':>19} {'withheld':>8} "
-          f"{'1 kg+ mass %':>12} {'1 kg+ com mm':>12}")
+          f"{'1 kg+ mass %':>12} {'1 kg+ com mm':>12} {'1 kg+ delay s':>13}")
     for name in arms:
         for rate in rates:
             for noise, friction in cases:
@@ -124,11 +125,16 @@ def matrix(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
                 model = ps.identify_arm(arm, rate, noise)
                 n = found = false = 0
                 delays, mass, com, zs, sds, shown, held = [], [], [], [], [], [], 0
-                heavy_mass, heavy_com = [], []
+                heavy_mass, heavy_com, heavy_delay = [], [], []
                 for k, changes in enumerate(SEQUENCES.values()):
                     d, m, c, z, f, sd, r, w, hm, hc = run_sequence(arm, model, rate, noise,
                                                                    changes, seed + k)
                     heavy_mass += hm
+                    before = 0.0
+                    for change, x in zip(changes, d):
+                        if abs(change.mass - before) >= REFERENCE_MASS and x is not None:
+                            heavy_delay.append(x)
+                        before = change.mass
                     heavy_com += hc
                     n += len(d)
                     found += sum(x is not None for x in d)
@@ -146,7 +152,8 @@ def matrix(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
                       f'{max(zs, default=np.nan):6.2f} {false:>5} '
                       f'{max(sds, default=np.nan):9.2f} {max(shown, default=np.nan):19.2f} '
                       f'{held:>8} {max(heavy_mass, default=np.nan):12.2f} '
-                      f'{max(heavy_com, default=np.nan):12.2f}', flush=True)
+                      f'{max(heavy_com, default=np.nan):12.2f} '
+                      f'{max(heavy_delay, default=np.nan):13.3f}', flush=True)
 
 
 def threshold(rates) -> None:
