@@ -71,16 +71,20 @@ def run_sequence(arm, model, rate, noise, changes, seed):
     exact. (detection delays or None per change, mass errors %, com errors mm, their z-scores
     (error over the segment's reported stddev: mass, largest CoM axis), false alarms, the
     largest CoM stddev (mm) of each payload segment, the com errors (mm) of the axes the fit
-    reports (excited: stddev within payload.tolerance.com), the CoM axes it withholds, and the
-    mass errors % and CoM errors mm of the payloads of REFERENCE_MASS and more)."""
+    reports (excited: stddev within payload.tolerance.com), the CoM axes it withholds, the
+    mass errors % and CoM errors mm of the payloads of REFERENCE_MASS and more, and the
+    detection delays of the changes of REFERENCE_MASS and more)."""
     _, events, segments = ps.run(arm, model, rate, noise, seed, changes)
     detected = [ps.seconds(e.detected) for e in events if e.kind == 'change']
-    delays, used = [], set()
+    delays, used, heavy_delay, before = [], set(), [], 0.0
     for c in changes:
         hit = [k for k, d in enumerate(detected) if c.time <= d <= c.time + 2.0
                and k not in used]
         delays.append(detected[hit[0]] - c.time if hit else None)
         used.update(hit[:1])
+        if hit and abs(c.mass - before) >= REFERENCE_MASS:
+            heavy_delay.append(delays[-1])
+        before = c.mass
     mass, com, z, com_sd, reported, withheld = [], [], [], [], [], 0
     heavy_mass, heavy_com = [], []
     if len(segments) == len(changes) + 1:
@@ -100,7 +104,7 @@ def run_sequence(arm, model, rate, noise, changes, seed):
                 withheld += int(np.count_nonzero(~shown))
                 reported += [1e3 * float(e) for e in np.abs(p.com - c.com)[shown]]
     return (delays, mass, com, z, len(detected) - len(used), com_sd, reported, withheld,
-            heavy_mass, heavy_com)
+            heavy_mass, heavy_com, heavy_delay)
 
 
 def parse_case(text: str) -> tuple[float, bool]:
@@ -127,14 +131,10 @@ def matrix(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
                 delays, mass, com, zs, sds, shown, held = [], [], [], [], [], [], 0
                 heavy_mass, heavy_com, heavy_delay = [], [], []
                 for k, changes in enumerate(SEQUENCES.values()):
-                    d, m, c, z, f, sd, r, w, hm, hc = run_sequence(arm, model, rate, noise,
-                                                                   changes, seed + k)
+                    d, m, c, z, f, sd, r, w, hm, hc, hd = run_sequence(
+                        arm, model, rate, noise, changes, seed + k)
                     heavy_mass += hm
-                    before = 0.0
-                    for change, x in zip(changes, d):
-                        if abs(change.mass - before) >= REFERENCE_MASS and x is not None:
-                            heavy_delay.append(x)
-                        before = change.mass
+                    heavy_delay += hd
                     heavy_com += hc
                     n += len(d)
                     found += sum(x is not None for x in d)

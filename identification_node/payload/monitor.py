@@ -467,20 +467,16 @@ class PayloadMonitor:
         bring into the regressor, which is high-frequency), else the white noise that
         explains the residual's variance."""
         s = self._stats
-        var = (s.long_run_variance(phi) if s.blocks >= MIN_BLOCKS
-               else s.variance(phi) * self._white_scale)
-        return np.maximum(np.nan_to_num(var, nan=NOISE_FLOOR ** 2), NOISE_FLOOR ** 2)
+        return _floored(s.long_run_variance(phi) if s.blocks >= MIN_BLOCKS
+                        else s.variance(phi) * self._white_scale)
 
     def _fit_variance(self, phi: np.ndarray) -> np.ndarray:
         """Per joint the noise variance (N m)^2 the fits weight by and a segment's information
         on the arm is counted with: the estimator's rule (ResidualStatistics.noise_variance),
         the larger of the long-run variance and the white noise that explains the residual's
-        variance. The long-run variance alone, blind to the derivatives' noise in the
-        regressor, made each segment's information on the arm overconfident (on the Kinova
-        with friction the arm's error grew to chi-square 235 in the refined prior's metric, 54
-        parameters) and biased the next light payloads."""
-        return np.fmax(self._noise_variance(phi),
-                       self._stats.noise_variance(phi, self._white_scale))
+        variance. The long-run variance alone is blind to the derivatives' noise in the
+        regressor: each segment would tell the arm's prior more than it knows."""
+        return _floored(self._stats.noise_variance(phi, self._white_scale))
 
     def _set_noise(self, phi: np.ndarray) -> None:
         """The detector's noise: the segment's long-run variance, and per joint its ratio to
@@ -539,6 +535,11 @@ class PayloadMonitor:
         if self._stats.count and not self._given:
             self._fit()
         return [s for s in self.segments if not math.isnan(s.stamp)]
+
+
+def _floored(variance: np.ndarray) -> np.ndarray:
+    """Per-joint noise variances (N m)^2 at least NOISE_FLOOR^2 (its value where unknown)."""
+    return np.maximum(np.nan_to_num(variance, nan=NOISE_FLOOR ** 2), NOISE_FLOOR ** 2)
 
 
 def segments_document(segments: list[Segment]) -> list[dict]:
