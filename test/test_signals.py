@@ -235,6 +235,39 @@ def test_long_windows_by_fft_and_fit_at_equal_the_general_fit(monkeypatch):
         np.testing.assert_allclose(a, b[::37], rtol=1e-9, atol=1e-9 * np.abs(b).max())
     with pytest.raises(IdentificationError, match='half a window'):
         fast.fit_at(t, x, [L - 1])
+    # one push of more windows than a block: overlap-save over several blocks
+    monkeypatch.setattr(signals, '_FFT_TAPS', 129)
+    monkeypatch.setattr(signals, '_BLOCK', 1000)
+    once = FixedLagSmoother(2, half_window=L, order=3).push(t, x)
+    np.testing.assert_array_equal(once[0], want[0])
+    for a, b in zip(once[1:], want[1:]):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+
+
+def test_long_windows_of_jittered_stamps_by_sliding_sums_equal_the_direct_fit(monkeypatch):
+    """Stamps off their grid (a driver stamping on receipt): windows longer than _FFT_TAPS
+    are fitted from sliding sums, equal to the fit of each window's samples (a push in
+    chunks, one of a single window, and fit_at on scattered centres), epoch-sized stamps."""
+    rng = np.random.default_rng(5)
+    n, L = 6000, 200
+    t = 1.7e9 + np.arange(n) * 2e-4 + rng.uniform(0.0, 5e-5, n)
+    x = np.column_stack([np.sin(3 * t), 5 + np.cos(7 * t) + 0.01 * rng.standard_normal(n),
+                         40 * np.sin(30 * t)])
+    t -= 1.7e9    # epoch-sized stamps rounded as the pipeline's; then relative, as it passes
+    sliding = FixedLagSmoother(3, half_window=L, order=3)
+    pushes = [sliding.push(t[k:k + m], x[k:k + m])
+              for k, m in zip([0, 1500, 1550, 1551, 4000], [1500, 50, 1, 2449, 2000])]
+    got = [np.concatenate(p) for p in zip(*pushes)]
+    centres = np.sort(rng.choice(np.arange(L, n - L), 300, replace=False))
+    at = FixedLagSmoother(3, half_window=L, order=3).fit_at(t, x, centres)
+    monkeypatch.setattr(signals, '_FFT_TAPS', 10 ** 9)   # every window's samples gathered
+    direct = FixedLagSmoother(3, half_window=L, order=3)
+    want = direct.push(t, x)
+    np.testing.assert_array_equal(got[0], want[0])
+    for a, b in zip(got[1:], want[1:]):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
+    for a, b in zip(at, direct.fit_at(t, x, centres)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
 
 
 def test_long_uniform_push_in_blocks_equals_chunked_pushes():

@@ -19,7 +19,8 @@ Its bandwidth is specified in Hz: :func:`smoother_cutoff` is the exact -3 dB fre
 value output of a window at a sampling rate, :func:`half_window_for_cutoff` the half window
 whose cut-off is nearest a given one (at least MIN_HALF_WINDOW samples, so the cubic fit stays
 well-posed at low rates). Long windows (more than _FFT_TAPS samples) of uniform stamps are
-applied by FFT convolution (the same weights, O(log K) per sample instead of O(K)).
+applied by FFT convolution (the same weights, O(log K) per sample instead of O(K)); those of
+stamps off their grid are fitted from sliding sums (O(1) per sample).
 
 The rest are offline helpers on whole arrays with samples along axis 0.
 """
@@ -30,6 +31,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+import scipy.fft as sp_fft
 import scipy.signal as sps
 
 from identification_node.errors import IdentificationError
@@ -198,6 +200,10 @@ class FixedLagSmoother:
         k = np.arange(-self.half_window, self.half_window + 1) / self.half_window
         gram, powers = self._normal(k[None, :])
         self._uniform_weights = np.linalg.solve(gram, powers)[0, :3]             # (3, K)
+        self._spectrum: tuple[int, np.ndarray] | None = None   # (FFT length, _spectra)
+        m = np.arange(2 * self.order + 1)    # _fit_long's binomial coefficients C(m, l)
+        self._binomial = np.array([[math.comb(i, j) for j in m] for i in m], dtype=float)
+        self._binomial_powers = np.clip(m[:, None] - m[None, :], 0, None)    # m - l (>= 0)
         self.reset()
 
     @property
@@ -356,14 +362,27 @@ class FixedLagSmoother:
 
     def _fit_fft(self, T: np.ndarray, X: np.ndarray, first: int, count: int
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``_fit_uniform`` by FFT convolution (overlap-add): for long windows."""
+        """``_fit_uniform`` by FFT convolution (overlap-save, blocks of up to _BLOCK windows):
+        each block's samples transformed once for the three weights' spectra."""
         L, K = self.half_window, 2 * self.half_window + 1
-        seg = X[first:first + count + K - 1]
-        # correlation with the weights = convolution with them reversed; 'valid': full windows
-        coef = [sps.oaconvolve(seg, w[::-1, None], mode='valid', axes=0)
-                for w in self._uniform_weights]
+        step = min(count, max(_BLOCK, K))
+        n = sp_fft.next_fast_len(step + K - 1, real=True)
+        spectra = self._spectra(n)                                        # (3, n // 2 + 1)
+        coef = np.empty((3, count, X.shape[1]))
+        for a in range(0, count, step):
+            b = min(count, a + step)
+            seg = sp_fft.rfft(X[first + a:first + b + K - 1], n, axis=0)
+            # circular correlation: its first b - a values are the full windows' (n >= b-a+K-1)
+            coef[:, a:b] = sp_fft.irfft(seg * spectra[:, :, None], n, axis=1)[:, :b - a]
         h = (0.5 * (T[first + K - 1:first + K - 1 + count] - T[first:first + count]))[:, None]
         return (T[first + L:first + L + count], coef[0], coef[1] / h, 2.0 * coef[2] / (h * h))
+
+    def _spectra(self, n: int) -> np.ndarray:
+        """Conjugate spectra (3, n // 2 + 1) of the uniform weights at FFT length n (cached):
+        multiplying a block's spectrum by them correlates it with the weights."""
+        if self._spectrum is None or self._spectrum[0] != n:
+            self._spectrum = n, np.conj(sp_fft.rfft(self._uniform_weights, n, axis=1))
+        return self._spectrum[1]
 
     def _normal(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gram matrices (B, p, p) and Vandermonde rows (B, p, K) of the least-squares fit of
@@ -377,6 +396,10 @@ class FixedLagSmoother:
 
     def _fit(self, T: np.ndarray, X: np.ndarray, starts: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The least-squares fit of the windows starting at ``starts`` (increasing), whatever
+        the stamps' spacing: (centre stamps, value, first and second derivative)."""
+        if 2 * self.half_window + 1 > _FFT_TAPS:
+            return self._fit_long(T, X, starts)
         L = self.half_window
         idx = starts[:, None] + self._offsets
         tw = T[idx]
@@ -387,6 +410,43 @@ class FixedLagSmoother:
         coef = np.linalg.solve(gram, powers @ X[idx])                           # (B, p, c)
         return (tc, coef[:, 0], coef[:, 1] / h[:, None],
                 2.0 * coef[:, 2] / (h * h)[:, None])
+
+    def _fit_long(self, T: np.ndarray, X: np.ndarray, starts: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``_fit`` of long windows from sliding sums, O(order) per window and channel instead
+        of O(K): per group of windows starting within half a window of each other, the power
+        sums of v = (t - r) / H (r, H: the group's samples' centre and half span) and their
+        products with x, summed over each window as differences of cumulative sums, then
+        moved to each window's u = (t - t_c) / h by the binomial theorem (|v|, |u| <= 1
+        within a group: little cancellation)."""
+        L, K, p = self.half_window, 2 * self.half_window + 1, self.order
+        out = []
+        for group in np.split(starts, np.flatnonzero(np.diff(starts // L)) + 1):
+            lo, hi = int(group[0]), int(group[-1]) + K
+            t, x = T[lo:hi], X[lo:hi] - X[lo]
+            r, H = 0.5 * (t[0] + t[-1]), 0.5 * (t[-1] - t[0])
+            v = np.empty((2 * p + 1, hi - lo))
+            v[0] = 1.0
+            v[1:] = (t - r) / H
+            np.cumprod(v, axis=0, out=v)
+            cum = np.zeros((2 * p + 1, hi - lo + 1))
+            np.cumsum(v, axis=1, out=cum[:, 1:])
+            cum_x = np.zeros((p + 1, hi - lo + 1, x.shape[1]))
+            np.cumsum(v[:p + 1, :, None] * x, axis=1, out=cum_x[:, 1:])
+            a = group - lo
+            sums = cum[:, a + K] - cum[:, a]                                 # (2p+1, B)
+            sums_x = cum_x[:, a + K] - cum_x[:, a]                           # (p+1, B, c)
+            tc, h = t[a + L], 0.5 * (t[a + K - 1] - t[a])
+            # u^m = (H / h)^m sum_l C(m, l) v^l (-(tc - r) / H)^(m - l)
+            shift = (-(tc - r) / H)[:, None, None] ** self._binomial_powers * self._binomial
+            shift *= ((H / h)[:, None] ** np.arange(2 * p + 1))[:, :, None]   # (B, m, l)
+            gram = np.einsum('bml,lb->bm', shift, sums)[:, self._hankel]
+            moments = np.einsum('bml,lbc->bmc', shift[:, :p + 1, :p + 1], sums_x)
+            coef = np.linalg.solve(gram, moments)
+            out.append((tc, coef[:, 0] + X[lo], coef[:, 1] / h[:, None],
+                        2.0 * coef[:, 2] / (h * h)[:, None]))
+        tc, value, first, second = (np.concatenate(part) for part in zip(*out))
+        return tc, value, first, second
 
     def frequency_response(self, freq: np.ndarray, rate: float
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
