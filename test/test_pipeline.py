@@ -14,6 +14,7 @@ from identification_node.model.torque import JointTorqueConfig, TorqueConverter
 from identification_node.pipeline import IdentificationPipeline, PipelineConfig
 from identification_node.pipeline import signals
 from identification_node.pipeline.estimate import OnlineEstimate
+from identification_node.pipeline.rows import AUTO_WAIT, MOTION
 from identification_node.pipeline.window import SegmentWindow
 from identification_node.wire.records import JointStateRecord
 
@@ -629,6 +630,44 @@ def test_automatic_smoother_holds_the_first_seconds_of_motion_then_takes_them_al
                                atol=1e-9 * np.abs(TRUE).max())
     assert len(out_auto.stamps_ns) < len(want['stamps_ns'])
     assert_within_3_sigma(auto.estimate())
+
+
+def test_automatic_smoother_waits_for_motion_held_over_many_runs():
+    """2 s at rest, then motion: the choice is made on the first 5 s of motion, in the run
+    where they are in (not before, not on the rest); a stream that never moves is decided
+    after AUTO_WAIT times auto_seconds of samples (auto_seconds 0.5 s here)."""
+    sim = simulate(duration=8.0)
+    moving = joint_records(sim)
+
+    def rest(count: int) -> list:   # the first moving sample's values, 1 ms apart, before it
+        return [JointStateRecord(moving[0].stamp_ns - (count - k) * 10 ** 6, moving[0].names,
+                                 moving[0].position, np.zeros(4), moving[0].effort)
+                for k in range(count)]
+
+    def run(p, records) -> tuple[int | None, list[int]]:
+        """The samples in when the first output came, and the samples held after each run."""
+        first, held = None, []
+        for start in range(0, len(records), 100):
+            for r in records[start:start + 100]:
+                p.add_joint_state(r)
+            if len(p.process().stamps_ns) and first is None:
+                first = start + 100
+            held.append(p.row_builder.holding)
+        return first, held
+
+    p = IdentificationPipeline(ROBOT, PipelineConfig(), BASE)
+    first, _ = run(p, rest(2000) + moving)
+    moved = 2000 + int(np.argmax(np.abs(sim.q_meas - sim.q_meas[0]).max(axis=1) > MOTION))
+    assert p.smoother.source == 'automatic'
+    assert p.smoother.seconds == pytest.approx(5.0, abs=2 / RATE)
+    # a candidate per 50 samples after the 5 s: up to 40 candidates
+    assert moved + 5.0 * RATE < first <= moved + 5.0 * RATE + 100 * 20
+
+    still = IdentificationPipeline(ROBOT, PipelineConfig(auto_seconds=0.5), BASE)
+    first, held = run(still, rest(6000))
+    waited = int(AUTO_WAIT * 0.5 * RATE)
+    assert held[:waited // 100] == list(range(100, waited + 1, 100))   # none decided before
+    assert held[-1] == 0 and first is not None   # then decided: the held samples came out
 
 
 def test_smoothed_sign_column_identifies_sign_friction_through_reversals():

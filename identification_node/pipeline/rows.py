@@ -227,6 +227,19 @@ class _Search:
         return SmootherChoice(L, self.order, self.rate, 'automatic', self.seconds)
 
 
+def _first_motion(q: np.ndarray, q0: np.ndarray) -> int:
+    """Index of the first sample of q (N, n) with a joint more than MOTION from q0 (n,);
+    N when none."""
+    moved = np.abs(q - q0).max(axis=1) > MOTION
+    return int(np.argmax(moved)) if moved.any() else len(q)
+
+
+def _choice_due(span: float, waited: float, auto_seconds: float) -> bool:
+    """Whether the automatic choice is made, after ``span`` s of motion in ``waited`` s of
+    held samples."""
+    return span >= auto_seconds or waited >= AUTO_WAIT * auto_seconds
+
+
 def plan_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                   qd: np.ndarray, tau: np.ndarray, order: int, max_gap: float,
                   cutoff: float = 0.0, auto_seconds: float = 5.0,
@@ -239,11 +252,10 @@ def plan_smoother(robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.
         rate = _rate(t) if len(t) > 1 else 1.0 / max(max_gap, 1e-9)
         return SmootherChoice(half_window_for_cutoff(cutoff, rate, order), order, rate,
                               'cutoff')
-    moved = np.abs(q - q[:1]).max(axis=1) > MOTION if len(t) else np.zeros(0, dtype=bool)
-    first = int(np.argmax(moved)) if moved.any() else len(t)
+    first = _first_motion(q, q[0]) if len(t) else 0
     span = (t[-1] - t[first]) if first < len(t) else 0.0
     waited = (t[-1] - t[0]) if len(t) else 0.0
-    if not final and span < auto_seconds and waited < AUTO_WAIT * auto_seconds:
+    if not final and not _choice_due(span, waited, auto_seconds):
         return None
     rate = _rate(t)
     if math.isnan(rate):
@@ -277,6 +289,9 @@ class RowBuilder:
         self.choice: SmootherChoice | None = (
             SmootherChoice(int(half_window), self.order) if half_window else None)
         self._held: list[Samples] = []     # samples waiting for the choice
+        # of the held samples: (first stamp, its q, stamp of the first motion or nan): the
+        # choice's condition asked per call without joining them (quadratic in their count)
+        self._held_motion: tuple[float, np.ndarray, float] | None = None
         self._search: _Search | None = None   # the choice under way
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._columns = np.append(base.base_index, robot.num_params)
@@ -309,7 +324,7 @@ class RowBuilder:
 
     def reset_counts(self) -> None:
         """Counters to zero; samples held for the choice are dropped (a pipeline reset)."""
-        self._held, self._search = [], None
+        self._held, self._search, self._held_motion = [], None, None
         self._in = self._out = 0    # samples into / out of the smoother
         # valid samples the smoother never outputs: half a window at the stream's start, at
         # either side of a stamp gap, and what a restart drops (not rejections: apart)
@@ -328,6 +343,8 @@ class RowBuilder:
         """Decide the smoother once the held samples allow it (``flush``: with what there
         is; ``new``: samples that came with this call); whether it is decided."""
         if self._search is None:
+            if not (flush or self.cutoff > 0 or self._choice_may_be_due()):
+                return False
             held = self._held[0]
             for s in self._held[1:]:
                 held = held.concat(s)
@@ -361,6 +378,24 @@ class RowBuilder:
         self._held = [held]
         return True
 
+    def _hold(self, s: Samples) -> None:
+        """Hold ``s`` (stamps after those held) for the choice."""
+        self._held.append(s)
+        if self._held_motion is None:
+            self._held_motion = (float(s.stamps[0]), s.q[0].copy(), math.nan)
+        t0, q0, moved = self._held_motion
+        if math.isnan(moved) and (k := _first_motion(s.q, q0)) < len(s):
+            self._held_motion = (t0, q0, float(s.stamps[k]))
+
+    def _choice_may_be_due(self) -> bool:
+        """plan_smoother's condition on the held samples (without joining them)."""
+        if self._held_motion is None:
+            return False
+        t0, _, moved = self._held_motion
+        last = float(self._held[-1].stamps[-1])
+        return _choice_due(0.0 if math.isnan(moved) else last - moved, last - t0,
+                           self.auto_seconds)
+
     def drain(self, measured_velocity: bool) -> Rows | None:
         """The rows of the samples held for the choice (deciding it with what is held), at
         the end of their stream; None when nothing is held."""
@@ -380,10 +415,10 @@ class RowBuilder:
         done with them by then). ``flush``: the stream ends (a held choice is decided)."""
         if self.choice is None:
             if len(s):
-                self._held.append(s)
+                self._hold(s)
             if not self._held or not self._choose(flush, len(s)):
                 return self._empty()
-            s, self._held = self._held[0], []
+            s, self._held, self._held_motion = self._held[0], [], None
         elif math.isnan(self.choice.rate) and len(s) > 1:
             self.choice.rate = _rate(s.stamps)
         if len(s) == 0:
