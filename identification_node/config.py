@@ -247,7 +247,7 @@ class Config:
     restart_jump: float = setting(1.0, 's; a larger backward stamp jump is a restarted stream',
                                   unit='s')
     time_offset: TimeOffset = section(TimeOffset)
-    update_batch: int = setting(50, 'samples gathered per RLS update (predictions use the '
+    update_batch: int = setting(200, 'samples gathered per RLS update (predictions use the '
                                 'estimate so far)', unit='samples', range=(1, 10**9))
     joint_noise_std: list[float] = setting(
         [], 'per joint torque noise std for weighting, N m (empty: equal)', unit='N m',
