@@ -398,7 +398,7 @@ class FixedLagSmoother:
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The least-squares fit of the windows starting at ``starts`` (increasing), whatever
         the stamps' spacing: (centre stamps, value, first and second derivative)."""
-        if 2 * self.half_window + 1 > _FFT_TAPS:
+        if 2 * self.half_window + 1 > _FFT_TAPS and starts.size:
             return self._fit_long(T, X, starts)
         L = self.half_window
         idx = starts[:, None] + self._offsets
