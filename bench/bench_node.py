@@ -189,8 +189,8 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
     # the end (s after the first output's stamp) of the last second of samples whose median
     # latency exceeded the budget: the start-up's catch-up (not the latency's tail)
     second = (np.array(stamps) - stamps[0]) // 1_000_000_000 if stamps else np.zeros(0)
-    late = [k for k in np.unique(second) if np.median(
-        np.array(latencies)[second == k]) * 1e-6 > delay + BUDGET_MS]
+    every = np.array(latencies) * 1e-6
+    late = [k for k in np.unique(second) if np.median(every[second == k]) > delay + BUDGET_MS]
     caught_up = float(late[-1] + 1) if late else 0.0
     return {
         'rate': rate, 'published': published, 'received': received,

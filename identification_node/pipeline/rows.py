@@ -289,9 +289,9 @@ class RowBuilder:
         self.choice: SmootherChoice | None = (
             SmootherChoice(int(half_window), self.order) if half_window else None)
         self._held: list[Samples] = []     # samples waiting for the choice
-        # of the held samples: (first stamp, its q, stamp of the first motion or nan): the
-        # choice's condition asked per call without joining them (quadratic in their count)
-        self._held_motion: tuple[float, np.ndarray, float] | None = None
+        # stamp of the held samples' first motion (nan: none yet), followed per call: the
+        # choice's condition asked without joining them (quadratic in their count)
+        self._moved_at = math.nan
         self._search: _Search | None = None   # the choice under way
         # columns of [Y | tau] that make the rows [Yb | tau]
         self._columns = np.append(base.base_index, robot.num_params)
@@ -324,7 +324,7 @@ class RowBuilder:
 
     def reset_counts(self) -> None:
         """Counters to zero; samples held for the choice are dropped (a pipeline reset)."""
-        self._held, self._search, self._held_motion = [], None, None
+        self._held, self._search, self._moved_at = [], None, math.nan
         self._in = self._out = 0    # samples into / out of the smoother
         # valid samples the smoother never outputs: half a window at the stream's start, at
         # either side of a stamp gap, and what a restart drops (not rejections: apart)
@@ -345,10 +345,7 @@ class RowBuilder:
         if self._search is None:
             if not (flush or self.cutoff > 0 or self._choice_may_be_due()):
                 return False
-            held = self._held[0]
-            for s in self._held[1:]:
-                held = held.concat(s)
-            self._held = [held] if len(held) else []
+            held = self._join_held()
             assert held.tau is not None   # the rows' samples carry their torques
             plan = plan_smoother(self.robot, self.base, held.stamps, held.q, held.qd,
                                  held.tau, self.order, self.max_gap, self.cutoff,
@@ -372,29 +369,29 @@ class RowBuilder:
         if self.choice is None:
             return False
         self._search = None
+        self._join_held()
+        return True
+
+    def _join_held(self) -> Samples:
+        """The held samples as one (kept so)."""
         held = self._held[0]
         for s in self._held[1:]:
             held = held.concat(s)
         self._held = [held]
-        return True
+        return held
 
     def _hold(self, s: Samples) -> None:
         """Hold ``s`` (stamps after those held) for the choice."""
         self._held.append(s)
-        if self._held_motion is None:
-            self._held_motion = (float(s.stamps[0]), s.q[0].copy(), math.nan)
-        t0, q0, moved = self._held_motion
-        if math.isnan(moved) and (k := _first_motion(s.q, q0)) < len(s):
-            self._held_motion = (t0, q0, float(s.stamps[k]))
+        if math.isnan(self._moved_at) and (
+                k := _first_motion(s.q, self._held[0].q[0])) < len(s):
+            self._moved_at = float(s.stamps[k])
 
     def _choice_may_be_due(self) -> bool:
         """plan_smoother's condition on the held samples (without joining them)."""
-        if self._held_motion is None:
-            return False
-        t0, _, moved = self._held_motion
-        last = float(self._held[-1].stamps[-1])
-        return _choice_due(0.0 if math.isnan(moved) else last - moved, last - t0,
-                           self.auto_seconds)
+        first, last = float(self._held[0].stamps[0]), float(self._held[-1].stamps[-1])
+        moved = 0.0 if math.isnan(self._moved_at) else last - self._moved_at
+        return _choice_due(moved, last - first, self.auto_seconds)
 
     def drain(self, measured_velocity: bool) -> Rows | None:
         """The rows of the samples held for the choice (deciding it with what is held), at
@@ -418,7 +415,7 @@ class RowBuilder:
                 self._hold(s)
             if not self._held or not self._choose(flush, len(s)):
                 return self._empty()
-            s, self._held, self._held_motion = self._held[0], [], None
+            s, self._held, self._moved_at = self._held[0], [], math.nan
         elif math.isnan(self.choice.rate) and len(s) > 1:
             self.choice.rate = _rate(s.stamps)
         if len(s) == 0:

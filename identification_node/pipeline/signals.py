@@ -43,7 +43,7 @@ _BLOCK = 4096   # windows per batched solve: bounds memory for long offline call
 # floats (which the general fit sees as well).
 _UNIFORM_TOL = 1e-9
 _FEW = 64       # up to this many windows a batch is not split into uniform and jittered runs
-_FFT_TAPS = 129  # uniform windows longer than this are applied by FFT convolution
+_FFT_TAPS = 129  # longer windows: by FFT convolution (uniform stamps) or sliding sums
 _GATHER = 1 << 21   # floats gathered at most per block of jittered windows (memory bound)
 MIN_HALF_WINDOW = 4   # samples: the shortest half window a cut-off maps to (9-sample fit)
 
@@ -274,7 +274,7 @@ class FixedLagSmoother:
         out = []
         block = self._block
         for run, uniform in self._runs(T, d, starts):
-            if uniform and 2 * self.half_window + 1 > _FFT_TAPS:
+            if uniform and self._long:
                 out.append(self._fit_fft(T, X, int(run[0]), run.size))
                 continue
             for i in range(0, run.size, block):
@@ -284,6 +284,12 @@ class FixedLagSmoother:
             return out[0]
         t_c, x_c, xd_c, xdd_c = (np.concatenate(parts) for parts in zip(*out))
         return t_c, x_c, xd_c, xdd_c
+
+    @property
+    def _long(self) -> bool:
+        """Whether the window is longer than _FFT_TAPS samples (fitted by FFT or from
+        sliding sums)."""
+        return 2 * self.half_window + 1 > _FFT_TAPS
 
     @property
     def _block(self) -> int:
@@ -398,7 +404,7 @@ class FixedLagSmoother:
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The least-squares fit of the windows starting at ``starts`` (increasing), whatever
         the stamps' spacing: (centre stamps, value, first and second derivative)."""
-        if 2 * self.half_window + 1 > _FFT_TAPS and starts.size:
+        if self._long and starts.size:
             return self._fit_long(T, X, starts)
         L = self.half_window
         idx = starts[:, None] + self._offsets
