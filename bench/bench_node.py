@@ -69,7 +69,7 @@ def publisher(rate: float, seconds: float, warmup: float, currents: bool) -> Non
         converter = TorqueConverter(robot.joint_names, [CURRENTS] * robot.dof)
         amps = converter.currents_from_torque(sim.tau_meas, sim.q_meas).reshape(period, -1)
         channels = converter.current_channel_names()   # joint-major ia, ib, ic: amps' order
-    rclpy.init()
+    rclpy.init(args=[])   # not the script's own arguments (--node-param NAME:=V)
     node = rclpy.create_node('bench_publisher')
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
     pub = node.create_publisher(JointState, 'joint_states', qos)
@@ -133,7 +133,7 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
     latencies: list[int] = []
     stamps: list[int] = []
     diag: dict[str, str] = {}
-    rclpy.init()
+    rclpy.init(args=[])
     node = rclpy.create_node('bench_listener')
 
     def on_effort(raw: bytes) -> None:   # the header stamp straight from the CDR bytes
@@ -174,6 +174,7 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
                 diag.get('samples_received', 0)), len(latencies)
     published = int(pub.stdout.read().strip() or 0)
     cpu1 = cpu_seconds(node_proc.pid)
+    period = float(diag.get('processing_period_s', 'nan'))   # at the stream's end
     end = time.monotonic() + 2.0
     while time.monotonic() < end:
         spin(0.05)
@@ -199,7 +200,7 @@ def run_rate(rate: float, seconds: float, warmup: float, listen_measured: bool,
         'cpu_percent': 100 * (cpu1 - cpu0) / (steady / rate) if steady else float('nan'),
         'latency_ms_median': float(np.median(lat)) if len(lat) else float('nan'),
         'latency_ms_p99': float(np.percentile(lat, 99)) if len(lat) else float('nan'),
-        'delay_ms': delay, 'caught_up_s': caught_up,
+        'delay_ms': delay, 'caught_up_s': caught_up, 'period_ms': 1e3 * period,
     }
 
 
@@ -251,7 +252,8 @@ def line(rate: float, r: dict, args: argparse.Namespace, label: str = '') -> str
             f"delay {r['delay_ms']:.1f} ms; p99 "
             f"{'within' if r['latency_ms_p99'] <= r['delay_ms'] + BUDGET_MS else 'beyond'} "
             f"delay + {BUDGET_MS:g} ms; caught up {r['caught_up_s']:.0f} s after the first "
-            f"output's stamp){'  ' + label if label else ''}")
+            f"output's stamp; processing period {r['period_ms']:.1f} ms)"
+            f"{'  ' + label if label else ''}")
 
 
 if __name__ == '__main__':

@@ -263,8 +263,15 @@ class Config:
                                    'excited')
     min_samples: int = setting(1000, 'samples needed before convergence is declared',
                                unit='samples', range=(0, 10**12))
-    process_period: float = setting(0.01, 's (wall clock) between batch processing runs '
-                                    '(latency vs CPU)', unit='s', check='positive')
+    process_period: float = setting(
+        0.01, 's (wall clock) between batch processing runs: the shortest period while an '
+        'output waits (latency vs CPU), the period itself with latency_budget 0', unit='s',
+        check='positive')
+    latency_budget: float = setting(
+        0.02, 's within which ~/predicted_effort and ~/measured_effort publish a sample once '
+        "its output can be computed (the smoother's delay after it): the processing period "
+        'follows it, the budget less the longest recent run and 1 ms, within process_period '
+        'and idle_process_period; 0: every process_period', unit='s', range=(0.0, 1.0))
     idle_process_period: float = setting(
         0.1, 's (wall clock) between processing runs while no output waits for them: nothing '
         'subscribes to ~/predicted_effort or ~/measured_effort and payload.enabled is false '

@@ -394,11 +394,11 @@ def test_effort_topics_are_published_only_to_subscribers(ros):
 def test_processing_period_follows_whether_an_output_waits(ros, diag):
     """With nothing subscribed to the effort outputs the node processes every
     idle_process_period (no output's latency counts), and get_estimate still answers with
-    every sample sent; once ~/predicted_effort is subscribed, every process_period, and it
-    gets the samples sent after that."""
+    every sample sent; once ~/predicted_effort is subscribed, every process_period (with
+    latency_budget 0), and it gets the samples sent after that."""
     node = start_node(ros, 'idle', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
                                     'process_period': 0.01, 'idle_process_period': 1.0,
-                                    'smoother.half_window': 10}, 'idle')
+                                    'latency_budget': 0.0, 'smoother.half_window': 10}, 'idle')
 
     def period():
         return float((last_status(diag, 'idle') or {}).get('processing_period_s', 'nan'))
@@ -422,6 +422,38 @@ def test_processing_period_follows_whether_an_output_waits(ros, diag):
     assert wait_for(lambda: len(got) >= n, 10)   # the held half window, then all but the last
     assert [stamp_ns(m) for m in got.snapshot()] == list(
         10**9 + np.arange(n - lag, 2 * n - lag) * 10**6)
+    got.close()
+    ros.client.destroy_publisher(sender)
+    ros.remove(node)
+
+
+def test_processing_period_follows_the_latency_budget(ros, diag):
+    """With an effort output subscribed the period is the latency budget less the longest
+    recent run and 1 ms, at least process_period and at most idle_process_period; every
+    output is published."""
+    node = start_node(ros, 'budget', {'robot': 'mit_dd_arm', 'torque_source': ['measured'],
+                                      'process_period': 0.01, 'idle_process_period': 1.0,
+                                      'latency_budget': 0.3, 'smoother.half_window': 10},
+                      'budget')
+
+    def period():
+        return float((last_status(diag, 'budget') or {}).get('processing_period_s', 'nan'))
+    got = Collector(ros, JointState, '/budget/predicted_effort')
+    sender = ros.client.create_publisher(JointState, '/budget/joint_states', RELIABLE)
+    assert wait_for(lambda: sender.get_subscription_count()
+                    and node.efforts.predicted.get_subscription_count(), 10)
+    n, names, lag = 400, node.robot.joint_names, 10
+    rng = np.random.default_rng(6)
+    for k, msg in enumerate(joint_state_msgs(10**9 + np.arange(n) * 10**6, names,
+                                             *rng.normal(size=(3, n, len(names))))):
+        sender.publish(msg)
+        if k % 20 == 19:
+            time.sleep(0.02)
+    assert wait_for(lambda: len(got) >= n - 2 * lag, 20)
+    assert [stamp_ns(m) for m in got.snapshot()] == list(
+        10**9 + np.arange(lag, n - lag) * 10**6)
+    # the runs took well under 0.2 s: the period is well over process_period
+    assert wait_for(lambda: 0.1 < period() <= 0.3 - 0.001, 20), period()
     got.close()
     ros.client.destroy_publisher(sender)
     ros.remove(node)

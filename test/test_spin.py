@@ -1,8 +1,10 @@
-"""PeriodicThread: the node's processing schedule (no ROS needed)."""
+"""PeriodicThread and BudgetPeriod: the node's processing schedule (no ROS needed)."""
 import threading
 import time
 
-from identification_node.ros.spin import PeriodicThread
+import pytest
+
+from identification_node.ros.spin import BudgetPeriod, PeriodicThread
 from ros_helpers import wait_for
 
 
@@ -73,3 +75,22 @@ def test_a_failing_period_function_is_reported_and_the_last_period_kept():
     assert wait_for(lambda: len(calls) >= 5, 10)
     thread.stop(10)
     assert errors and all(str(e) == 'publisher gone' for e in errors)
+
+
+def test_budget_period_leaves_room_for_the_longest_recent_run():
+    """period = budget - max(late + duration) over the last runs - transport, within
+    [shortest, longest]; the shortest until a run is known."""
+    budget = BudgetPeriod(0.02, shortest=0.005, longest=0.1, transport=0.001, runs=4)
+    assert budget.period == 0.005
+    budget.add(0.001, 0.002)
+    assert budget.period == pytest.approx(0.02 - 0.003 - 0.001)
+    budget.add(0.0, 0.016)      # a long run: at most the shortest period
+    assert budget.period == 0.005
+    for _ in range(3):
+        budget.add(0.0005, 0.0025)
+    assert budget.period == 0.005   # the long run is still among the last 4
+    budget.add(0.0005, 0.0025)
+    assert budget.period == pytest.approx(0.02 - 0.003 - 0.001)
+    wide = BudgetPeriod(1.0, shortest=0.01, longest=0.1)
+    wide.add(0.0, 0.001)
+    assert wide.period == 0.1

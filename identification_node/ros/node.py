@@ -50,7 +50,7 @@ from identification_node.ros.qos_watch import QosWatch
 from identification_node.ros.service_requests import (Commands, Outcome, RequestQueue,
                                                       ServiceThread, Snapshot)
 from identification_node.ros.solver_worker import ConsistencyWorker
-from identification_node.ros.spin import PeriodicThread, run_node
+from identification_node.ros.spin import BudgetPeriod, PeriodicThread, run_node
 from identification_node.config import PARAMETERS
 from identification_node.settings import Settings
 
@@ -129,6 +129,8 @@ class IdentificationNode(Node):
         self._period = s['process_period']
         self._idle_period = max(self._period, s['idle_process_period'])
         self._current_period = self._period
+        self._budget = BudgetPeriod(s['latency_budget'], self._period, self._idle_period) \
+            if s['latency_budget'] > 0 else None
         self._processing = PeriodicThread(self._processing_period, self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
@@ -192,6 +194,7 @@ class IdentificationNode(Node):
     # and hands them to the pipeline as they are (it decodes them in blocks):
     # rclpy never turns them into Python message objects.
     def _process(self) -> None:
+        start = time.monotonic()
         commands = self._requests.take()
         with self.lock:
             jobs = self._apply(commands) if commands is not None else []
@@ -212,13 +215,20 @@ class IdentificationNode(Node):
         self.efforts.publish(out)
         if events and self.payload is not None:
             self.payload.publish(events)
+        if self._budget is not None:
+            self._budget.add(self._processing.late, time.monotonic() - start)
 
     def _processing_period(self) -> float:
-        """``process_period`` while an output's latency counts (an effort output has
-        subscribers, or the payload monitor runs), else ``idle_process_period``: nothing
-        waits for the samples' outputs (service commands wake the thread at once)."""
-        busy = self.payload is not None or self.efforts.listened
-        self._current_period = self._period if busy else self._idle_period
+        """While an output's latency counts (an effort output has subscribers, or the payload
+        monitor runs) the longest period that keeps the outputs within ``latency_budget``
+        (spin.BudgetPeriod; at least ``process_period``), else ``idle_process_period``:
+        nothing waits for the samples' outputs (service commands wake the thread at once)."""
+        if not (self.payload is not None or self.efforts.listened):
+            self._current_period = self._idle_period
+        elif self._budget is not None:
+            self._current_period = self._budget.period
+        else:
+            self._current_period = self._period
         return self._current_period
 
     def _receiving_period(self) -> float:

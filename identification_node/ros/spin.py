@@ -15,6 +15,7 @@ progress for ``watchdog_timeout`` s logs it and exits with status 3 instead of h
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import re
@@ -206,6 +207,7 @@ class PeriodicThread:
         self._stop = False
         self._wake = threading.Event()
         self.beat = time.monotonic()    # last progress (monotonic s), for a Watchdog
+        self.late = 0.0     # s the last call started after its time (0 when woken)
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -235,6 +237,7 @@ class PeriodicThread:
                 due = time.monotonic()
             if self._stop or not self._alive():
                 return
+            self.late = max(0.0, time.monotonic() - due)
             try:
                 self._func()
             except Exception as exc:   # noqa: BLE001 - reported, and the schedule goes on
@@ -248,6 +251,35 @@ class PeriodicThread:
         if self._thread is not threading.current_thread():
             self._thread.join(timeout)
         return not self._thread.is_alive() or self._thread is threading.current_thread()
+
+
+class BudgetPeriod:
+    """The longest processing period (s) that still publishes each output within ``budget``
+    s of the moment it could first be computed: the budget less the longest of the last
+    ``runs`` runs (how late it woke plus how long it took) and ``transport`` s for the
+    message's way out, within [``shortest``, ``longest``]. ``shortest`` until a run is known.
+
+    A sample's output can be computed once the sample a smoother delay later has come in;
+    that happens anywhere within a period, so its output waits up to one period and one run.
+    """
+
+    def __init__(self, budget: float, shortest: float, longest: float,
+                 transport: float = 1e-3, runs: int = 32) -> None:
+        self.budget, self.shortest, self.longest = budget, shortest, max(shortest, longest)
+        self.transport = transport
+        self._runs: collections.deque[float] = collections.deque(maxlen=runs)
+
+    def add(self, late: float, duration: float) -> None:
+        """A processing run: s it started after its time, s it took."""
+        self._runs.append(late + duration)
+
+    @property
+    def period(self) -> float:
+        """The period to wait now (s)."""
+        if not self._runs:
+            return self.shortest
+        free = self.budget - max(self._runs) - self.transport
+        return min(self.longest, max(self.shortest, free))
 
 
 def make_executor(polled: bool = False):
