@@ -270,8 +270,8 @@ class Config:
     latency_budget: float = setting(
         0.02, 's within which ~/predicted_effort and ~/measured_effort publish a sample once '
         "its output can be computed (the smoother's delay after it): the processing period "
-        'follows it, the budget less the longest recent run and 1 ms, within process_period '
-        'and idle_process_period; 0: every process_period', unit='s', range=(0.0, 1.0))
+        'is what the budget leaves of the recent runs and 2 ms, within process_period and '
+        'idle_process_period; 0: every process_period', unit='s', range=(0.0, 1.0))
     idle_process_period: float = setting(
         0.1, 's (wall clock) between processing runs while no output waits for them: nothing '
         'subscribes to ~/predicted_effort or ~/measured_effort and payload.enabled is false '

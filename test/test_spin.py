@@ -77,20 +77,25 @@ def test_a_failing_period_function_is_reported_and_the_last_period_kept():
     assert errors and all(str(e) == 'publisher gone' for e in errors)
 
 
-def test_budget_period_leaves_room_for_the_longest_recent_run():
-    """period = budget - max(late + duration) over the last runs - transport, within
-    [shortest, longest]; the shortest until a run is known."""
-    budget = BudgetPeriod(0.02, shortest=0.005, longest=0.1, transport=0.001, runs=4)
+def test_budget_period_leaves_room_for_the_recent_runs():
+    """Each run (lateness l, duration d, after an interval I) allows P + l + d max(1, P / I)
+    + transport <= budget; the period is the least bound within [shortest, longest], the
+    shortest until a run is known."""
+    budget = BudgetPeriod(0.02, shortest=0.005, longest=0.1, transport=0.002, runs=4)
     assert budget.period == 0.005
-    budget.add(0.001, 0.002)
-    assert budget.period == pytest.approx(0.02 - 0.003 - 0.001)
-    budget.add(0.0, 0.016)      # a long run: at most the shortest period
+    budget.add(0.001, 0.002, 0.01)       # room 0.017: P + 0.002 P / 0.01 = 0.017
+    p = 0.017 / 1.2
+    assert budget.period == pytest.approx(p)
+    assert p + 0.001 + 0.002 * p / 0.01 + 0.002 == pytest.approx(0.02)
+    budget.add(0.0, 0.012, 0.01)          # beyond its interval's room: P + 0.012 <= 0.018
+    assert budget.period == pytest.approx(0.006)
+    budget.add(0.0, 0.016, 0.01)          # no room at all: the shortest period
     assert budget.period == 0.005
     for _ in range(3):
-        budget.add(0.0005, 0.0025)
-    assert budget.period == 0.005   # the long run is still among the last 4
-    budget.add(0.0005, 0.0025)
-    assert budget.period == pytest.approx(0.02 - 0.003 - 0.001)
+        budget.add(0.001, 0.002, 0.01)
+    assert budget.period == 0.005         # the long run is still among the last 4
+    budget.add(0.001, 0.002, 0.01)
+    assert budget.period == pytest.approx(p)
     wide = BudgetPeriod(1.0, shortest=0.01, longest=0.1)
-    wide.add(0.0, 0.001)
+    wide.add(0.0, 0.001, 0.01)
     assert wide.period == 0.1

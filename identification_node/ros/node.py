@@ -131,6 +131,7 @@ class IdentificationNode(Node):
         self._current_period = self._period
         self._budget = BudgetPeriod(s['latency_budget'], self._period, self._idle_period) \
             if s['latency_budget'] > 0 else None
+        self._last_start = time.monotonic()   # of the last processing run
         self._processing = PeriodicThread(self._processing_period, self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
@@ -194,7 +195,8 @@ class IdentificationNode(Node):
     # and hands them to the pipeline as they are (it decodes them in blocks):
     # rclpy never turns them into Python message objects.
     def _process(self) -> None:
-        start = time.monotonic()
+        start, last = time.monotonic(), self._last_start
+        self._last_start = start
         commands = self._requests.take()
         with self.lock:
             jobs = self._apply(commands) if commands is not None else []
@@ -216,7 +218,7 @@ class IdentificationNode(Node):
         if events and self.payload is not None:
             self.payload.publish(events)
         if self._budget is not None:
-            self._budget.add(self._processing.late, time.monotonic() - start)
+            self._budget.add(self._processing.late, time.monotonic() - start, start - last)
 
     def _processing_period(self) -> float:
         """While an output's latency counts (an effort output has subscribers, or the payload

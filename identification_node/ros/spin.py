@@ -255,31 +255,39 @@ class PeriodicThread:
 
 class BudgetPeriod:
     """The longest processing period (s) that still publishes each output within ``budget``
-    s of the moment it could first be computed: the budget less the longest of the last
-    ``runs`` runs (how late it woke plus how long it took) and ``transport`` s for the
-    message's way out, within [``shortest``, ``longest``]. ``shortest`` until a run is known.
+    s of the moment it could first be computed, within [``shortest``, ``longest``]
+    (``shortest`` until a run is known).
 
     A sample's output can be computed once the sample a smoother delay later has come in;
-    that happens anywhere within a period, so its output waits up to one period and one run.
+    that happens anywhere within a period, so its output waits up to one period P, the run's
+    lateness to wake and its duration, and ``transport`` s on its way out. A run's duration
+    grows with the messages it takes: taken as proportional to its interval beyond the
+    longest interval seen (the fixed cost scaled too: on the safe side). So each of the last
+    ``runs`` runs (lateness l, duration d, after an interval I) allows
+    P + l + d max(1, P / I) + transport <= budget; the period is the least of those bounds.
     """
 
     def __init__(self, budget: float, shortest: float, longest: float,
-                 transport: float = 1e-3, runs: int = 32) -> None:
+                 transport: float = 2e-3, runs: int = 32) -> None:
         self.budget, self.shortest, self.longest = budget, shortest, max(shortest, longest)
         self.transport = transport
-        self._runs: collections.deque[float] = collections.deque(maxlen=runs)
+        self._bounds: collections.deque[float] = collections.deque(maxlen=runs)
 
-    def add(self, late: float, duration: float) -> None:
-        """A processing run: s it started after its time, s it took."""
-        self._runs.append(late + duration)
+    def add(self, late: float, duration: float, interval: float) -> None:
+        """A processing run: s it started after its time, s it took, s since the run
+        before it started (what it took in came in over that interval)."""
+        room = self.budget - late - self.transport
+        if interval > 0 and room >= interval + duration:
+            self._bounds.append(room * interval / (interval + duration))
+        else:
+            self._bounds.append(room - duration)
 
     @property
     def period(self) -> float:
         """The period to wait now (s)."""
-        if not self._runs:
+        if not self._bounds:
             return self.shortest
-        free = self.budget - max(self._runs) - self.transport
-        return min(self.longest, max(self.shortest, free))
+        return min(self.longest, max(self.shortest, min(self._bounds)))
 
 
 def make_executor(polled: bool = False):
