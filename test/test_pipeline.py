@@ -173,6 +173,35 @@ def test_chunking_does_not_change_the_result():
     np.testing.assert_allclose(results[0], results[2], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize('update', [True, False])
+def test_deferred_updates_change_nothing_but_when(update):
+    """defer_updates (the node: the estimator's update after the outputs are published):
+    the same outputs and estimate as the immediate updates, bit for bit, whether update()
+    is called after each run or left to the next process(); with rows of 100 samples per
+    run and update_batch 100 they live in the work array the next run reuses."""
+    sim = simulate(duration=6.0)
+    js = joint_records(sim)
+    config = PipelineConfig(update_batch=100, half_window=10)
+    now = IdentificationPipeline(ROBOT, config, BASE)
+    later = IdentificationPipeline(ROBOT, config, BASE)
+    later.defer_updates = True
+    pending = []
+    for start in range(0, len(js), 100):
+        outs = []
+        for p in (now, later):
+            for r in js[start:start + 100]:
+                p.add_joint_state(r)
+            outs.append(p.process())
+        pending.append(later.estimator._pending_samples)
+        if update:
+            later.update()
+        for name in ('stamps_ns', 'measured', 'predicted'):
+            np.testing.assert_array_equal(getattr(outs[0], name), getattr(outs[1], name))
+    assert max(pending) >= 100      # a full batch waited for update() or the next run
+    np.testing.assert_array_equal(now.estimate().values, later.estimate().values)
+    np.testing.assert_array_equal(now.covariance, later.covariance)
+
+
 def test_bad_messages_are_counted_and_the_estimate_stays_finite():
     sim = simulate(duration=6.0)
     js = joint_records(sim)
@@ -526,8 +555,8 @@ class _CheckedEstimate(OnlineEstimate):
         self.weights = super()._row_weights(t, qd, qdd)
         return self.weights
 
-    def add(self, rows, t, qd, qdd, stamps_ns=None, q=None):
-        assert len(rows) >= self.config.update_batch  # (applied at once: same batches)
+    def add(self, rows, t, qd, qdd, stamps_ns=None, q=None, defer=False):
+        assert len(rows) >= self.config.update_batch and not defer  # (the same batches)
         Yb, tau = rows[:, :, :-1].copy(), rows[:, :, -1].copy()
         super().add(rows, t, qd, qdd, stamps_ns, q)   # (3 s: no residual grid line crossed)
         w = self.weights

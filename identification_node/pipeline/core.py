@@ -87,6 +87,9 @@ class IdentificationPipeline:
         # the model's parameters, degenerate inertials replaced (prior.py); notes say which
         self.prior, self.prior_notes = safe_prior(robot)
         self.frozen = False
+        # the estimator's batch update left to update() (the node: after publishing the run's
+        # outputs, which do not need it: they are predicted before it)
+        self.defer_updates = False
         # window.SegmentWindow: one time segment of the stream only (None: all of it); set
         # before the first message (parallel replay and fleet)
         self.window: SegmentWindow | None = None
@@ -199,6 +202,7 @@ class IdentificationPipeline:
     def process(self, flush: bool = False) -> PipelineOutput:
         """Work through everything queued. ``flush`` decides joint states still waiting for
         currents (end of a bag) instead of holding them for ``hold_time``."""
+        self.update()
         s = self.samples.process(flush)
         outputs = []
         if self.samples.counters.restarts != self._restarts_seen:
@@ -231,6 +235,11 @@ class IdentificationPipeline:
                                          s.tau)
         return result
 
+    def update(self) -> None:
+        """The estimator's update of a full batch, if one is gathered (what ``process`` leaves
+        with ``defer_updates``; the next ``process`` does it first)."""
+        self.estimator.apply_due()
+
     def _use(self, r) -> PipelineOutput:
         """Rows (rows.Rows) checked, predicted and given to the estimator."""
         est = self.estimator
@@ -260,7 +269,7 @@ class IdentificationPipeline:
             self.time_offset.add(r.t, r.rows[:, :, :self.base.num_base], r.tau,
                                  model_features(r.q, r.qd)[..., :3])
         if not self.frozen:
-            est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns, q=r.q)
+            est.add(r.rows, r.t, r.qd, r.qdd, stamps_ns, q=r.q, defer=self.defer_updates)
             self.used += len(r.t)
         self._last_output_stamp = float(stamps_ns[-1]) * 1e-9
         return PipelineOutput(stamps_ns, r.q, r.qd, r.qdd, r.tau, predicted)

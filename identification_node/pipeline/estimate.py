@@ -154,18 +154,26 @@ class OnlineEstimate:
         return not self._updates
 
     def add(self, rows: np.ndarray, t: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-            stamps_ns: np.ndarray | None = None, q: np.ndarray | None = None) -> None:
+            stamps_ns: np.ndarray | None = None, q: np.ndarray | None = None,
+            defer: bool = False) -> None:
         """Rows [Yb | tau] (N, n, b + 1) of samples at t (N,) with smoothed qd, qdd (N, n),
         queued as they are and applied once ``update_batch`` samples are gathered (or a result
         is read): weighting them and every other step then runs once per batch, not once per
         call. ``stamps_ns`` (N,) int64, the samples' stamps: the residual blocks restart where
         they cross a multiple of RESIDUAL_GRID. With the smoothed q (N, n), the residual's
-        model-term sums (model_terms.py) too. The rows are weighted in place when applied."""
+        model-term sums (model_terms.py) too. The rows are weighted in place when applied.
+        ``defer``: a full batch waits for ``apply_due`` (the rows must stay untouched until
+        then)."""
         if len(rows) == 0:
             return
         self._last_t = float(t[-1])
         self._updates.append(_Pending(rows, t, qd, qdd, stamps_ns, q))
         self._pending_samples += len(rows)
+        if not defer:
+            self.apply_due()
+
+    def apply_due(self) -> None:
+        """Apply the rows gathered once ``update_batch`` samples are."""
         if self._pending_samples >= self.config.update_batch:
             self.apply()
 

@@ -132,6 +132,7 @@ class IdentificationNode(Node):
         self._budget = BudgetPeriod(s['latency_budget'], self._period, self._idle_period) \
             if s['latency_budget'] > 0 else None
         self._last_start = time.monotonic()   # of the last processing run
+        self.pipeline.defer_updates = True     # update() after the outputs are published
         self._processing = PeriodicThread(self._processing_period, self._process,
                                           'identification_processing',
                                           self._on_processing_error, alive=self.context.ok)
@@ -214,11 +215,16 @@ class IdentificationNode(Node):
             return
         if not chosen and self.pipeline.smoother is not None:
             self.get_logger().info(f'smoother: {smoother_text(self.pipeline.smoother)}')
-        self.efforts.publish(out)
-        if events and self.payload is not None:
-            self.payload.publish(events)
-        if self._budget is not None:
-            self._budget.add(self._processing.late, time.monotonic() - start, start - last)
+        try:
+            self.efforts.publish(out)
+            if events and self.payload is not None:
+                self.payload.publish(events)
+        finally:
+            if self._budget is not None:
+                self._budget.add(self._processing.late, time.monotonic() - start,
+                                 start - last)
+            with self.lock:   # the estimator's update, once the outputs are out
+                self.pipeline.update()
 
     def _processing_period(self) -> float:
         """While an output's latency counts (an effort output has subscribers, or the payload
