@@ -200,8 +200,9 @@ class IdentificationPipeline:
 
     # -- processing -----------------------------------------------------------------------------
     def process(self, flush: bool = False) -> PipelineOutput:
-        """Work through everything queued. ``flush`` decides joint states still waiting for
-        currents (end of a bag) instead of holding them for ``hold_time``."""
+        """Work through everything queued (a batch ``update`` left due first). ``flush``
+        decides joint states still waiting for currents (end of a bag) instead of holding
+        them for ``hold_time``."""
         self.update()
         s = self.samples.process(flush)
         outputs = []

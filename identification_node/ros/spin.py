@@ -261,9 +261,9 @@ class BudgetPeriod:
     A sample's output can be computed once the sample a smoother delay later has come in;
     that happens anywhere within a period, so its output waits up to one period P, the run's
     lateness to wake and its duration, and ``transport`` s on its way out. A run's duration
-    grows with the messages it takes: taken as proportional to its interval beyond the
-    longest interval seen (the fixed cost scaled too: on the safe side). So each of the last
-    ``runs`` runs (lateness l, duration d, after an interval I) allows
+    grows with the messages it takes: for a period longer than the interval a run came
+    after, taken as growing in proportion (its fixed cost scaled too: on the safe side). So
+    each of the last ``runs`` runs (lateness l, duration d, after an interval I) allows
     P + l + d max(1, P / I) + transport <= budget; the period is the least of those bounds.
     """
 
