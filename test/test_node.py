@@ -452,8 +452,9 @@ def test_processing_period_follows_the_latency_budget(ros, diag):
     assert wait_for(lambda: len(got) >= n - 2 * lag, 20)
     assert [stamp_ns(m) for m in got.snapshot()] == list(
         10**9 + np.arange(lag, n - lag) * 10**6)
-    # the runs took well under 0.2 s: the period is well over process_period
-    assert wait_for(lambda: 0.1 < period() < 0.3, 20), period()
+    # runs of a few ms (under 0.1 s even on a busy machine): a period well over
+    # process_period, within the budget
+    assert wait_for(lambda: 0.03 < period() < 0.3, 20), period()
     got.close()
     ros.client.destroy_publisher(sender)
     ros.remove(node)
