@@ -131,7 +131,6 @@ class IdentificationNode(Node):
         self._current_period = self._period
         self._budget = BudgetPeriod(s['latency_budget'], self._period, self._idle_period) \
             if s['latency_budget'] > 0 else None
-        self._last_start = time.monotonic()   # of the last processing run
         self.pipeline.defer_updates = True     # update() after the outputs are published
         self._processing = PeriodicThread(self._processing_period, self._process,
                                           'identification_processing',
@@ -196,8 +195,6 @@ class IdentificationNode(Node):
     # and hands them to the pipeline as they are (it decodes them in blocks):
     # rclpy never turns them into Python message objects.
     def _process(self) -> None:
-        start, last = time.monotonic(), self._last_start
-        self._last_start = start
         commands = self._requests.take()
         with self.lock:
             jobs = self._apply(commands) if commands is not None else []
@@ -221,8 +218,8 @@ class IdentificationNode(Node):
                 self.payload.publish(events)
         finally:
             if self._budget is not None:
-                self._budget.add(self._processing.late, time.monotonic() - start,
-                                 start - last)
+                run = self._processing
+                self._budget.add(run.late, time.monotonic() - run.started, run.interval)
             with self.lock:   # the estimator's update, once the outputs are out
                 self.pipeline.update()
 

@@ -208,6 +208,8 @@ class PeriodicThread:
         self._wake = threading.Event()
         self.beat = time.monotonic()    # last progress (monotonic s), for a Watchdog
         self.late = 0.0     # s the last call started after its time (0 when woken)
+        self.started = time.monotonic()   # when the last call started (monotonic s)
+        self.interval = 0.0   # s between the last two calls' starts
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -237,7 +239,8 @@ class PeriodicThread:
                 due = time.monotonic()
             if self._stop or not self._alive():
                 return
-            self.late = max(0.0, time.monotonic() - due)
+            now = time.monotonic()
+            self.late, self.interval, self.started = max(0.0, now - due), now - self.started, now
             try:
                 self._func()
             except Exception as exc:   # noqa: BLE001 - reported, and the schedule goes on
