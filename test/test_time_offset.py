@@ -2,6 +2,7 @@
 bundled MIT bag with its /motor_currents stamped late or early, and a bag whose effort lags
 its own positions, against the shifts put in."""
 import json
+from dataclasses import astuple
 import re
 import struct
 import sys
@@ -13,6 +14,7 @@ import pytest
 from identification_node.bags.reader import iter_joint_states, open_bag
 from identification_node.bags.writer import BagWriter
 from identification_node.cli import main
+from identification_node.pipeline import time_offset
 from identification_node.pipeline.time_offset import estimate_offset
 from identification_node.settings import Settings, read_parameter_file
 from identification_node.replay.stream import identify_bag
@@ -155,3 +157,39 @@ def test_a_joint_of_mostly_noise_is_not_taken_for_an_offset(tmp_path, duration):
     assert code == 0, doc
     offset = doc['processing']['time_offset']
     assert offset['level'] == 'ok' and abs(offset['offset_s']) < 0.005, offset
+
+
+def test_the_streamed_check_is_the_batch_estimate_spread_over_the_stream(monkeypatch):
+    """Rows streamed in batches of 1-5 (a live stream's processing runs) give the offset the
+    batch estimate gives on the same rows, while no batch sums more than a block of them."""
+    rng = np.random.default_rng(5)
+    dt, n, b, lag = 1.0 / time_offset.RATE, 3, 5, 30
+    M = 3000
+    t = np.arange(M + lag) * dt
+    freqs = rng.uniform(0.2, 2.0, size=(n, b, 3))
+    phases = rng.uniform(0, 2 * np.pi, size=(n, b, 3))
+    Y = np.sin(2 * np.pi * freqs[None] * t[:, None, None, None] + phases[None]).sum(axis=3)
+    tau = (Y @ rng.normal(size=b))[:M] + 0.05 * rng.normal(size=(M, n))   # late by lag
+    Y, t = Y[lag:], t[:M]
+    summed: list[int] = []
+    add = time_offset.OffsetSums.add
+
+    def counted(self, rows, tau, upto):
+        done = self.done
+        add(self, rows, tau, upto)
+        summed[-1] += self.done - done
+    monkeypatch.setattr(time_offset.OffsetSums, 'add', counted)
+    check = time_offset.TimeOffsetCheck(warn=0.02, refuse=0.2, seconds=10.0, search=1.0)
+    fed = 0
+    while check.result is None:
+        k = int(rng.integers(1, 6))
+        summed.append(0)
+        check.add(t[fed:fed + k], Y[fed:fed + k], tau[fed:fed + k])
+        fed += k
+    monkeypatch.undo()
+    whole = time_offset.estimate_offset(Y[:fed], tau[:fed], dt, 1.0, warn=0.02, refuse=0.2)
+    assert abs(check.result.offset - lag * dt) < 0.5 * dt
+    for got, want in zip(astuple(check.result), astuple(whole)):
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
+    centre = fed - 2 * int(1.0 / dt)
+    assert sum(summed) == centre and max(summed) <= centre / 8, max(summed)
