@@ -11,7 +11,7 @@ itself are measured the same two ways, so the machine's own wake-up penalty show
 pipeline's. Kinds alternate.
 
     .venv/bin/python bench/bench_pipeline_runs.py [--runs 4000] [--period 0.0025] [--repeat 3]
-        [--warmup 400] [--profile 30]
+        [--warmup 400] [--profile 30] [--startup 12]
 
 ``--warmup R``: runs before the measured ones (the smoother's window filled, caches warm). The
 default 400 (4 s at 10 ms) measures while the automatic smoother is chosen (the first 5 s) and
@@ -20,6 +20,11 @@ the time offset checked (the first 10 s); 2000 measures the steady state after b
 ``--profile N`` then runs the pipeline's paced runs once more under cProfile and prints the N
 functions with the most time of their own (cProfile's overhead inflates Python-level calls;
 the figures above are the unprofiled ones).
+
+``--startup S`` then runs a new stream's first S s back to back and prints the pipeline's CPU
+per second of data and its longest runs, the smoother's choice (at 5 s) and the time offset
+check (10 s) among them: what a live stream's first seconds cost, and the longest wait a run
+puts on the outputs.
 """
 from __future__ import annotations
 
@@ -74,6 +79,8 @@ def main() -> None:
                         '(uniform; a driver stamping on receipt, as bench_node\'s publisher)')
     parser.add_argument('--profile', type=int, default=0, metavar='N',
                         help='then profile the paced pipeline runs, print the top N functions')
+    parser.add_argument('--startup', type=float, default=0.0, metavar='S',
+                        help='then time a new stream\'s first S s, run by run')
     args = parser.parse_args()
 
     from identification_node.excitation.trajectories import FourierTrajectory
@@ -86,13 +93,13 @@ def main() -> None:
     robot = settings.load_robot()
     warm = args.warmup
     per = 1000 * args.period     # messages per run, on average
-    N = int(per * (args.runs + warm)) + 3
+    N = int(max(per * (args.runs + warm), 1000 * args.startup)) + 3
     sim = simulate_kinematic(robot, None, FourierTrajectory.random(robot, seed=1),
                              np.arange(N) * 1e-3, SensorNoise(torque_std=0.2))
     jitter = np.random.default_rng(2).uniform(0, 1e3 * args.jitter, N).astype(np.int64)
     messages = encode_joint_states(10**18 + np.arange(N) * 10**6 + jitter, robot.joint_names,
                                    sim.q_meas, sim.qd_meas, sim.tau_meas)
-    starts = np.round(per * np.arange(args.runs + warm + 1)).astype(int)
+    starts = np.round(per * np.arange((N - 3) / per + 1)).astype(int)
 
     def pipeline_work():
         pipeline = settings.build(robot)
@@ -139,6 +146,20 @@ def main() -> None:
             profile.disable()
         per_run(profiled, args.runs, args.period)
         pstats.Stats(profile).sort_stats('tottime').print_stats(args.profile)
+    if args.startup:
+        startup(pipeline_work(), int(1000 * args.startup / per), per)
+
+
+def startup(work, runs: int, per: float) -> None:
+    """A new stream's first ``runs`` runs back to back: CPU per second of data, longest runs."""
+    cpu = np.array([per_run(lambda k: work(i), 1, 0.0) for i in range(runs)])   # us
+    second = (np.arange(runs) * per / 1000).astype(int)
+    totals = np.bincount(second, weights=cpu) / 1e3
+    print(f'a new stream, runs of {per:g} messages back to back: pipeline CPU per second of '
+          'data (ms):', ' '.join(f'{x:.0f}' for x in totals))
+    for label, after in (('any', 0.0), ('after 6 s (the smoother chosen)', 6.0)):
+        k = int(np.argmax(np.where(np.arange(runs) * per / 1000 >= after, cpu, -1.0)))
+        print(f'longest run, {label}: {cpu[k] / 1e3:.1f} ms at {k * per / 1000:.2f} s')
 
 
 if __name__ == '__main__':
