@@ -161,7 +161,8 @@ def test_a_joint_of_mostly_noise_is_not_taken_for_an_offset(tmp_path, duration):
 
 def test_the_streamed_check_is_the_batch_estimate_spread_over_the_stream(monkeypatch):
     """Rows streamed in batches of 1-5 (a live stream's processing runs) give the offset the
-    batch estimate gives on the same rows, while no batch sums more than a block of them."""
+    batch estimate gives on the same rows, while no batch sums more than an eighth of them;
+    with a gap, the batch estimate of the longest evenly sampled run."""
     rng = np.random.default_rng(5)
     dt, n, b, lag = 1.0 / time_offset.RATE, 3, 5, 30
     M = 3000
@@ -193,3 +194,17 @@ def test_the_streamed_check_is_the_batch_estimate_spread_over_the_stream(monkeyp
         assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
     centre = fed - 2 * int(1.0 / dt)
     assert sum(summed) == centre and max(summed) <= centre / 8, max(summed)
+
+    # a gap of 1 s after 3 s: the longest evenly sampled run (4 s on) is fitted at the end
+    check = time_offset.TimeOffsetCheck(warn=0.02, refuse=0.2, seconds=10.0, search=1.0)
+    hole = (t < 3.0) | (t >= 4.0)
+    th, Yh, tauh = t[hole], Y[hole], tau[hole]
+    fed = 0
+    while check.result is None:
+        check.add(th[fed:fed + 4], Yh[fed:fed + 4], tauh[fed:fed + 4])
+        fed += 4
+    after = slice(int(np.count_nonzero(th < 3.0)), fed)
+    span = (after.stop - after.start) * dt
+    whole = time_offset.estimate_offset(Yh[after], tauh[after], dt, min(1.0, span / 8),
+                                        warn=0.02, refuse=0.2)
+    assert check.result == whole and abs(whole.offset - lag * dt) < 0.5 * dt, (check.result, whole)
