@@ -164,6 +164,8 @@ def matrix(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
 
 
 def information_floor(arms, rates, cases=CASES, seed: int = MATRIX_SEED) -> None:
+    """Part 4: per arm, rate and noise, each payload's Cramer-Rao stddev of mass (percent)
+    and CoM (mm, largest axis) over its hold, on the matrix's motions (the same seeds)."""
     noises = sorted({noise for noise, _ in cases})
     print('\n4. information floor (Cramer-Rao; white torque noise, the motion and the arm '
           'exact): per payload of the sequences in order, stddev of mass % / CoM mm (largest '
