@@ -165,6 +165,11 @@ class TimeOffsetCheck:
     def active(self) -> bool:
         return self.warn > 0 and self.result is None
 
+    @property
+    def _spacing(self) -> float:
+        """s between the buffered (decimated) rows."""
+        return self._step * self._dt
+
     def add(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray,
             terms: np.ndarray | None = None) -> None:
         """Used samples at t (M,) s: base regressor rows (M, n, b) and torque (M, n);
@@ -182,7 +187,7 @@ class TimeOffsetCheck:
             self._step, self._dt = max(1, int(round(1.0 / (RATE * dt)))), dt
         pick = np.flatnonzero(t >= self._next - 0.5 * self._dt)[::self._step]
         if len(pick):   # every step-th sample, continued across batches
-            self._next = t[pick[-1]] + self._step * self._dt
+            self._next = t[pick[-1]] + self._spacing
             rows = rows[pick]
             if terms is not None:
                 M, n, k = len(pick), *terms.shape[1:]
@@ -199,7 +204,7 @@ class TimeOffsetCheck:
         +-search s or an eighth of the run (the fit keeps 3/4 of it)."""
         if not self.active or not self._count:
             return
-        t, dt = self._t[:self._count], self._step * self._dt
+        t, dt = self._t[:self._count], self._spacing
         cuts = np.r_[0, np.flatnonzero(np.diff(t) > 1.5 * dt) + 1, len(t)]
         k = int(np.argmax(np.diff(cuts)))
         run = slice(cuts[k], cuts[k + 1])
@@ -211,7 +216,7 @@ class TimeOffsetCheck:
 
     def _append(self, t: np.ndarray, rows: np.ndarray, tau: np.ndarray) -> None:
         """Decimated rows onto the buffer (grown by doubling)."""
-        dt = self._step * self._dt
+        dt = self._spacing
         if self._count and rows.shape[1:] != self._rows.shape[1:]:
             self._count, self._sums = 0, None   # other columns: the buffer starts anew
         count, end = self._count, self._count + len(t)
@@ -235,7 +240,7 @@ class TimeOffsetCheck:
         """Sum the complete blocks of centre rows whose torque is buffered up to the largest
         shift, for the search finish will make on a full buffer (``seconds`` of one evenly
         sampled run; none when that search depends on how long the run will be)."""
-        dt = self._step * self._dt
+        dt = self._spacing
         lags = int(self.search / dt)
         if not self._even or lags < 1 or self.search > self.seconds / 8:
             return

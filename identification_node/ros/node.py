@@ -129,8 +129,7 @@ class IdentificationNode(Node):
         self._period = s['process_period']
         self._idle_period = max(self._period, s['idle_process_period'])
         self._current_period = self._period
-        self._budget = BudgetPeriod(s['latency_budget'], self._period, self._idle_period) \
-            if s['latency_budget'] > 0 else None
+        self._budget = BudgetPeriod(s['latency_budget'], self._period, self._idle_period)
         self.pipeline.defer_updates = True     # update() after the outputs are published
         self._processing = PeriodicThread(self._processing_period, self._process,
                                           'identification_processing',
@@ -217,9 +216,8 @@ class IdentificationNode(Node):
             if events and self.payload is not None:
                 self.payload.publish(events)
         finally:
-            if self._budget is not None:
-                run = self._processing
-                self._budget.add(run.late, time.monotonic() - run.started, run.interval)
+            run = self._processing
+            self._budget.add(run.late, time.monotonic() - run.started, run.interval)
             with self.lock:   # the estimator's update, once the outputs are out
                 self.pipeline.update()
 
@@ -228,12 +226,8 @@ class IdentificationNode(Node):
         monitor runs) the longest period that keeps the outputs within ``latency_budget``
         (spin.BudgetPeriod; at least ``process_period``), else ``idle_process_period``:
         nothing waits for the samples' outputs (service commands wake the thread at once)."""
-        if not (self.payload is not None or self.efforts.listened):
-            self._current_period = self._idle_period
-        elif self._budget is not None:
-            self._current_period = self._budget.period
-        else:
-            self._current_period = self._period
+        busy = self.payload is not None or self.efforts.listened
+        self._current_period = self._budget.period if busy else self._idle_period
         return self._current_period
 
     def _receiving_period(self) -> float:

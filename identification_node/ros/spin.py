@@ -267,7 +267,8 @@ class BudgetPeriod:
     grows with the messages it takes: for a period longer than the interval a run came
     after, taken as growing in proportion (its fixed cost scaled too: on the safe side). So
     each of the last ``runs`` runs (lateness l, duration d, after an interval I) allows
-    P + l + d max(1, P / I) + transport <= budget; the period is the least of those bounds.
+    P + l + d max(1, P / I) + transport <= budget; the period is the least of those bounds
+    (budget 0: always ``shortest``).
     """
 
     def __init__(self, budget: float, shortest: float, longest: float,
