@@ -238,6 +238,39 @@ def test_locked_joints_merge_into_reduced_chain(path, joints, locked):
     assert not np.allclose(plain_rnea(path, joints, q, qd, qdd, moved), tau_full, rtol=1e-6)
 
 
+@pytest.mark.parametrize('joints,locked', [
+    (['joint1', 'joint2', 'joint3', 'joint4', 'joint6'], {'link3': 0.7}),
+    (['joint1', 'joint2', 'joint3', 'joint4', 'link3'], {'joint6': -0.4}),
+])
+def test_a_joint_named_like_a_link_is_locked_or_identified(tmp_path, joints, locked):
+    """URDF keeps joint and link names apart (SO-100: joint and link 'gripper'); pinocchio's
+    reduction refuses a name two frames carry. joint5 of the fixture renamed 'link3' (a
+    link's name), locked or identified: the Newton-Euler chain's regressor and the link
+    frame found by its name."""
+    urdf = tmp_path / 'clash.urdf'
+    urdf.write_text(FIXTURE.read_text().replace('<joint name="joint5"', '<joint name="link3"'))
+    robot = load_robot(str(urdf), joints, locked_positions=locked)
+    assert robot.joint_names == joints
+    chain = Chain(urdf.read_text(), joints, locked)
+    q, qd, qdd = samples(robot, 25, seed=4)
+    assert_rel_close(robot.regressor(q, qd, qdd), chain.regressor(q, qd, qdd))
+    assert_rel_close(robot.rnea(q, qd, qdd), plain_rnea(urdf, joints, q, qd, qdd, locked))
+    names = [(f.name, f.type) for f in robot.model.frames]
+    assert ('link3', pin.FrameType.BODY) in names and 'link3#joint' not in str(names)
+
+
+def test_so100_with_its_gripper_locked():
+    """example-robot-data's SO-100: its jaw joint is named 'gripper' like the link it moves
+    from; the arm's five joints load with it locked, as pinocchio's RNEA of the whole arm."""
+    from arms import robots_dir
+    path = robots_dir() / 'so_arm_description' / 'urdf' / 'so100.urdf'
+    joints = ['shoulder_pan', 'shoulder_lift', 'elbow_flex', 'wrist_flex', 'wrist_roll']
+    robot = load_robot(str(path), joints)
+    q, qd, qdd = samples(robot, 20, seed=5)
+    assert_rel_close(robot.regressor(q, qd, qdd) @ robot.phi_model,
+                     plain_rnea(path, joints, q, qd, qdd))
+
+
 def test_locked_link_mass_merged_mit():
     full = load_robot('mit_dd_arm')
     reduced = load_robot('mit_dd_arm', ['joint1', 'joint2'], locked_positions={'joint3': 0.3})

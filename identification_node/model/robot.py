@@ -103,6 +103,37 @@ def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
                                   + (f' ({detail})' if detail else '')) from None
 
 
+def _reduced_model(full: pin.Model, lock: list[int], qref: np.ndarray) -> pin.Model:
+    """pin.buildReducedModel of ``full`` with the joints ``lock`` fixed at ``qref``, also where
+    a joint and a link share a name (URDF keeps them apart; the reduction looks frames up by
+    name and refuses a name two frames carry): such joints are renamed for the reduction and
+    named back after it."""
+    body = pin.FrameType.BODY
+    links = {f.name for f in full.frames if f.type == body}
+    clash = {j for j in list(full.names)[1:] if j in links}
+    if not clash:
+        return pin.buildReducedModel(full, lock, qref)
+    model = pin.Model(full)
+    temporary = {name: f'{name}#joint' for name in clash}
+    while links & set(temporary.values()):   # a link named like that, too
+        temporary = {name: f'{new}#' for name, new in temporary.items()}
+    for j in range(1, model.njoints):
+        model.names[j] = temporary.get(model.names[j], model.names[j])
+    for i, frame in enumerate(model.frames):
+        if frame.type != body and frame.name in clash:
+            frame.name = temporary[frame.name]
+            model.frames[i] = frame
+    reduced = pin.buildReducedModel(model, lock, qref)
+    original = {new: name for name, new in temporary.items()}
+    for j in range(1, reduced.njoints):
+        reduced.names[j] = original.get(reduced.names[j], reduced.names[j])
+    for i, frame in enumerate(reduced.frames):
+        if frame.name in original:
+            frame.name = original[frame.name]
+            reduced.frames[i] = frame
+    return reduced
+
+
 def _check_joint_frames(model: pin.Model, label: str) -> None:
     """IdentificationError naming the joint whose axis is zero (URDF ``<axis xyz="0 0 0">``:
     its torque would be identically zero) or whose frame is degenerate (not finite, a
@@ -254,7 +285,7 @@ class RobotModel:
             for name, (leader, gain, offset) in mimics.items():
                 if name in movable and leader in movable:
                     put(name, gain * position(leader) + offset)
-        return pin.buildReducedModel(full, lock, qref)
+        return _reduced_model(full, lock, qref)
 
     def _setup_indices(self) -> None:
         m = self.model
