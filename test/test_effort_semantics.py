@@ -14,7 +14,7 @@ from identification_node.cli import main
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
-from identification_node.results.effort_semantics import gravity_check
+from identification_node.results.effort_semantics import gravity_check, gravity_warning
 from identification_node.wire.cdr import JOINT_STATE
 
 pytestmark = pytest.mark.slow
@@ -72,5 +72,24 @@ def test_gravity_check_closed_form():
     theta = base.to_base(robot.phi_model)
     check = gravity_check(robot, base, 0.3 * theta, q, -g)
     assert set(check) == {'shoulder_lift_joint', 'elbow_joint'}
-    for slope, corr in check.values():
+    for slope, corr, left in check.values():
         assert slope == pytest.approx(0.3) and corr == pytest.approx(-1.0)
+        assert left == pytest.approx(-1.0)
+
+
+def test_an_exact_fit_is_no_effort_without_gravity():
+    """A noise-free recording fitted exactly leaves a residual of rounding size, which may
+    correlate with anything (an exact 3-joint finger warned so): no warning unless the
+    residual holds a share of the gravity torque (MIN_LEFT); with half of it left, the
+    warning."""
+    from identification_node.model.identifiability import BaseParameters, sample_motion
+    robot = load_robot(arm_urdf('ur5'))
+    base = BaseParameters.from_robot(robot)
+    q, _, _ = sample_motion(robot, 200, seed=2)
+    g = robot.inverse_dynamics(q, 0 * q, 0 * q)
+    theta = base.to_base(robot.phi_model)
+    noise = np.random.default_rng(0).normal(0.0, 1e-9, g.shape)
+    assert abs(gravity_check(robot, base, theta, q, 1e-7 * g + noise)['elbow_joint'][1]) > 0.9
+    assert gravity_warning(robot, base, theta, q, 1e-7 * g + noise) is None
+    line = gravity_warning(robot, base, theta, q, -0.5 * g + noise)
+    assert line is not None and 'elbow_joint 100 % (-1.00)' in line, line

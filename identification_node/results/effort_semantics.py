@@ -7,9 +7,12 @@ residual. On a subsample of the training bag's rows (q and the raw torque of eve
 smoother gives motion for, validation.evaluate), per joint whose gravity torque under the
 URDF's own parameters matters: the slope of the estimate's gravity torque on the URDF's
 (about 1 for a right effort and a roughly right URDF, near 0 without gravity) and the
-correlation of the residual (raw torque - Yb theta) with the URDF's gravity torque. SI units.
+correlation of the residual (raw torque - Yb theta) with the URDF's gravity torque, and the
+share of the URDF's gravity torque the residual holds (its slope on it). SI units.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,21 +20,30 @@ from identification_node.estimation.model_terms import MIN_CORRELATION
 from identification_node.model.identifiability import BaseParameters
 from identification_node.model.robot import RobotModel
 
-__all__ = ['MIN_SLOPE', 'MIN_SHARE', 'MIN_ROWS', 'gravity_check', 'gravity_warning',
-           'training_gravity_warning']
+__all__ = ['GravityFit', 'MIN_LEFT', 'MIN_ROWS', 'MIN_SHARE', 'MIN_SLOPE', 'gravity_check',
+           'gravity_warning', 'training_gravity_warning']
 
 MIN_SLOPE = 0.5         # identified gravity below half the URDF's: effort without gravity?
 MIN_SHARE = 0.25        # joints whose gravity RMS is at least this share of the largest one
 MIN_ROWS = 100          # fewer rows: no judgement
+MIN_LEFT = 0.05         # a correlated residual warns when it holds this share of the gravity
+
+
+class GravityFit(NamedTuple):
+    """One joint's gravity_check: the estimate's gravity torque's slope on the URDF's, the
+    residual's correlation with the URDF's, and the residual's slope on it (the share of the
+    URDF's gravity torque left in the residual)."""
+    slope: float
+    correlation: float
+    left: float
 
 
 def gravity_check(robot: RobotModel, base: BaseParameters, theta: np.ndarray,
-                  q: np.ndarray, residual: np.ndarray) -> dict[str, tuple[float, float]]:
+                  q: np.ndarray, residual: np.ndarray) -> dict[str, GravityFit]:
     """Per joint carrying gravity (its RMS gravity torque under the URDF's parameters at least
-    MIN_SHARE of the largest): (slope of the estimate ``theta``'s (b,) gravity torque on the
-    URDF's, correlation of ``residual`` (N, n: raw torque - Yb theta) with the URDF's gravity
-    torque), over rows at positions q (N, n); empty with fewer than MIN_ROWS rows or without
-    gravity."""
+    MIN_SHARE of the largest): the GravityFit of the estimate ``theta`` (b,) and ``residual``
+    (N, n: raw torque - Yb theta) against the URDF's gravity torque, over rows at positions q
+    (N, n); empty with fewer than MIN_ROWS rows or without gravity."""
     q, residual = np.asarray(q, dtype=float), np.asarray(residual, dtype=float)
     if len(q) < MIN_ROWS:
         return {}
@@ -48,22 +60,25 @@ def gravity_check(robot: RobotModel, base: BaseParameters, theta: np.ndarray,
         slope = float(g_est[:, j] @ gm / (gm @ gm))
         r, c = residual[:, j] - residual[:, j].mean(), gm - gm.mean()
         scale = np.sqrt((r @ r) * (c @ c))
-        out[robot.joint_names[j]] = (slope, float(r @ c / scale) if scale > 0 else 0.0)
+        out[robot.joint_names[j]] = GravityFit(slope, float(r @ c / scale) if scale > 0 else 0.0,
+                                               float(residual[:, j] @ gm / (gm @ gm)))
     return out
 
 
 def gravity_warning(robot: RobotModel, base: BaseParameters, theta: np.ndarray,
                     q: np.ndarray, residual: np.ndarray) -> str | None:
     """The warning when, on a joint carrying gravity (gravity_check), the estimate's gravity
-    torque is below MIN_SLOPE of the URDF's or the residual correlates with the URDF's gravity
-    torque beyond MIN_CORRELATION; None otherwise."""
+    torque is below MIN_SLOPE of the URDF's, or the residual correlates with the URDF's gravity
+    torque beyond MIN_CORRELATION and holds at least MIN_LEFT of it (a residual near nothing,
+    an exact fit, correlates with anything); None otherwise."""
     found = {j: v for j, v in gravity_check(robot, base, theta, q, residual).items()
-             if v[0] < MIN_SLOPE or abs(v[1]) > MIN_CORRELATION}
+             if v.slope < MIN_SLOPE or (abs(v.correlation) > MIN_CORRELATION
+                                        and abs(v.left) >= MIN_LEFT)}
     if not found:
         return None
     return ('effort without gravity? identified gravity torque in % of the URDF\'s (residual '
             'correlation with it): ' + ', '.join(
-                f'{j} {100 * k:.0f} % ({r:.2f})' for j, (k, r) in found.items())
+                f'{j} {100 * v.slope:.0f} % ({v.correlation:.2f})' for j, v in found.items())
             + '; the effort may have the gravity torque taken out (UR driver: record with '
             'use_currents_as_efforts, or the motor currents; Franka: the measured joint torque, '
             'not the external-torque estimate), or the URDF\'s masses are far off')
