@@ -238,17 +238,19 @@ def test_locked_joints_merge_into_reduced_chain(path, joints, locked):
     assert not np.allclose(plain_rnea(path, joints, q, qd, qdd, moved), tau_full, rtol=1e-6)
 
 
-@pytest.mark.parametrize('joints,locked', [
-    (['joint1', 'joint2', 'joint3', 'joint4', 'joint6'], {'link3': 0.7}),
-    (['joint1', 'joint2', 'joint3', 'joint4', 'link3'], {'joint6': -0.4}),
+@pytest.mark.parametrize('renamed,joints,locked', [
+    ('joint5', ['joint1', 'joint2', 'joint3', 'joint4', 'joint6'], {'link3': 0.7}),
+    ('joint5', ['joint1', 'joint2', 'joint3', 'joint4', 'link3'], {'joint6': -0.4}),
+    ('camera_joint', ['joint1', 'joint2', 'joint3', 'joint4', 'joint6'], {'joint5': 0.7}),
 ])
-def test_a_joint_named_like_a_link_is_locked_or_identified(tmp_path, joints, locked):
+def test_a_joint_named_like_a_link_is_locked_or_identified(tmp_path, renamed, joints, locked):
     """URDF keeps joint and link names apart (SO-100: joint and link 'gripper'); pinocchio's
-    reduction refuses a name two frames carry. joint5 of the fixture renamed 'link3' (a
-    link's name), locked or identified: the Newton-Euler chain's regressor and the link
-    frame found by its name."""
+    reduction refuses a name two frames carry. A joint of the fixture renamed 'link3' (a
+    link's name), locked, identified or fixed (camera_joint): the Newton-Euler chain's
+    regressor and the link frame found by its name."""
     urdf = tmp_path / 'clash.urdf'
-    urdf.write_text(FIXTURE.read_text().replace('<joint name="joint5"', '<joint name="link3"'))
+    urdf.write_text(FIXTURE.read_text().replace(f'<joint name="{renamed}"',
+                                                '<joint name="link3"'))
     robot = load_robot(str(urdf), joints, locked_positions=locked)
     assert robot.joint_names == joints
     chain = Chain(urdf.read_text(), joints, locked)

@@ -105,12 +105,12 @@ def _build_pin_model(xml: str, kind: str, label: str) -> pin.Model:
 
 def _reduced_model(full: pin.Model, lock: list[int], qref: np.ndarray) -> pin.Model:
     """pin.buildReducedModel of ``full`` with the joints ``lock`` fixed at ``qref``, also where
-    a joint and a link share a name (URDF keeps them apart; the reduction looks frames up by
-    name and refuses a name two frames carry): such joints are renamed for the reduction and
-    named back after it."""
+    a joint (movable or fixed) and a link share a name (URDF keeps them apart; the reduction
+    looks frames up by name and refuses a name two frames carry): such joints are renamed for
+    the reduction and named back after it."""
     body = pin.FrameType.BODY
     links = {f.name for f in full.frames if f.type == body}
-    clash = {j for j in list(full.names)[1:] if j in links}
+    clash = {f.name for f in full.frames if f.type != body and f.name in links}
     if not clash:
         return pin.buildReducedModel(full, lock, qref)
     model = pin.Model(full)
