@@ -270,6 +270,33 @@ def test_design_constraint_jacobian_with_torque_models_and_collisions():
         np.testing.assert_allclose(fd[k:], (J @ v)[k:], rtol=0.05, atol=0.05)
 
 
+def test_collision_jacobian_skips_only_negligible_samples(monkeypatch):
+    """The collision constraints' Jacobian computes distance gradients only where a sample's
+    KS weight in its pair exceeds GRADIENT_WEIGHT: equal to the Jacobian of every gradient
+    to 1e-6 of its scale (GJK's warm start differs with the distances computed before: 1e-7
+    here; a weight floor of 1e-6 gives 3e-6), with most (sample, pair) gradients skipped."""
+    import identification_node.excitation.problem as problem
+    robot = load_robot(PANDA)
+    limits = ExcitationLimits.from_robot(robot).with_margin(0.1)
+    x = to_x(initial_trajectory(robot, None, limits, 2, 4.0, 1))
+    asked, jacobians = [], []
+    for floor in (problem.GRADIENT_WEIGHT, -1.0):    # -1: every sample's gradient
+        monkeypatch.setattr(problem, 'GRADIENT_WEIGHT', floor)
+        checker = CollisionChecker(robot, floor=0.0)   # GJK's warm starts from scratch
+        full_gradients = checker.gradients
+
+        def gradients(q, which, full_gradients=full_gradients):
+            asked.append(np.mean(which))
+            return full_gradients(q, which)
+        monkeypatch.setattr(checker, 'gradients', gradients)
+        design = DesignProblem(robot, base_of(robot, None), limits, 2, 4.0, 40, 'cond', None,
+                               1.0, None, checker)
+        jacobians.append(design.collision_ks(x, True)[1])
+    assert asked[1] == 1.0 and asked[0] < 0.5, asked
+    np.testing.assert_allclose(jacobians[0], jacobians[1], rtol=0,
+                               atol=1e-6 * np.abs(jacobians[1]).max())
+
+
 def test_package_dir_resolves_meshes(tmp_path):
     mesh = tmp_path / 'pkg' / 'meshes' / 'part.stl'
     mesh.parent.mkdir(parents=True)

@@ -155,38 +155,46 @@ class CollisionChecker:
         return out
 
     def distances_and_gradients(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distances (N, pairs) and their gradients in the joint positions (N, pairs, n):
-        d(distance)/dq = normal . (J_p2 - J_p1), J_p the Jacobian of each witness point."""
+        """Distances (N, pairs) and their gradients in the joint positions (N, pairs, n)."""
+        d = self.distances(q)
+        return d, self.gradients(q, np.ones(d.shape, dtype=bool))
+
+    def gradients(self, q: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """Gradients (N, pairs, n) of the distances in the joint positions q (N, n), where
+        ``which`` (N, pairs) is true (0 elsewhere): d(distance)/dq = normal . (J_p2 - J_p1),
+        J_p the Jacobian of each witness point. Only those pairs' distances are recomputed,
+        at only those samples."""
         Q = self.robot.configuration(np.atleast_2d(q))
         N, n, P = Q.shape[0], self.robot.dof, self.num_pairs
-        dist = np.empty((N, P))
-        if not P:
-            return dist, np.zeros((N, P, n))
-        model, data, cols = self.model, self.data, self.robot.idx_v
-        world = pin.ReferenceFrame.WORLD
-        joints = np.unique(self._joints)
-        slot = np.searchsorted(joints, self._joints)            # (pairs, 2) into joints
-        J = np.zeros((N, len(joints), 6, n))
-        normal, points = np.empty((N, P, 3)), np.empty((N, 2, P, 3))
-        moving = [(s, int(j)) for s, j in enumerate(joints) if j != 0]   # the world is still
-        for k in range(N):   # only the calls into pinocchio per sample; the algebra batched
-            pin.computeDistances(model, data, self.geometry, self.geometry_data, Q[k])
-            pin.computeJointJacobians(model, data, Q[k])
-            for s, j in moving:
-                J[k, s] = pin.getJointJacobian(model, data, j, world)[:, cols]
-            results = self.geometry_data.distanceResults
-            dist[k] = [r.min_distance for r in results]
-            normal[k] = [r.normal for r in results]
-            points[k, 0] = [r.getNearestPoint1() for r in results]
-            points[k, 1] = [r.getNearestPoint2() for r in results]
         grad = np.zeros((N, P, n))
-        for side in (0, 1):
-            Jj = J[:, slot[:, side]]                                       # (N, P, 6, n)
-            # velocity of the world point p carried by the joint: v + w x p
-            Jp = Jj[:, :, :3] - np.cross(points[:, side, :, :, None], Jj[:, :, 3:], axisa=2,
-                                         axisb=2, axisc=2)
-            grad += (1 if side else -1) * np.einsum('spi,spin->spn', normal, Jp)
-        return dist, grad
+        ks, ps = np.nonzero(np.asarray(which, dtype=bool).reshape(N, P))
+        if not len(ks):
+            return grad
+        model, data, cols = self.model, self.data, self.robot.idx_v
+        geom, gdata, world = self.geometry, self.geometry_data, pin.ReferenceFrame.WORLD
+        M = len(ks)
+        normal, points = np.empty((M, 3)), np.empty((2, M, 3))
+        J = np.zeros((2, M, 6, n))
+        bounds = np.searchsorted(ks, np.arange(N + 1))
+        for k in np.flatnonzero(np.diff(bounds)):   # only the calls into pinocchio per entry
+            pin.updateGeometryPlacements(model, data, geom, gdata, Q[k])
+            pin.computeJointJacobians(model, data, Q[k])
+            jacobians: dict[int, np.ndarray] = {}
+            for e in range(bounds[k], bounds[k + 1]):
+                r = pin.computeDistance(geom, gdata, int(ps[e]))
+                normal[e] = r.normal
+                points[0, e], points[1, e] = r.getNearestPoint1(), r.getNearestPoint2()
+                for side in (0, 1):
+                    j = int(self._joints[ps[e], side])
+                    if j:   # the world (0) is still
+                        if j not in jacobians:
+                            jacobians[j] = pin.getJointJacobian(model, data, j, world)[:, cols]
+                        J[side, e] = jacobians[j]
+        # velocity of the world point p carried by each side's joint: v + w x p
+        Jp = J[:, :, :3] - np.cross(points[:, :, :, None], J[:, :, 3:], axisa=2, axisb=2,
+                                    axisc=2)
+        grad[ks, ps] = np.einsum('mi,min->mn', normal, Jp[1] - Jp[0])
+        return grad
 
     def clearance(self, q: np.ndarray) -> dict[str, Any]:
         """The smallest distance over samples q (N, n) and where: {'distance': m, 'pair':

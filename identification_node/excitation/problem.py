@@ -12,11 +12,16 @@ from identification_node.excitation.initial_guess import fourier_basis
 from identification_node.excitation.limits import ExcitationLimits, position_ranges, torque_models
 
 __all__ = ['COLLISION_OVERSAMPLE', 'COLLISION_PAD', 'COLLISION_RHO', 'COLLISION_SCALE',
-           'GRID_PER_HARMONIC', 'KS_RHO', 'RAMP_BLENDS', 'DesignProblem', 'ks_max', 'no_tick']
+           'GRADIENT_WEIGHT', 'GRID_PER_HARMONIC', 'KS_RHO', 'RAMP_BLENDS', 'DesignProblem',
+           'ks_max', 'no_tick']
 
 COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's constraints
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
 COLLISION_RHO = 20.0        # KS sharpness over the samples: 2.5 mm of distance, smooth
+# a sample's KS weight in a pair's constraint below which its distance gradient is not computed
+# (it would change the constraint's gradient by less than this fraction; 7 cm farther than the
+# pair's closest sample)
+GRADIENT_WEIGHT = 1e-12
 COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and between them)
 RAMP_BLENDS = (0.25, 0.5, 0.75)  # ramp configurations start + w (motion - start) constrained
 GRID_PER_HARMONIC = 40      # constraint grid points per period and harmonic
@@ -211,16 +216,18 @@ class DesignProblem:
         assert self.checker is not None   # called only with collision constraints
         key = x.tobytes()
         cached = self._collision
+        need = self.checker.min_distance + COLLISION_PAD
         if cached is None or cached[0] != key or (jac and cached[2] is None):
             self.tick()
             q = self.collision_configs(x)                            # (S, n)
-            if jac:
-                d, g = self.checker.distances_and_gradients(q)       # (S, P), (S, P, n)
-            else:
-                d, g = self.checker.distances(q), None
+            d = cached[1] if cached is not None and cached[0] == key else (
+                self.checker.distances(q))                           # (S, P)
+            g = None
+            if jac:   # where a sample's KS weight counts (GRADIENT_WEIGHT): (S, P, n)
+                w = ks_max(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)[1]
+                g = self.checker.gradients(q, w > GRADIENT_WEIGHT)
             self._collision = cached = (key, d, g)
         _, d, g = cached
-        need = self.checker.min_distance + COLLISION_PAD
         ks, w = ks_max(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if not jac:
             return ks, None
