@@ -16,6 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
+from identification_node.model.coulomb import coulomb_sign
+
 FEATURES = ('1', 'sign(qd)', 'qd', 'q')
 # feature: (the model's term that removes it, the likely missing term named in the warning)
 TERMS = {
@@ -30,7 +32,7 @@ MIN_EQUATIONS = 100      # fewer equations of a joint: no warning (too little to
 
 def features(q: np.ndarray, qd: np.ndarray) -> np.ndarray:
     """(N, n, 4): 1, sign(qd), qd, q of each sample and joint (FEATURES' order)."""
-    return np.stack([np.ones_like(qd), np.sign(qd), qd, q], axis=-1)
+    return np.stack([np.ones_like(qd), coulomb_sign(qd), qd, q], axis=-1)
 
 
 class ModelTermStatistics:

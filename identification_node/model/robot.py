@@ -28,6 +28,7 @@ import numpy as np
 import pinocchio as pin
 
 from identification_node.errors import IdentificationError
+from identification_node.model.coulomb import coulomb_sign
 
 LINK_PARAMS = ('m', 'mx', 'my', 'mz', 'Ixx', 'Ixy', 'Ixz', 'Iyy', 'Iyz', 'Izz')
 JOINT_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
@@ -450,7 +451,7 @@ class RobotModel:
             ne = len(self.extras)
             cols = {'fv': qd, 'fo': np.ones_like(qd), 'Ia': qdd,
                     'fc': (np.tanh(qd / self.coulomb_velocity) if self.coulomb_velocity > 0
-                           else np.sign(qd))}
+                           else coulomb_sign(qd))}
             rows = np.arange(self.dof)
             for k, e in enumerate(self.extras):
                 out[:, rows, ni + rows * ne + k] = cols[e]
@@ -481,7 +482,7 @@ class RobotModel:
         tau += qd * extra.get('fv', 0.0) + extra.get('fo', 0.0)
         if 'fc' in extra:
             tau += extra['fc'] * (np.tanh(qd / self.coulomb_velocity)
-                                  if self.coulomb_velocity > 0 else np.sign(qd))
+                                  if self.coulomb_velocity > 0 else coulomb_sign(qd))
         return tau
 
 

@@ -35,6 +35,7 @@ import scipy.fft as sp_fft
 import scipy.signal as sps
 
 from identification_node.errors import IdentificationError
+from identification_node.model.coulomb import coulomb_sign
 
 _BLOCK = 4096   # windows per batched solve: bounds memory for long offline calls
 # A window counts as uniformly sampled when its stamp steps differ by at most this fraction of
@@ -105,7 +106,8 @@ def smoothed_sign(v: np.ndarray, a: np.ndarray, half_window: int, order: int,
     zero linearly within the window: sum_i w_i sign(v + a i period) over i = -L..L (value
     weights w, value_weights), from the smoothed velocity v and acceleration a (same shape,
     rad/s and rad/s^2) and the sample period (s). Equal to sign(v) where no reversal lies in
-    the window; a Coulomb column of it is what the smoothed torque holds of sign friction."""
+    the window, 0 at rest (coulomb_sign); a Coulomb column of it is what the smoothed torque
+    holds of sign friction."""
     L = int(half_window)
     cum = _cumulative_value_weights(L, int(order))   # cum[k]: weights of i < k - L
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -115,7 +117,7 @@ def smoothed_sign(v: np.ndarray, a: np.ndarray, half_window: int, order: int,
     through = np.clip(np.floor(x) + L + 1, 0, 2 * L + 1).astype(np.int64)  # samples i <= x
     # the other sign lies before the crossing when it is behind (x < 0), after it when ahead
     other = np.where(x < 0, cum[before], cum[-1] - cum[through])
-    return np.sign(v) * (1.0 - 2.0 * other)
+    return coulomb_sign(v) * (1.0 - 2.0 * other)
 
 
 @functools.lru_cache(maxsize=4096)
