@@ -216,22 +216,21 @@ class DesignProblem:
         assert self.checker is not None   # called only with collision constraints
         key = x.tobytes()
         cached = self._collision
-        need = self.checker.min_distance + COLLISION_PAD
-        if cached is None or cached[0] != key or (jac and cached[2] is None):
+        if cached is None or cached[0] != key:
             self.tick()
-            q = self.collision_configs(x)                            # (S, n)
-            d = cached[1] if cached is not None and cached[0] == key else (
-                self.checker.distances(q))                           # (S, P)
-            g = None
-            if jac:   # where a sample's KS weight counts (GRADIENT_WEIGHT): (S, P, n)
-                w = ks_max(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)[1]
-                g = self.checker.gradients(q, w > GRADIENT_WEIGHT)
-            self._collision = cached = (key, d, g)
-        _, d, g = cached
+            d, g = self.checker.distances(self.collision_configs(x)), None      # (S, P)
+        else:
+            _, d, g = cached
+            if jac and g is None:
+                self.tick()
+        need = self.checker.min_distance + COLLISION_PAD
         ks, w = ks_max(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
+        if jac and g is None:   # where a sample's KS weight counts (GRADIENT_WEIGHT): (S, P, n)
+            g = self.checker.gradients(self.collision_configs(x), w > GRADIENT_WEIGHT)
+        self._collision = (key, d, g)
         if not jac:
             return ks, None
-        assert g is not None   # computed with the Jacobian
+        assert g is not None   # computed above
         # d r / d x[i, :] = -g[s, p, i] Bc[s, :] / scale, weighted by w[s, p]
         dks = -np.einsum('sp,spi,sk->pik', w, g, self.Bc) / COLLISION_SCALE
         return ks, dks.reshape(len(ks), -1)

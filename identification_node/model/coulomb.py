@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['REST_SPEED', 'coulomb_sign']
+__all__ = ['REST_SPEED', 'coulomb_column', 'coulomb_sign']
 
 REST_SPEED = 1e-9   # rad/s (m/s for prisms): far below any encoder's resolution of a motion
 
@@ -18,3 +18,9 @@ def coulomb_sign(qd: np.ndarray) -> np.ndarray:
     """sign(qd), 0 where |qd| <= REST_SPEED (same shape)."""
     qd = np.asarray(qd, dtype=float)
     return np.where(np.abs(qd) > REST_SPEED, np.sign(qd), 0.0)
+
+
+def coulomb_column(qd: np.ndarray, coulomb_velocity: float) -> np.ndarray:
+    """The Coulomb term per unit fc: tanh(qd / coulomb_velocity), or coulomb_sign(qd) when
+    coulomb_velocity is 0."""
+    return np.tanh(qd / coulomb_velocity) if coulomb_velocity > 0 else coulomb_sign(qd)

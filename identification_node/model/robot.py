@@ -28,7 +28,7 @@ import numpy as np
 import pinocchio as pin
 
 from identification_node.errors import IdentificationError
-from identification_node.model.coulomb import coulomb_sign
+from identification_node.model.coulomb import coulomb_column
 
 LINK_PARAMS = ('m', 'mx', 'my', 'mz', 'Ixx', 'Ixy', 'Ixz', 'Iyy', 'Iyz', 'Izz')
 JOINT_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
@@ -450,8 +450,7 @@ class RobotModel:
             out[:, :, ni:] = 0.0
             ne = len(self.extras)
             cols = {'fv': qd, 'fo': np.ones_like(qd), 'Ia': qdd,
-                    'fc': (np.tanh(qd / self.coulomb_velocity) if self.coulomb_velocity > 0
-                           else coulomb_sign(qd))}
+                    'fc': coulomb_column(qd, self.coulomb_velocity)}
             rows = np.arange(self.dof)
             for k, e in enumerate(self.extras):
                 out[:, rows, ni + rows * ne + k] = cols[e]
@@ -481,8 +480,7 @@ class RobotModel:
         tau += qdd * (extra.get('Ia', 0.0) - armature)  # rnea may already include armature
         tau += qd * extra.get('fv', 0.0) + extra.get('fo', 0.0)
         if 'fc' in extra:
-            tau += extra['fc'] * (np.tanh(qd / self.coulomb_velocity)
-                                  if self.coulomb_velocity > 0 else coulomb_sign(qd))
+            tau += extra['fc'] * coulomb_column(qd, self.coulomb_velocity)
         return tau
 
 

@@ -57,11 +57,12 @@ def gravity_check(robot: RobotModel, base: BaseParameters, theta: np.ndarray,
     out = {}
     for j in np.flatnonzero(rms >= MIN_SHARE * rms.max()):
         gm = g_model[:, j]
-        slope = float(g_est[:, j] @ gm / (gm @ gm))
+        gg = gm @ gm
         r, c = residual[:, j] - residual[:, j].mean(), gm - gm.mean()
         scale = np.sqrt((r @ r) * (c @ c))
-        out[robot.joint_names[j]] = GravityFit(slope, float(r @ c / scale) if scale > 0 else 0.0,
-                                               float(residual[:, j] @ gm / (gm @ gm)))
+        out[robot.joint_names[j]] = GravityFit(float(g_est[:, j] @ gm / gg),
+                                               float(r @ c / scale) if scale > 0 else 0.0,
+                                               float(residual[:, j] @ gm / gg))
     return out
 
 
