@@ -270,6 +270,30 @@ def test_long_windows_of_jittered_stamps_by_sliding_sums_equal_the_direct_fit(mo
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.abs(b).max())
 
 
+def test_fit_at_many_long_windows_by_fft_equals_each_windows_polynomial_fit(monkeypatch):
+    """The smoother's choice fits 500 scattered long windows (uniform stamps): every window
+    of their span by FFT, picked at the centres, equals each window's own least-squares
+    cubic (numpy.polynomial), value and derivatives, from a late start too."""
+    rng = np.random.default_rng(7)
+    n, L = 5000, 400
+    for t0 in (0.0, 1000.0):
+        t = t0 + np.arange(n) * 1e-3
+        x = np.column_stack([np.sin(3 * (t - t0)), 5 + 0.01 * rng.standard_normal(n)])
+        centres = np.sort(rng.choice(np.arange(L, n - L), 500, replace=False))
+        smoother = FixedLagSmoother(2, half_window=L, order=3)
+        monkeypatch.setattr(smoother, '_fit_at_uniform', None)   # not the gathering path
+        value, first, second = smoother.fit_at(t, x, centres)
+        for i in rng.choice(len(centres), 12, replace=False):
+            c = centres[i]
+            u = t[c - L:c + L + 1] - t[c]
+            for j in range(2):
+                p = np.polynomial.Polynomial.fit(u, x[c - L:c + L + 1, j], 3, domain=[-1, 1])
+                want = [p(0.0), p.deriv(1)(0.0), p.deriv(2)(0.0)]
+                scale = [1.0, 3.0, 9.0]
+                for got, w, s in zip((value, first, second), want, scale):
+                    assert abs(got[i, j] - w) <= 1e-8 * s, (t0, c, j, got[i, j], w)
+
+
 def test_long_uniform_push_in_blocks_equals_chunked_pushes():
     t = np.arange(9000) * 2.0 ** -10  # more windows than one block of the fixed-weight fit
     x = np.column_stack([np.sin(2 * t), np.cos(5 * t)])
