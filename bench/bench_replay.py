@@ -5,8 +5,10 @@ The bag: a simulated CRS A465 (6 joints) under the seeded 5-harmonic Fourier exc
 viscous and Coulomb friction of bags/crs_a465_friction.yaml), and /robot_description; made
 once per sample count and cached in bench/.cache/ (gitignored).
 
-(a) ours: ``identify_bag`` with config/crs_a465.yaml (measured torque, fv and fc identified),
-    the estimate read at the end.
+(a) ours: ``identify_bag`` with config/crs_a465.yaml (measured torque, fv and fc identified;
+    its smoother pinned at a half window of 10 samples for the bundled bags), the estimate
+    read at the end; ``ours auto``: the same with the shipped smoother (chosen automatically
+    from the first 5 s of motion), what a user replaying another bag gets.
 (a') ours on every core (``--workers N``, default the machine's cores; 1: not run): the same
     settings through replay/parallel.py, the bag cut into N about equal segments (at
     multiples of the 10 s residual grid) in N processes (fork),
@@ -83,24 +85,34 @@ def make_bag(samples: int) -> Path:
     return path
 
 
-def run_ours(bag: Path) -> tuple[int, np.ndarray]:
-    """Offline identification through the live pipeline; (samples used, base estimate)."""
-    from identification_node.replay.stream import identify_bag
+def _settings(automatic: bool = False):
+    """The benchmark's settings: config/crs_a465.yaml, with the shipped automatic smoother
+    instead of its pinned half window when ``automatic``."""
     from identification_node.settings import Settings, read_parameter_file
 
-    settings = Settings.from_dict(read_parameter_file(CONFIG))
+    params = read_parameter_file(CONFIG)
+    if automatic:
+        params['smoother.half_window'] = 0
+    return Settings.from_dict(params)
+
+
+def run_ours(bag: Path, automatic: bool = False) -> tuple[int, np.ndarray]:
+    """Offline identification through the live pipeline; (samples used, base estimate)."""
+    from identification_node.replay.stream import identify_bag
+
+    settings = _settings(automatic)
     robot = settings.load_robot()
     result = identify_bag(bag, settings, robot)
     estimate = result.pipeline.estimate()
     return result.messages, estimate.values
 
 
-def run_parallel(bag: Path, workers: int) -> tuple[int, np.ndarray]:
+def run_parallel(bag: Path, workers: int, automatic: bool = False
+                 ) -> tuple[int, np.ndarray]:
     """ours through identify --workers N's path; (messages, base estimate)."""
     from identification_node.replay.parallel import parallel_identify
-    from identification_node.settings import Settings, read_parameter_file
 
-    settings = Settings.from_dict(read_parameter_file(CONFIG))
+    settings = _settings(automatic)
     robot = settings.load_robot()
     ident = parallel_identify(bag, settings, robot, workers)
     if ident is None:
@@ -147,7 +159,12 @@ def _status_kib(field: str) -> int:
     return int(re.search(rf'^{field}:\s+(\d+)', text, re.M).group(1))
 
 
-PIPELINES = {'ours': run_ours, 'naive': run_naive}
+def run_ours_auto(bag: Path) -> tuple[int, np.ndarray]:
+    """ours with the shipped (automatic) smoother."""
+    return run_ours(bag, automatic=True)
+
+
+PIPELINES = {'ours': run_ours, 'ours auto': run_ours_auto, 'naive': run_naive}
 
 
 def throughput(bags: dict, repeat: int) -> dict:
@@ -237,31 +254,39 @@ def main() -> None:
     runs = {name: (fn, bag) for name, fn in PIPELINES.items()}
     if workers > 1:
         runs['ours xN'] = (lambda b: run_parallel(b, workers), bag)
+        runs['ours auto xN'] = (lambda b: run_parallel(b, workers, True), bag)
     speed = throughput(runs, args.repeat)
     rows = {name: (*speed[name], traced_peak(fn, bag), rss_peak(name, bag))
             for name, fn in PIPELINES.items()}
     half_n = run_ours(half)[0]
-    half_mem = traced_peak(run_ours, half), rss_peak('ours', half)
+    half_mem = {name: (traced_peak(PIPELINES[name], half), rss_peak(name, half))
+                for name in ('ours', 'ours auto')}
     print(f'bag: {bag.relative_to(ROOT)} ({args.samples} joint states, CRS A465, 6 joints), '
           f'best of {args.repeat}, OPENBLAS_NUM_THREADS={os.environ["OPENBLAS_NUM_THREADS"]}')
-    print(f'{"":7s}{"samples":>8s}{"wall s":>8s}{"CPU s":>7s}{"samples/s":>11s}'
+    print(f'{"":10s}{"samples":>8s}{"wall s":>8s}{"CPU s":>7s}{"samples/s":>11s}'
           f'{"tracemalloc peak":>18s}{"peak RSS":>12s}')
     for name, (n, wall, cpu, traced, rss) in rows.items():
-        print(f'{name:7s}{n:8d}{wall:8.2f}{cpu:7.2f}{n / wall:11.0f}{traced:14.1f} MiB'
+        print(f'{name:10s}{n:8d}{wall:8.2f}{cpu:7.2f}{n / wall:11.0f}{traced:14.1f} MiB'
               f'{rss:8.1f} MiB')
     ours, naive = rows['ours'], rows['naive']
-    if 'ours xN' in speed:
-        n, wall, cpu = speed['ours xN']
-        naive_rate = naive[0] / naive[1]
-        print(f'ours on {workers} workers (identify --workers {workers}): {n} samples, '
+    for name in ('ours', 'ours auto'):
+        if f'{name} xN' not in speed:
+            continue
+        n, wall, cpu = speed[f'{name} xN']
+        one = rows[name]
+        print(f'{name} on {workers} workers (identify --workers {workers}): {n} samples, '
               f'{wall:.2f} s wall, {n / wall:.0f} samples/s (parent CPU {cpu:.2f} s): '
-              f'{(n / wall) / naive_rate:.2f}x naive, {(n / wall) / (ours[0] / ours[1]):.2f}x '
-              'ours on one core')
-    print(f'ours/naive: throughput {(ours[0] / ours[1]) / (naive[0] / naive[1]):.2f}x '
-          f'(CPU time {(naive[2] / naive[0]) / (ours[2] / ours[0]):.2f}x); peak memory '
-          f'{ours[3] / naive[3]:.3f}x (tracemalloc), {ours[4] / naive[4]:.3f}x (RSS)')
-    print(f'ours on {half_n} samples: tracemalloc peak {half_mem[0]:.1f} MiB, peak RSS '
-          f'{half_mem[1]:.1f} MiB (on {ours[0]}: {ours[3]:.1f} MiB, {ours[4]:.1f} MiB)')
+              f'{(n / wall) / (naive[0] / naive[1]):.2f}x naive, '
+              f'{(n / wall) / (one[0] / one[1]):.2f}x {name} on one core')
+    for name in ('ours', 'ours auto'):
+        r = rows[name]
+        print(f'{name}/naive: throughput {(r[0] / r[1]) / (naive[0] / naive[1]):.2f}x '
+              f'(CPU time {(naive[2] / naive[0]) / (r[2] / r[0]):.2f}x); peak memory '
+              f'{r[3] / naive[3]:.3f}x (tracemalloc), {r[4] / naive[4]:.3f}x (RSS)')
+    for name, (traced, rss) in half_mem.items():
+        r = rows[name]
+        print(f'{name} on {half_n} samples: tracemalloc peak {traced:.1f} MiB, peak RSS '
+              f'{rss:.1f} MiB (on {r[0]}: {r[3]:.1f} MiB, {r[4]:.1f} MiB)')
     per_sample, binding = regressor_cost()
     total = ours[1] / ours[0] * 1e6
     print(f'pinocchio\'s regressor in ours: {per_sample:.2f} us per sample of ours\' '
