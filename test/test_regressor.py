@@ -273,6 +273,26 @@ def test_so100_with_its_gripper_locked():
                      plain_rnea(path, joints, q, qd, qdd))
 
 
+def test_massless_links_keep_their_rotational_inertia():
+    """example-robot-data's human arm writes each ball joint as three revolute joints with
+    massless links between them: the model rebuilt from the standard parameters (rnea, the
+    simulator) is the URDF's, as pinocchio's RNEA of the file and the regressor say."""
+    from arms import robots_dir
+    path = robots_dir() / 'human_description' / 'robots' / 'human.urdf'
+    joints = ['right_shoulder_Z', 'right_shoulder_X', 'right_shoulder_Y', 'right_elbow_Z',
+              'right_elbow_Y', 'right_wrist_Z', 'right_wrist_X']
+    robot = load_robot(str(path), joints)
+    assert robot.phi_model[robot.param_index('right_upperarm_virtual.m')] == 0.0
+    q, qd, qdd = samples(robot, 20, seed=6)
+    want = plain_rnea(path, joints, q, qd, qdd)
+    assert_rel_close(robot.rnea(q, qd, qdd, robot.phi_model), want)   # rebuilt from phi
+    assert_rel_close(robot.regressor(q, qd, qdd) @ robot.phi_model, want)
+    phi = robot.phi_model.copy()
+    phi[robot.param_index('right_upperarm_virtual.mx')] = 0.01
+    with pytest.raises(IdentificationError, match='right_upperarm_virtual: a first moment'):
+        robot.pinocchio_model(phi)
+
+
 def test_locked_link_mass_merged_mit():
     full = load_robot('mit_dd_arm')
     reduced = load_robot('mit_dd_arm', ['joint1', 'joint2'], locked_positions={'joint3': 0.3})

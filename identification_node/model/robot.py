@@ -182,6 +182,22 @@ def _is_prismatic(joint: pin.JointModel) -> bool:
     return 'Prismatic' in joint.shortname() or joint.shortname().startswith('JointModelP')
 
 
+def _pin_inertia(link_phi: np.ndarray, link: str) -> pin.Inertia:
+    """pinocchio's Inertia of one link's standard parameters (10,). A massless link (between
+    the joints of a ball joint written as three revolute ones, say) keeps its rotational
+    inertia: Inertia.FromDynamicParameters divides the first moment by the mass (NaN)."""
+    if link_phi[0] != 0.0:
+        dyn = np.empty(10)
+        dyn[PIN_ORDER] = link_phi
+        return pin.Inertia.FromDynamicParameters(dyn)
+    if np.any(link_phi[1:4] != 0.0):
+        raise IdentificationError(f'link {link}: a first moment {link_phi[1:4].tolist()} kg m '
+                                  'without mass is no rigid body')
+    ixx, ixy, ixz, iyy, iyz, izz = link_phi[4:]
+    return pin.Inertia(0.0, np.zeros(3), np.array([[ixx, ixy, ixz], [ixy, iyy, iyz],
+                                                   [ixz, iyz, izz]]))
+
+
 class RobotModel:
     """The identified joints of a rigid-body model and their regressor.
 
@@ -357,10 +373,8 @@ class RobotModel:
         if phi is None:
             return model
         phi = self._check_phi(phi)
-        dyn = np.empty(10)
         for i, j in enumerate(self.joint_ids):
-            dyn[PIN_ORDER] = phi[10 * i:10 * i + 10]
-            model.inertias[j] = pin.Inertia.FromDynamicParameters(dyn)
+            model.inertias[j] = _pin_inertia(phi[10 * i:10 * i + 10], self.link_names[i])
         fields = {'Ia': 'armature', 'fv': 'damping', 'fc': 'friction'}
         for k, e in enumerate(self.extras):
             if e in fields:
