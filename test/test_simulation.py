@@ -84,6 +84,30 @@ def test_six_dof_consistency_and_tracking():
     assert np.abs(traj.sample(res.t)[0] - res.q).max() < 1e-3
 
 
+def test_stiff_viscous_friction_on_light_links_takes_more_steps(monkeypatch):
+    """example-robot-data's iCub damps every joint by 1 N m s/rad (URDF <dynamics>) while
+    its arm's links weigh down to 1e-5 kg m^2: one RK4 step per 1 kHz sample diverges. The
+    simulator takes the steps the damping needs and follows the motion, each sample's
+    torque the inverse dynamics of its state."""
+    from arms import robots_dir
+    from identification_node.simulation import simulator
+    robot = load_robot(str(robots_dir() / 'icub_description' / 'robots' / 'icub_reduced.urdf'),
+                       ['l_shoulder_pitch', 'l_shoulder_roll', 'l_shoulder_yaw', 'l_elbow',
+                        'l_wrist_prosup', 'l_wrist_pitch', 'l_wrist_yaw'], extras=('fv',))
+    assert np.all(robot.phi_model[robot.n_inertial:] == 1.0)
+    traj = FourierTrajectory.random(robot, harmonics=5, period=10.0, seed=1)
+    sim = ArmSimulator(robot)
+    assert sim.substeps > 1
+    res = sim.run(traj, duration=1.0)
+    scale = np.abs(res.tau).max()
+    np.testing.assert_allclose(robot.inverse_dynamics(res.q, res.qd, res.qdd), res.tau,
+                               rtol=0, atol=1e-6 * scale)
+    assert np.abs(traj.sample(res.t)[0] - res.q).max() < 1e-3
+    monkeypatch.setattr(simulator, 'RK4_STEP', math.inf)   # one step per sample, as before
+    with pytest.raises(IdentificationError, match='diverged'):
+        ArmSimulator(robot).run(traj, duration=1.0)
+
+
 def test_tracking_error_small(mit_full):
     traj = QuinticMoves.mit_paper()
     nominal, true = perturbed(mit_full)
