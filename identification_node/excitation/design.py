@@ -57,6 +57,7 @@ CANDIDATES = 8              # iterates (best first) verified as final candidates
 NEAR_FEASIBLE = 0.1         # KS constraint violation of the iterates still tried as candidates
 BLENDS = (0.9, 0.75, 0.5, 0.3, 0.15)  # fractions of the way from the initial guess tried last
 PROGRESS_INTERVAL = 10.0    # s between progress lines, at most
+TOUCH_SCREEN = 20           # configurations screened for pairs that touch by design, first
 
 
 class _TimeUp(Exception):
@@ -111,6 +112,29 @@ class _Progress:
             self.report(f'iteration {self.iteration}: criterion {self.criterion} '
                         f'{self.value:.6g}{best}, worst constraint {self.worst:+.3g} '
                         f'(< 0: violated), {now - self.start:.0f} s')
+
+
+def _srdf_fix(checker) -> str:
+    return ('disable them in the SRDF' if checker.srdf is not None else
+            "the robot's SRDF (--srdf) leaves such pairs out")
+
+
+def _touching_by_design(checker, limits, screen: int | None = None) -> str:
+    """'' or what says which of the robot's own pairs are within the minimum distance in every
+    configuration sampled within ``limits`` (CollisionChecker.always_close: in contact by
+    design, so no motion meets them). ``screen``: that many samples first, the full check
+    only for a pair close in all of them."""
+    lo, hi = np.asarray(limits.position_limits, dtype=float).T
+    lo, hi = np.where(np.isfinite(lo), lo, -math.pi), np.where(np.isfinite(hi), hi, math.pi)
+    if screen is not None and not checker.always_close(lo, hi, samples=screen):
+        return ''
+    stuck = [p for p in checker.always_close(lo, hi) if checker.self_pair(p)]
+    if not stuck:
+        return ''
+    return (', '.join(f'{a} - {b}' for a, b in stuck[:3])
+            + (f' and {len(stuck) - 3} more' if len(stuck) > 3 else '')
+            + ' are within the minimum distance in every configuration sampled '
+            f'(they touch by design: {_srdf_fix(checker)})')
 
 
 def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
@@ -168,6 +192,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     work = limits.with_margin(margin)
     start_q = None if start is None else check_start(start, work)
     checker = checker if checker is not None and checker.num_pairs else None
+    if checker is not None:   # no motion meets a pair that always touches: say so at once
+        stuck = _touching_by_design(checker, work, TOUCH_SCREEN)
+        if stuck:
+            raise IdentificationError(f'no feasible excitation: {stuck}')
     if checker is not None and start_q is not None:
         c = checker.clearance(start_q[None])
         if c['distance'] < checker.min_distance:
@@ -294,20 +322,12 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                                                            False)
         hint = ''
         if checker is not None and self_collision:
-            lo, hi = np.asarray(work.position_limits, dtype=float).T
-            stuck = [p for p in checker.always_close(np.where(np.isfinite(lo), lo, -math.pi),
-                                                     np.where(np.isfinite(hi), hi, math.pi))
-                     if checker.self_pair(p)]
-            fix = ('disable them in the SRDF' if checker.srdf is not None else
-                   "the robot's SRDF (--srdf) leaves such pairs out")
-            if stuck:
-                hint = ('; ' + ', '.join(f'{a} - {b}' for a, b in stuck[:3])
-                        + (f' and {len(stuck) - 3} more' if len(stuck) > 3 else '')
-                        + ' are within the minimum distance in every configuration sampled '
-                        f'(they touch by design: {fix})')
+            hint = _touching_by_design(checker, work)
+            if hint:
+                hint = '; ' + hint
             elif checker.srdf is None:
                 hint = ('; without an SRDF every pair of links not on adjacent joints is '
-                        f'checked: {fix}')
+                        f"checked: {_srdf_fix(checker)}")
         raise IdentificationError(
             f'no feasible excitation found ({why}): loosen the limits or their margin, lower '
             'the minimum distance, or try another start configuration, seed or fewer '
