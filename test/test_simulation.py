@@ -108,6 +108,24 @@ def test_stiff_viscous_friction_on_light_links_takes_more_steps(monkeypatch):
         ArmSimulator(robot).run(traj, duration=1.0)
 
 
+def test_a_singular_configuration_is_named_when_the_simulation_diverges():
+    """example-robot-data's human arm writes its shoulder as three revolute joints with
+    massless links between them: its mass matrix is singular where two of their axes align.
+    The arm simulates (massless links kept: robot.pinocchio_model) until the motion nears such
+    a configuration, and the error says what the mass matrix did there."""
+    from arms import robots_dir
+    robot = load_robot(str(robots_dir() / 'human_description' / 'robots' / 'human.urdf'),
+                       ['right_shoulder_Z', 'right_shoulder_X', 'right_shoulder_Y',
+                        'right_elbow_Z', 'right_elbow_Y', 'right_wrist_Z', 'right_wrist_X'])
+    traj = FourierTrajectory.random(robot, harmonics=5, period=10.0, seed=1)
+    res = ArmSimulator(robot).run(traj, duration=1.5)
+    assert np.abs(traj.sample(res.t)[0] - res.q).max() < 1e-3
+    with pytest.raises(IdentificationError, match=r'diverged at t = 2\.0\d* s \(smallest '
+                       r'eigenvalue of the mass matrix at the reference there [0-9.e-]+, '
+                       r'0\.00247 at the start: a tiny one marks a singular configuration'):
+        ArmSimulator(robot).run(traj, duration=3.0)
+
+
 def test_tracking_error_small(mit_full):
     traj = QuinticMoves.mit_paper()
     nominal, true = perturbed(mit_full)

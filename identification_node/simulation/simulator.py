@@ -161,15 +161,23 @@ class _Dynamics:
         q = np.random.default_rng(0).uniform(lower, upper, (_PROBES, len(lower)))
         fastest = 0.0
         for qk in q:
-            Q, _ = self._config(qk, np.zeros(len(qk)))
-            M = pin.crba(self.model, self.data, Q)[np.ix_(self.idx_v, self.idx_v)]
-            M = np.triu(M) + np.triu(M, 1).T
             try:
-                rates = np.linalg.eigvals(np.linalg.solve(M, np.diag(self.fv)))
+                rates = np.linalg.eigvals(np.linalg.solve(self.mass_matrix(qk),
+                                                          np.diag(self.fv)))
             except np.linalg.LinAlgError:
                 continue
             fastest = max(fastest, float(np.max(rates.real)))
         return fastest
+
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
+        """The joint-space mass matrix (n, n) at joint positions q (n,), armature included."""
+        Q, _ = self._config(q, np.zeros(len(q)))
+        M = pin.crba(self.model, self.data, Q)[np.ix_(self.idx_v, self.idx_v)]
+        return np.triu(M) + np.triu(M, 1).T
+
+    def smallest_inertia(self, q: np.ndarray) -> float:
+        """kg m^2 (kg): the smallest eigenvalue of the mass matrix at q (n,)."""
+        return float(np.linalg.eigvalsh(self.mass_matrix(q))[0])
 
     def friction(self, qd: np.ndarray) -> np.ndarray:
         s = np.tanh(qd / self.cv) if self.cv > 0 else np.sign(qd)
@@ -309,7 +317,14 @@ class ArmSimulator:
             q = q + h / 6.0 * (qd + 2.0 * v2 + 2.0 * v3 + v4)
             qd = qd + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
-            raise IdentificationError(f'simulation diverged at t = {self.t:.4f} s')
+            assert self.trajectory is not None   # reset() before any step
+            start = self.trajectory.sample(np.array([self.t0]))[0][0]
+            here, there = (self._true.smallest_inertia(x) for x in (q_r, start))
+            raise IdentificationError(
+                f'simulation diverged at t = {self.t:.4f} s (smallest eigenvalue of the mass '
+                f'matrix at the reference there {here:.3g}, {there:.3g} at the start: '
+                'a tiny one marks a singular configuration, such as aligned axes with massless '
+                'links between them)')
         self.q, self.qd, self._tau = q, qd, command
         self._k += 1
         self.t = self.t0 + self._k / self.rate  # no drift from summing 1/rate
