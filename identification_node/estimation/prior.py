@@ -51,7 +51,8 @@ def safe_prior(robot) -> tuple[np.ndarray, list[str]]:
     for i in bad:
         given = phi[10 * i:10 * i + 10]
         m = float(given[0]) if np.isfinite(given[0]) and given[0] > 0 else fallback
-        if virtual[i] and not np.any(given):
+        massless = virtual[i] and not np.any(given)
+        if massless:
             m = VIRTUAL_MASS * fallback
         c = given[1:4] / given[0] if m == given[0] else np.zeros(3)
         if not np.isfinite(c).all():
@@ -62,7 +63,7 @@ def safe_prior(robot) -> tuple[np.ndarray, list[str]]:
             f"{m:.3g} kg at {'its centre of mass' if np.any(c) else 'the joint origin'}, "
             f'radius of gyration {FALLBACK_RADIUS:g} m'
             + ('; a link between concurrent joint axes, kept nearly massless'
-               if m == VIRTUAL_MASS * fallback and virtual[i] else ''))
+               if massless else ''))
     extras = phi[robot.n_inertial:]
     extras[~np.isfinite(extras)] = 0.0
     notes = [f'degenerate model inertial, replaced in the prior by a safe one '
