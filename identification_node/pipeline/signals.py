@@ -314,12 +314,11 @@ class FixedLagSmoother:
         rounding = 8 * np.finfo(float).eps * max(abs(t[0]), abs(t[-1]))
         uniform = d.size > 0 and d.max() - d.min() <= _UNIFORM_TOL * d.min() + rounding
         if uniform and self._long and starts.size:
-            first, span = int(starts.min()), int(starts.max() - starts.min()) + 1
+            lo, span = int(starts.min()), int(starts.max() - starts.min()) + 1
             if starts.size * (2 * self.half_window + 1) > 8 * (span + 2 * self.half_window):
                 # many long windows: all those of their span by FFT cost less than gathering
-                fits = self._fit_fft(t, x, first, span)[1:]
-                value, first_d, second = (f[starts - first] for f in fits)
-                return value, first_d, second
+                _, value, first, second = self._fit_fft(t, x, lo, span)
+                return value[starts - lo], first[starts - lo], second[starts - lo]
         parts = [self._fit_at_uniform(t, x, starts[i:i + self._block]) if uniform
                  else self._fit(t, x, starts[i:i + self._block])[1:]
                  for i in range(0, starts.size, self._block)] or [
