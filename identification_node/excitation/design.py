@@ -320,14 +320,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     if best is None:
         why, self_collision = reasons[-1] if reasons else ('no iterate met the constraints',
                                                            False)
-        hint = ''
-        if checker is not None and self_collision:
-            hint = _touching_by_design(checker, work)
-            if hint:
-                hint = '; ' + hint
-            elif checker.srdf is None:
-                hint = ('; without an SRDF every pair of links not on adjacent joints is '
-                        f"checked: {_srdf_fix(checker)}")
+        hint = ''   # (pairs that touch by design were named before optimising)
+        if checker is not None and self_collision and checker.srdf is None:
+            hint = ('; without an SRDF every pair of links not on adjacent joints is '
+                    f"checked: {_srdf_fix(checker)}")
         raise IdentificationError(
             f'no feasible excitation found ({why}): loosen the limits or their margin, lower '
             'the minimum distance, or try another start configuration, seed or fewer '
