@@ -252,8 +252,7 @@ def test_collision_checker_pairs_srdf_obstacles_and_gradients():
 
 def test_pairs_that_touch_by_design_are_refused_before_optimising():
     """A pair within the minimum distance in every configuration (here every pair, at 0.2 m)
-    leaves no feasible motion: said at once, naming the pairs, without an iteration (G1's
-    elbow and wrist links without an SRDF took 150 s of SLSQP to the same answer)."""
+    leaves no feasible motion: said at once, naming the pairs, without an iteration."""
     robot = load_robot(PANDA)
     lines = []
     with pytest.raises(IdentificationError, match=r'^no feasible excitation: \w+ - \w+, '

@@ -67,10 +67,9 @@ def test_without_the_mass_term_a_light_link_moves_the_wrong_way(tmp_path):
 def test_links_between_concurrent_axes_stay_massless(tmp_path):
     """example-robot-data's human arm writes its shoulder, elbow and wrist as revolute joints
     with massless links between concurrent axes. Simulated with its real links 30 % off the
-    URDF, identified with the defaults: the massless links stay nearly so (they had taken
-    0.4-1.2 kg of a 1.2 kg-per-link prior, the upper arm 5.4 kg), the real ones within 10 % of
-    the truth or between the URDF and the truth (the upper arm's mass turns about a fixed
-    point: the data do not tell it)."""
+    URDF, identified with the defaults: the massless links stay nearly so, the real ones
+    within 10 % of the truth or between the URDF and the truth (the upper arm's mass turns
+    about a fixed point: the data do not tell it)."""
     from arms import robots_dir
     from corpus import run_identify
     from identification_node.excitation.trajectories import FourierTrajectory
