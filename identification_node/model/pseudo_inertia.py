@@ -26,8 +26,8 @@ import numpy as np
 from scipy.linalg import eigh
 from scipy.optimize import brentq
 
-__all__ = ['FROM_J', 'from_pseudo_inertia', 'locked_scale', 'pseudo_inertia', 'regularised',
-           'repaired']
+__all__ = ['FROM_J', 'from_pseudo_inertia', 'inertia_about_origin', 'link_inertia',
+           'locked_scale', 'pseudo_inertia', 'regularised', 'repaired']
 
 # phi block (10,) = FROM_J @ vec(J) (J symmetric 4x4, row-major flattening)
 FROM_J = np.zeros((10, 16))
@@ -39,11 +39,25 @@ for _row, _terms in enumerate([
         FROM_J[_row, 4 * _a + _b] = _c
 
 
+def inertia_about_origin(phi10: np.ndarray) -> np.ndarray:
+    """The 3x3 inertia (kg m^2, about the frame origin) of a link block."""
+    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi10[4:]
+    return np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
+
+
+def link_inertia(phi10: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(mass, centre of mass (3,), inertia about the centre of mass (3, 3)) of one link block;
+    a massless one: centre at the origin, its inertia about the origin."""
+    m = float(phi10[0])
+    Io = inertia_about_origin(phi10)
+    c = phi10[1:4] / m if m != 0 else np.zeros(3)
+    return m, c, Io - m * (c @ c * np.eye(3) - np.outer(c, c))
+
+
 def pseudo_inertia(phi10: np.ndarray) -> np.ndarray:
     """The 4x4 pseudo-inertia of a link block (about the frame origin; kg m^2, kg m, kg)."""
     m, h = phi10[0], np.asarray(phi10[1:4])
-    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi10[4:]
-    inertia = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
+    inertia = inertia_about_origin(phi10)
     J = np.empty((4, 4))
     J[:3, :3] = 0.5 * np.trace(inertia) * np.eye(3) - inertia
     J[:3, 3] = J[3, :3] = h

@@ -29,6 +29,7 @@ import pinocchio as pin
 
 from identification_node.errors import IdentificationError
 from identification_node.model.coulomb import coulomb_column
+from identification_node.model.pseudo_inertia import link_inertia
 
 LINK_PARAMS = ('m', 'mx', 'my', 'mz', 'Ixx', 'Ixy', 'Ixz', 'Iyy', 'Iyz', 'Izz')
 JOINT_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
@@ -193,9 +194,7 @@ def _pin_inertia(link_phi: np.ndarray, link: str) -> pin.Inertia:
     if np.any(link_phi[1:4] != 0.0):
         raise IdentificationError(f'link {link}: a first moment {link_phi[1:4].tolist()} kg m '
                                   'without mass is no rigid body')
-    ixx, ixy, ixz, iyy, iyz, izz = link_phi[4:]
-    return pin.Inertia(0.0, np.zeros(3), np.array([[ixx, ixy, ixz], [ixy, iyy, iyz],
-                                                   [ixz, iyz, izz]]))
+    return pin.Inertia(*link_inertia(link_phi))
 
 
 class RobotModel:

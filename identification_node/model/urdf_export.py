@@ -17,17 +17,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pinocchio as pin
 
-from identification_node.model.pseudo_inertia import locked_scale, pseudo_inertia
+from identification_node.model.pseudo_inertia import link_inertia, locked_scale, pseudo_inertia
 from identification_node.model.robot import PIN_ORDER, RobotModel
-
-
-def link_inertia(phi10: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(mass, centre of mass (3,), inertia about the centre of mass (3, 3)) of one link block."""
-    m = float(phi10[0])
-    Ixx, Ixy, Ixz, Iyy, Iyz, Izz = phi10[4:]
-    Io = np.array([[Ixx, Ixy, Ixz], [Ixy, Iyy, Iyz], [Ixz, Iyz, Izz]])
-    c = phi10[1:4] / m if m != 0 else np.zeros(3)
-    return m, c, Io - m * (c @ c * np.eye(3) - np.outer(c, c))
 
 
 def inertia_problems(Ic: np.ndarray, rtol: float = 1e-9) -> list[str]:

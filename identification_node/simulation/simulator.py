@@ -17,6 +17,7 @@ import pinocchio as pin
 
 from identification_node.errors import IdentificationError
 from identification_node.excitation.trajectories import Trajectory, match_joints
+from identification_node.model.identifiability import sample_motion
 
 __all__ = ['DEFAULT_BANDWIDTH', 'DEFAULT_DAMPING', 'SensorNoise', 'SimResult',
            'default_converter', 'measure', 'ArmSimulator', 'simulate_kinematic']
@@ -151,16 +152,13 @@ class _Dynamics:
     def viscous_rate(self, robot) -> float:
         """1/s: the fastest decay fv / M of a joint motion under the viscous friction (the
         largest eigenvalue of M(q)^-1 diag(fv), M with the armature), over _PROBES seeded
-        configurations within the joint limits. An explicit step longer than RK4_STEP over
-        it diverges (iCub's URDF: 1 N m s/rad on every joint, links down to 1e-5 kg m^2)."""
+        configurations within the joint limits (identifiability.sample_motion). An explicit
+        step longer than RK4_STEP over it diverges (iCub's URDF: 1 N m s/rad on every joint,
+        links down to 1e-5 kg m^2)."""
         if not np.any(self.fv > 0):
             return 0.0
-        lower, upper = np.asarray(robot.position_limits, dtype=float).T
-        lower = np.where(np.isfinite(lower), lower, -math.pi)
-        upper = np.where(np.isfinite(upper), upper, math.pi)
-        q = np.random.default_rng(0).uniform(lower, upper, (_PROBES, len(lower)))
         fastest = 0.0
-        for qk in q:
+        for qk in sample_motion(robot, _PROBES, 0)[0]:
             try:
                 rates = np.linalg.eigvals(np.linalg.solve(self.mass_matrix(qk),
                                                           np.diag(self.fv)))
