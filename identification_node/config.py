@@ -253,10 +253,11 @@ class Config:
         [], 'per joint torque noise std for weighting, N m (empty: equal)', unit='N m',
         element=float)
     coulomb_exclusion_speed: float = setting(
-        0.1, 'rad/s (m/s); > 0 with fc identified: a joint equation is left out while |qd| < '
-        'this (the Coulomb column is what the smoother makes of sign(qd); with '
-        'coulomb_velocity > 0: while |qd| < this + |qdd| * smoother half window; batch: within '
-        "the filter's reach of |qd| < this); 0: none", unit='rad/s', range=(0.0, math.inf))
+        0.1, 'rad/s (prismatic joints: / 10 m/s); > 0 with fc identified: a joint equation is '
+        'left out while |qd| < this (the Coulomb column is what the smoother makes of '
+        'sign(qd); with coulomb_velocity > 0: while |qd| < this + |qdd| * smoother half '
+        "window; batch: within the filter's reach of |qd| < this); 0: none", unit='rad/s',
+        range=(0.0, math.inf))
     converged_ratio: float = setting(0.1, 'converged when parameter uncertainty < ratio * '
                                      'residual RMS')
     max_condition: float = setting(1e8, 'largest information condition number counted as '

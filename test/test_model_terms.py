@@ -20,6 +20,7 @@ from identification_node.model.robot import load_robot
 from identification_node.simulation.simulator import SensorNoise, simulate_kinematic
 from identification_node.batch.solve import offline_identify
 from identification_node.replay.stream import replay_identify
+from identification_node.results.identification import exclusion_warnings
 from identification_node.settings import Settings
 
 FV = np.array([0.5, 0.3, 0.1])      # N m s/rad, per joint of the MIT arm
@@ -167,6 +168,58 @@ def test_a_bag_without_friction_gives_consistent_inertials_and_friction_near_zer
     assert np.sqrt(np.mean(z[~friction] ** 2)) < 2.0
     assert np.all(np.abs(ident.theta[friction]) < 4 * ident.stddev[friction])
     assert ident.warnings == []
+
+
+RAIL = """<robot name="rail">
+  <link name="base"/>
+  <joint name="slide" type="prismatic"><parent link="base"/><child link="carriage"/>
+    <axis xyz="1 0 0"/><limit lower="-0.3" upper="0.3" effort="500" velocity="0.07"/></joint>
+  <link name="carriage"><inertial><origin xyz="0 0 0.05"/><mass value="5"/>
+    <inertia ixx="0.05" ixy="0" ixz="0" iyy="0.05" iyz="0" izz="0.05"/></inertial></link>
+  <joint name="arm" type="revolute"><parent link="carriage"/><child link="link"/>
+    <origin xyz="0 0 0.1"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="100" velocity="2"/></joint>
+  <link name="link"><inertial><origin xyz="0.2 0 0.01"/><mass value="2"/>
+    <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.02"/></inertial></link>
+</robot>"""
+
+
+@pytest.mark.parametrize('method', ['rls', 'batch'])
+def test_a_slow_linear_axis_keeps_its_equations_above_a_tenth_of_the_exclusion_speed(
+        tmp_path, method):
+    """A prismatic joint at most 0.06 m/s (TIAGo's torso lift: 0.07) with 20 N of Coulomb
+    friction: coulomb_exclusion_speed (0.1 rad/s) leaves out its equations below 0.01 m/s
+    only, as many as the true motion has there, and its fc is identified (0.1 m/s left out
+    every one)."""
+    fv, fc, fo, noise = [50.0, 0.3], np.array([20.0, 1.0]), [2.0, 0.1], [2.0, 0.2]
+    urdf = tmp_path / 'rail.urdf'
+    urdf.write_text(RAIL)
+    s = Settings.from_dict({'robot': str(urdf), 'torque_source': ['measured']})
+    robot = s.load_robot()
+    traj = FourierTrajectory.random(robot, period=10.0, seed=3)
+    t = np.arange(30000) / 1000.0
+    scale = 0.06 / np.abs(traj.sample(t)[1][:, 0]).max()
+    traj.a[0] *= scale
+    traj.b[0] *= scale
+    sim = simulate_kinematic(robot, None, traj, t,
+                             SensorNoise(encoder_counts=262144, velocity_std=0.001), seed=1)
+    tau = sim.tau + fv * sim.qd + fc * np.sign(sim.qd) + fo
+    tau += noise * np.random.default_rng(2).standard_normal(tau.shape)
+    bag = write_bag(tmp_path / 'bag', robot, t, sim.q_meas, sim.qd_meas, tau, description=RAIL)
+    ident = (replay_identify(bag, s, robot) if method == 'rls'
+             else offline_identify(bag, s, robot))
+    assert ident.warnings == []
+    k = [ident.base.names.index(f'{j}.fc') for j in robot.joint_names]
+    assert np.all(np.abs(ident.theta[k] - fc) < 4 * ident.stddev[k])
+    assert ident.stddev[k[0]] < 0.01 * fc[0]
+    if method == 'rls':   # the streaming rows: one equation per sample and joint
+        slow = np.mean(np.abs(sim.qd[:, 0]) < 0.01)
+        left_out = ident.details['excluded_per_joint']['slide'] / ident.num_samples
+        assert 0.1 < slow < 0.2 and left_out == pytest.approx(slow, abs=0.02)
+    assert exclusion_warnings(robot, np.array([95, 0]), 100, 0.1) == [
+        'slide: 95 % of its equations left out near velocity reversals (|qd| < 0.01 m/s, '
+        'coulomb_exclusion_speed 0.1 / 10 for a prismatic joint): a slow joint; lower '
+        'coulomb_exclusion_speed or set it to 0']
 
 
 # -- a missing term is flagged ----------------------------------------------------------------

@@ -176,9 +176,10 @@ def _plan_filtered(samples: BagSamples, options: BatchOptions, max_gap: float
     return segments, info
 
 
-def _reversal_mask(qd: np.ndarray, picks: np.ndarray, speed: float, reach: int) -> np.ndarray:
-    """(len(picks), n): False where the joint's speed falls below ``speed`` within ``reach``
-    samples of the row, so inside the filter's reach of a velocity reversal."""
+def _reversal_mask(qd: np.ndarray, picks: np.ndarray, speed: np.ndarray, reach: int
+                   ) -> np.ndarray:
+    """(len(picks), n): False where the joint's speed falls below its ``speed`` (n,) within
+    ``reach`` samples of the row, so inside the filter's reach of a velocity reversal."""
     slow = np.concatenate([np.zeros((1, qd.shape[1])), np.cumsum(np.abs(qd) < speed, axis=0)])
     lo = np.clip(picks - reach, 0, len(qd))
     hi = np.clip(picks + reach + 1, 0, len(qd))
@@ -186,7 +187,7 @@ def _reversal_mask(qd: np.ndarray, picks: np.ndarray, speed: float, reach: int) 
 
 
 def _segment_rows(seg: _Segment, robot: RobotModel, base: BaseParameters, cutoff: float,
-                  order: int, velocity_measured: bool, reversal_speed: float | None
+                  order: int, velocity_measured: bool, reversal_speed: np.ndarray | None
                   ) -> Iterator[BatchRows]:
     """Filtered, decimated rows of one uniform segment (parallel filtering, in chunks)."""
     t = (seg.stamps_ns - seg.stamps_ns[0]) * 1e-9
@@ -254,7 +255,7 @@ def fourier_fit(x: np.ndarray, period: float, max_harmonics: int, min_harmonics:
 
 def periodic_rows(stream: Stream, robot: RobotModel, base: BaseParameters, period: float,
                   harmonics: int | None, max_harmonics: int, min_harmonics: int,
-                  velocity_measured: bool, reversal_speed: float | None
+                  velocity_measured: bool, reversal_speed: np.ndarray | None
                   ) -> tuple[BatchRows, dict]:
     """Average a stream over its whole periods; rows of the averaged period, scaled by the
     inverse standard deviation of the averages (from the spread over the periods)."""
@@ -284,9 +285,11 @@ def periodic_rows(stream: Stream, robot: RobotModel, base: BaseParameters, perio
     return BatchRows(stamps, Yb, avg_tau.mean, scale, mask, features=model_features(q, qd)), info
 
 
-def reversal_exclusion_speed(settings: Settings, robot: RobotModel) -> float | None:
+def reversal_exclusion_speed(settings: Settings, robot: RobotModel) -> np.ndarray | None:
+    """(n,) coulomb_exclusion_speed per joint (RobotModel.in_joint_units), None when no
+    equation is left out."""
     speed = float(settings['coulomb_exclusion_speed'])
-    return speed if 'fc' in robot.extras and speed > 0 else None
+    return robot.in_joint_units(speed) if 'fc' in robot.extras and speed > 0 else None
 
 
 def harmonic_range(options: BatchOptions) -> tuple[float, int | None, int, int]:

@@ -161,8 +161,8 @@ def identify_samples(samples: BagSamples, settings: Settings, robot: RobotModel,
                               samples.first_ns), info,
         fit_equations=acc.fit.normal_equations(), fit_weights=fit.weights,
         warnings=([offset.describe()] if offset is not None and offset.level else [])
-        + exclusion_warnings(robot.joint_names, info['rows'] - acc.counts,
-                             info['rows'], settings['coulomb_exclusion_speed'])
+        + exclusion_warnings(robot, info['rows'] - acc.counts, info['rows'],
+                             settings['coulomb_exclusion_speed'])
         + missing_term_warnings(acc.terms, fit.theta, acc.fit.rss(fit.theta),
                                 robot.joint_names, robot.extras), time_offset=offset)
 
@@ -177,7 +177,7 @@ def _checkpoint(history: list, acc: _Accumulator, samples: int, stamp_ns: int) -
 
 
 def _periodic_history(stream: Stream, robot: RobotModel, base: BaseParameters,
-                      options: BatchOptions, info: dict, speed: float | None,
+                      options: BatchOptions, info: dict, speed: np.ndarray | None,
                       checkpoints: int) -> list[Checkpoint]:
     """The estimates from the first k whole periods, k = 2 .. all but the last."""
     period, periods = info['period_s'], info['periods']

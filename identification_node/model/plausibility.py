@@ -76,7 +76,7 @@ class PlausibilityBounds:
         n = robot.dof
         s.validate(n)
         k = s.margin
-        scale = np.where(robot.prismatic, 0.1, 1.0)   # prismatic defaults: m, m/s, m/s^2
+        scale = robot.in_joint_units(1.0)
         lo, hi = robot.position_limits[:, 0], robot.position_limits[:, 1]
         ranged = np.isfinite(lo) & np.isfinite(hi) & (hi >= lo)
         lo, hi = np.where(ranged, lo, 0.0), np.where(ranged, hi, 0.0)

@@ -37,6 +37,7 @@ JOINT_EXTRAS = ('fv', 'fc', 'fo', 'Ia')
 PIN_ORDER = np.array([0, 1, 2, 3, 4, 5, 7, 6, 8, 9])
 BUNDLED_DIR = Path(__file__).resolve().parent.parent / 'robots'
 _REGRESSOR_CHUNK = 128   # samples per stacked pinocchio regressor (bounds the work memory)
+PRISMATIC_SCALE = 0.1    # m per rad: a prismatic joint's share of a setting given in rad
 
 
 def bundled_robots() -> list[str]:
@@ -302,6 +303,11 @@ class RobotModel:
                 if name in movable and leader in movable:
                     put(name, gain * position(leader) + offset)
         return _reduced_model(full, lock, qref)
+
+    def in_joint_units(self, value: float) -> np.ndarray:
+        """(n,) a setting given in rad (rad/s, rad/s^2) for each joint: as is for revolute
+        joints, times PRISMATIC_SCALE (0.1 m/rad) for prismatic ones (m, m/s, m/s^2)."""
+        return value * np.where(self.prismatic, PRISMATIC_SCALE, 1.0)
 
     def _setup_indices(self) -> None:
         m = self.model

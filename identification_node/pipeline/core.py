@@ -78,7 +78,8 @@ class IdentificationPipeline:
                                       c.coulomb_exclusion_speed)
         self.estimator = OnlineEstimate(self.base.num_base, robot.dof, c,
                                         'fc' in robot.extras, self.samples.counters.reject,
-                                        smooths_sign(robot))
+                                        smooths_sign(robot),
+                                        robot.in_joint_units(c.coulomb_exclusion_speed))
         self.gate = self.estimator.gate    # robust.InnovationGate: listeners, events, counts
         # time_offset.TimeOffsetCheck: is the torque late or early against the motion?
         self.time_offset = TimeOffsetCheck(c.offset_warn, c.offset_refuse, c.offset_seconds,

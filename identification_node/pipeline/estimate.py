@@ -99,8 +99,13 @@ class OnlineEstimate:
     """RLS and residual statistics of ``num_base`` parameters over ``dof`` joints' rows."""
 
     def __init__(self, num_base: int, dof: int, config: PipelineConfig, coulomb: bool,
-                 reject=lambda reason, count: None, smoothed_sign: bool = False):
+                 reject=lambda reason, count: None, smoothed_sign: bool = False,
+                 exclusion_speed: np.ndarray | None = None):
         self.num_base, self.dof, self.config, self.coulomb = num_base, dof, config, coulomb
+        # (n,) coulomb_exclusion_speed per joint (RobotModel.in_joint_units); None: as given
+        self.exclusion_speed = (np.full(dof, float(config.coulomb_exclusion_speed))
+                                if exclusion_speed is None
+                                else np.asarray(exclusion_speed, dtype=float))
         # the rows' Coulomb column is the smoothed sign (rows.smooths_sign): reversals in the
         # smoothing window need no exclusion, only slow motion does
         self.smoothed_sign = bool(smoothed_sign)
@@ -303,7 +308,7 @@ class OnlineEstimate:
             return self._weights
         period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         reach = 0.0 if self.smoothed_sign else period * float(self.half_window or 0)
-        slow = near_reversal(qd, qdd, self.config.coulomb_exclusion_speed, reach)
+        slow = near_reversal(qd, qdd, self.exclusion_speed, reach)
         self._excluded += np.count_nonzero(slow, axis=0)
         w = np.ones(qd.shape) if self._weights is None else np.tile(self._weights, (len(qd), 1))
         w[slow] = 0.0

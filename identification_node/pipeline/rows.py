@@ -73,9 +73,11 @@ class SmootherChoice:
                 'source': self.source, 'auto_seconds_used': self.seconds}
 
 
-def near_reversal(qd: np.ndarray, qdd: np.ndarray, speed: float, reach: float) -> np.ndarray:
+def near_reversal(qd: np.ndarray, qdd: np.ndarray, speed: np.ndarray, reach: float
+                  ) -> np.ndarray:
     """Mask (N, n) of the joint equations whose smoothing window may hold a velocity
-    reversal: |qd| < speed + |qdd| reach, for smoothed qd (rad/s), qdd (rad/s^2) and the half
+    reversal: |qd| < speed + |qdd| reach, for smoothed qd (rad/s), qdd (rad/s^2), the speed
+    per joint (n,) (RobotModel.in_joint_units of coulomb_exclusion_speed) and the half
     window ``reach`` (s). There a sign friction torque turns faster than the smoother
     resolves, so those equations are left out when Coulomb friction is identified; with
     the smoothed sign in the Coulomb column (smooths_sign) the reach is 0: only the slow
@@ -109,15 +111,16 @@ class WindowSearch:
     measured qd (N, n) (None: differentiated) by the criterion of the module doc, one
     candidate window per ``step`` (the node's processing stays responsive); ``result``:
     the half window once ``done``, None when the samples are too few for three candidates.
-    ``weights`` (n,): per-joint weights of the fit; ``exclusion_speed`` > 0 (rad/s) with
-    Coulomb friction identified: the equations near_reversal left out, as the estimator
-    leaves them out."""
+    ``weights`` (n,): per-joint weights of the fit; ``exclusion_speed`` > 0 (rad/s; prismatic
+    joints: in_joint_units) with Coulomb friction identified: the equations near_reversal left
+    out, as the estimator leaves them out."""
 
     def __init__(self, robot: RobotModel, base: BaseParameters, t: np.ndarray, q: np.ndarray,
                  qd: np.ndarray | None, tau: np.ndarray, order: int, max_gap: float,
                  weights: np.ndarray | None = None, exclusion_speed: float = 0.0):
         self.robot, self.base, self.order, self.t = robot, base, int(order), t
-        self.exclusion_speed = float(exclusion_speed) if 'fc' in robot.extras else 0.0
+        self.exclusion = (robot.in_joint_units(float(exclusion_speed))
+                          if 'fc' in robot.extras and exclusion_speed > 0 else None)
         self.period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
         self.measured = qd is not None
         self.x = np.hstack([q, tau] if qd is None else [q, qd, tau])
@@ -159,8 +162,8 @@ class WindowSearch:
         y = v[:, -n:]
         if self.root is not None:
             Yb, y = Yb * self.root[None, :, None], y * self.root
-        if self.exclusion_speed > 0:
-            used = ~near_reversal(qd, qdd, self.exclusion_speed,
+        if self.exclusion is not None:
+            used = ~near_reversal(qd, qdd, self.exclusion,
                                   0.0 if smooth else L * self.period)
             Yb, y = Yb * used[:, :, None], y * used
         A = Yb.reshape(-1, b)

@@ -200,19 +200,23 @@ def from_replay(result: ReplayResult, series: TorqueSeries | None = None) -> Ide
          'time_offset': None if offset is None else offset.document()}, p,
         *pipeline_equations(p),
         warnings=([offset.describe()] if offset is not None and offset.level else [])
-        + exclusion_warnings(p.robot.joint_names, p.excluded_equations, p.used,
+        + exclusion_warnings(p.robot, p.excluded_equations, p.used,
                              p.config.coulomb_exclusion_speed)
         + p.model_term_warnings(), residual_scale=p.estimator.joint_scale, time_offset=offset)
 
 
-def exclusion_warnings(joints: list[str], excluded: np.ndarray, total: int, speed: float,
+def exclusion_warnings(robot: RobotModel, excluded: np.ndarray, total: int, speed: float,
                        most: float = 0.5) -> list[str]:
     """Warnings for the joints of which more than ``most`` of the ``total`` equations were
-    left out near velocity reversals (``excluded`` (n,))."""
+    left out near velocity reversals (``excluded`` (n,)) by coulomb_exclusion_speed
+    ``speed`` (rad/s; RobotModel.in_joint_units per joint)."""
     share = np.asarray(excluded, dtype=float) / max(int(total), 1)
+    speeds = robot.in_joint_units(speed)
     return [f'{j}: {100 * f:.0f} % of its equations left out near velocity reversals '
-            f'(coulomb_exclusion_speed {speed:g}): a slow joint; lower coulomb_exclusion_speed '
-            'or set it to 0' for j, f in zip(joints, share) if f > most]
+            f'(|qd| < {s:g} {"m/s" if p else "rad/s"}, coulomb_exclusion_speed {speed:g}'
+            f'{" / 10 for a prismatic joint" if p else ""}): a slow joint; lower '
+            'coulomb_exclusion_speed or set it to 0'
+            for j, f, s, p in zip(robot.joint_names, share, speeds, robot.prismatic) if f > most]
 
 
 def make_consistent(ident: Identification, options: ConsistencyOptions | None,
