@@ -9,6 +9,7 @@ import math
 import os
 import re
 import signal
+import subprocess
 import time
 import xml.etree.ElementTree as ET
 from functools import partial
@@ -107,8 +108,13 @@ def stop_process(proc) -> str:
     forced exit (1, said in the log) when a busy machine stretches the shutdown beyond its
     grace (the grace itself: test_node_faults). Returns the node's log (stderr)."""
     proc.send_signal(signal.SIGINT)
-    code = proc.wait(60)   # a bound for a hang, not a margin: the watchdog exits first
-    log = proc.stderr.read()
+    try:   # the pipes read while waiting: a node's output cannot fill them and block it
+        _, log = proc.communicate(timeout=60)   # a bound for a hang: the watchdog exits first
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError(f'no exit within 60 s of SIGINT; its log:\n{proc.communicate()[1]}'
+                             ) from None
+    code = proc.returncode
     assert code == 0 or (code == 1 and 'shutdown did not finish within' in log), (code, log)
     return log
 
