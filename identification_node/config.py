@@ -223,8 +223,9 @@ class Config:
     extras: list[str] = setting(['fv', 'fc', 'fo'], 'per-joint extra columns among fv '
                                 '(viscous), fc (Coulomb), fo (offset), Ia (rotor inertia); [] '
                                 'for none', empty_ok=True)
-    coulomb_velocity: float = setting(0.0, 'rad/s; > 0 smooths the Coulomb sign as tanh(qd / '
-                                      'value)', unit='rad/s', range=(0.0, math.inf))
+    coulomb_velocity: float = setting(0.0, 'rad/s (prismatic joints: / 10 m/s); > 0 smooths '
+                                      'the Coulomb sign as tanh(qd / value)', unit='rad/s',
+                                      range=(0.0, math.inf))
     torque_source: list[str] = setting(['measured'], 'per joint: measured, current or '
                                        'three_phase', per_joint=True)
     kt: list[float] = setting([1.0], 'per joint motor torque constant, N m/A', unit='N m/A',

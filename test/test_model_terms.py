@@ -222,6 +222,22 @@ def test_a_slow_linear_axis_keeps_its_equations_above_a_tenth_of_the_exclusion_s
         'coulomb_exclusion_speed or set it to 0']
 
 
+def test_a_prismatic_joint_smooths_its_coulomb_sign_over_a_tenth_of_coulomb_velocity(tmp_path):
+    """coulomb_velocity is rad/s as coulomb_exclusion_speed: tanh(qd / 0.1) on the revolute
+    joint, tanh(qd / 0.01) (m/s) on the prismatic one, in the regressor and in rnea."""
+    urdf = tmp_path / 'rail.urdf'
+    urdf.write_text(RAIL)
+    robot = load_robot(str(urdf), extras=['fc'], coulomb_velocity=0.1)
+    qd = np.array([[0.005, 0.05], [-0.02, -0.3]])
+    Y = robot.regressor(np.zeros((2, 2)), qd, np.zeros((2, 2)))
+    k = [robot.param_index(f'{j}.fc') for j in robot.joint_names]
+    np.testing.assert_allclose(Y[:, [0, 1], k], np.tanh(qd / [0.01, 0.1]), rtol=1e-12)
+    phi = robot.phi_model.copy()
+    phi[k] = [20.0, 1.0]
+    np.testing.assert_allclose(robot.rnea(np.zeros((2, 2)), qd, np.zeros((2, 2)), phi),
+                               Y @ phi, rtol=1e-9, atol=1e-9)
+
+
 # -- a missing term is flagged ----------------------------------------------------------------
 @pytest.mark.slow
 @pytest.mark.parametrize('method', ['rls', 'batch'])

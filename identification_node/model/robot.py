@@ -205,8 +205,9 @@ class RobotModel:
     ``name`` is the description's own (URDF ``<robot name>``), else the file's stem.
     ``joints`` selects and orders the identified joints; other movable joints are locked at
     ``locked_positions`` (default 0, or the neutral configuration). ``extras`` adds per-joint
-    columns from ``JOINT_EXTRAS``; ``coulomb_velocity`` > 0 replaces sign(qd) by
-    tanh(qd / coulomb_velocity) in the Coulomb column.
+    columns from ``JOINT_EXTRAS``; ``coulomb_velocity`` > 0 (rad/s; prismatic joints: / 10
+    m/s, in_joint_units) replaces sign(qd) by tanh(qd / coulomb_velocity) in the Coulomb
+    column.
     """
 
     def __init__(self, description: str | os.PathLike, joints: Sequence[str] | None = None, *,
@@ -469,7 +470,7 @@ class RobotModel:
             out[:, :, ni:] = 0.0
             ne = len(self.extras)
             cols = {'fv': qd, 'fo': np.ones_like(qd), 'Ia': qdd,
-                    'fc': coulomb_column(qd, self.coulomb_velocity)}
+                    'fc': coulomb_column(qd, self.in_joint_units(self.coulomb_velocity))}
             rows = np.arange(self.dof)
             for k, e in enumerate(self.extras):
                 out[:, rows, ni + rows * ne + k] = cols[e]
@@ -499,7 +500,7 @@ class RobotModel:
         tau += qdd * (extra.get('Ia', 0.0) - armature)  # rnea may already include armature
         tau += qd * extra.get('fv', 0.0) + extra.get('fo', 0.0)
         if 'fc' in extra:
-            tau += extra['fc'] * coulomb_column(qd, self.coulomb_velocity)
+            tau += extra['fc'] * coulomb_column(qd, self.in_joint_units(self.coulomb_velocity))
         return tau
 
 
