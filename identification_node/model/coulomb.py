@@ -22,7 +22,6 @@ def coulomb_sign(qd: np.ndarray) -> np.ndarray:
 
 def coulomb_column(qd: np.ndarray, coulomb_velocity: float | np.ndarray) -> np.ndarray:
     """The Coulomb term per unit fc: tanh(qd / coulomb_velocity) (one value, or one per joint
-    of qd's last axis), or coulomb_sign(qd) where coulomb_velocity is 0."""
+    of qd's last axis, all > 0), or coulomb_sign(qd) when coulomb_velocity is 0."""
     v = np.asarray(coulomb_velocity, dtype=float)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        return np.where(v > 0, np.tanh(qd / v), coulomb_sign(qd))
+    return np.tanh(qd / v) if np.all(v > 0) else coulomb_sign(qd)
