@@ -114,7 +114,8 @@ class Plausibility:
 class Robust:
     """``robust.*``: innovation gating of outliers (estimation/robust.py)."""
     enabled: bool = setting(True, 'innovation gating of outliers once the estimate converged')
-    k: float = setting(5.0, 'a sample beyond k residual standard deviations is an outlier')
+    k: float = setting(5.0, "a sample beyond k standard deviations of its innovation (the "
+                       "residual's and the estimate's own, y P y') is an outlier")
     window: int = setting(1000, 'samples over which the fraction of outliers is watched',
                           unit='samples')
     shift_fraction: float = setting(

@@ -250,6 +250,16 @@ def test_a_sustained_shift_is_reported_and_not_hidden():
     assert moved(est, ref) < 1.0
 
 
+@pytest.mark.parametrize('chunk', [1, 50, 997, 2000])
+def test_clean_samples_are_not_gated_however_they_are_batched(chunk):
+    """No outlier in the stream, none gated: the gate arms on whichever batch comes once the
+    estimate converged, and the next samples' motion is not yet the fit's. Their innovation
+    has the estimate's own variance too (y P y'); the residual's alone gated 45 (chunks of
+    997) and 75 (2000) of these clean samples, as a live node's batches did under load."""
+    p = run(simulate(), chunk=chunk)
+    assert p.gate.armed and p.rejected['outlier'] == 0
+
+
 def test_gate_unit_behaviour():
     gate = InnovationGate(RobustSettings(k=3.0, window=100, shift_fraction=0.5))
     r = np.zeros((10, 2))
@@ -267,6 +277,10 @@ def test_gate_unit_behaviour():
     assert keep.all() and not gate.suspended       # the fraction fell: gating again
     keep, _ = gate.screen(r, np.ones(2))
     assert not keep[3]
+    sigma = np.ones((10, 2))
+    sigma[3] = 4.0                                 # this sample's innovation is wider
+    keep, _ = gate.screen(r, sigma)
+    assert keep.all()
 
 
 def test_gate_arms_only_on_a_batch_the_estimate_predicts():

@@ -2,8 +2,10 @@
 spikes without hiding a sustained residual shift.
 
 Once the estimate has converged, a sample whose torque residual (measured minus predicted by
-the current estimate) exceeds ``k`` residual standard deviations on any joint is an outlier:
-it is held back from the estimator and counted. One sample, or a burst of a few per cent, then
+the current estimate) exceeds ``k`` standard deviations of that innovation on any joint is an
+outlier: it is held back from the estimator and counted. The innovation's variance is the
+residual's and the estimate's own on that sample, y P y' (large on motion the fit has not
+seen yet). One sample, or a burst of a few per cent, then
 cannot move a converged estimate. A payload change looks different: most samples miss the
 model, for as long as it lasts. When at least ``shift_fraction`` of the last ``window``
 samples were gated, the gate reports a residual shift (``events``, ``listeners``), gives the
@@ -36,7 +38,7 @@ ARM_FRACTION = 0.05   # of a batch's samples beyond k sigma, at most, for the ga
 class RobustSettings:
     """The gate's settings (the node's ``robust.*`` parameters)."""
     enabled: bool = Robust.enabled
-    k: float = Robust.k                     # residual standard deviations beyond: gated
+    k: float = Robust.k                     # innovation standard deviations beyond: gated
     window: int = Robust.window             # samples over which the gated fraction is watched
     shift_fraction: float = Robust.shift_fraction   # gated fraction that is a residual shift
 
@@ -86,25 +88,27 @@ class InnovationGate:
         return self._gated / max(self._samples, int(self.settings.window))
 
     def beyond(self, residuals: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        """Mask (N,) of the samples whose residual (N, n) exceeds k sigma (n,) on any joint
-        (NaN residuals included)."""
+        """Mask (N,) of the samples whose residual (N, n) exceeds k sigma ((n,) or (N, n)) on
+        any joint (NaN residuals included; a non-finite sigma gates nothing)."""
         scale = np.where(np.isfinite(sigma) & (sigma > 0), sigma, np.inf)
         with np.errstate(invalid='ignore'):
             return (~(np.abs(residuals) <= self.settings.k * scale)).any(axis=1)
 
     def arm(self, residuals: np.ndarray, sigma: np.ndarray) -> bool:
         """Arm when at most ARM_FRACTION of the batch's residuals (N, n) of the converged
-        estimate are beyond k sigma (n,): it predicts motion it has not been fitted to."""
+        estimate are beyond k sigma ((n,) or (N, n)): it predicts motion it has not been
+        fitted to."""
         if len(residuals):
             self.armed = bool(np.mean(self.beyond(residuals, sigma)) <= ARM_FRACTION)
         return self.armed
 
     def screen(self, residuals: np.ndarray, sigma: np.ndarray, held: Any = None,
                stamp: float = math.nan) -> tuple[np.ndarray, list]:
-        """Decide a batch: residuals (N, n) of the current estimate, sigma (n,) their standard
-        deviation per joint, ``held`` what to keep of the gated samples (a callable taking
-        the bool mask of the gated samples). Returns the mask (N,) of samples to use and the
-        held-back items of earlier batches to use after all (a residual shift)."""
+        """Decide a batch: residuals (N, n) of the current estimate, sigma their standard
+        deviation ((n,) per joint, or (N, n) per sample and joint), ``held`` what to keep of
+        the gated samples (a callable taking the bool mask of the gated samples). Returns the
+        mask (N,) of samples to use and the held-back items of earlier batches to use after
+        all (a residual shift)."""
         N = len(residuals)
         keep = np.ones(N, dtype=bool)
         s = self.settings

@@ -258,13 +258,18 @@ class OnlineEstimate:
                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm))
         if not (gate.armed or due) or len(rows) == 0:
             return rows, used
-        theta = self._rls.theta
-        residuals = rows[:, :, b] - rows[:, :, :b] @ theta
-        # the residual variance per used row (rows left out, weight 0, hold no residual)
-        sigma = np.sqrt(self._residuals.rss(theta) / np.maximum(self._rows_used, 1))
+        theta, covariance = self._rls.theta, self.covariance
+        Y = rows[:, :, :b]
+        residuals = rows[:, :, b] - Y @ theta
+        # the innovation's variance per sample and joint: the residual variance per used row
+        # (rows left out, weight 0, hold no residual) and the estimate's own, y P y', which
+        # motion the estimate has not seen yet makes large
+        noise = self._residuals.rss(theta) / np.maximum(self._rows_used, 1)
+        with np.errstate(over='ignore', invalid='ignore'):
+            sigma = np.sqrt(noise + np.einsum('Njp,pq,Njq->Nj', Y, covariance, Y))
         if due:
             self._next_arm = self._rls.num_samples + int(gate.settings.window)
-            if not (self.converged(self.excitation()[0], self.covariance)
+            if not (self.converged(self.excitation()[0], covariance)
                     and gate.arm(residuals, sigma)):
                 return rows, used
         before = gate.outliers
