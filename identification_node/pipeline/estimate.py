@@ -266,7 +266,7 @@ class OnlineEstimate:
         # motion the estimate has not seen yet makes large
         noise = self._residuals.rss(theta) / np.maximum(self._rows_used, 1)
         with np.errstate(over='ignore', invalid='ignore'):
-            sigma = np.sqrt(noise + np.einsum('Njp,pq,Njq->Nj', Y, covariance, Y))
+            sigma = np.sqrt(noise + np.einsum('Njp,Njp->Nj', Y @ covariance, Y))
         if due:
             self._next_arm = self._rls.num_samples + int(gate.settings.window)
             if not (self.converged(self.excitation()[0], covariance)
