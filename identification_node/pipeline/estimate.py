@@ -258,18 +258,12 @@ class OnlineEstimate:
                and self._rls.num_samples >= max(self.config.min_samples, self._next_arm))
         if not (gate.armed or due) or len(rows) == 0:
             return rows, used
-        theta, covariance = self._rls.theta, self.covariance
-        Y = rows[:, :, :b]
-        residuals = rows[:, :, b] - Y @ theta
-        # the innovation's variance per sample and joint: the residual variance per used row
-        # (rows left out, weight 0, hold no residual) and the estimate's own, y P y', which
-        # motion the estimate has not seen yet makes large
-        noise = self._residuals.rss(theta) / np.maximum(self._rows_used, 1)
-        with np.errstate(over='ignore', invalid='ignore'):
-            sigma = np.sqrt(noise + np.einsum('Njp,Njp->Nj', Y @ covariance, Y))
+        theta = self._rls.theta
+        residuals = rows[:, :, b] - rows[:, :, :b] @ theta
+        sigma = self._innovation_std(rows[:, :, :b], residuals, theta)
         if due:
             self._next_arm = self._rls.num_samples + int(gate.settings.window)
-            if not (self.converged(self.excitation()[0], covariance)
+            if not (self.converged(self.excitation()[0], self.covariance)
                     and gate.arm(residuals, sigma)):
                 return rows, used
         before = gate.outliers
@@ -284,6 +278,21 @@ class OnlineEstimate:
             used = np.concatenate([np.ones(r.shape[:2], dtype=bool) if u is None else u
                                    for r, u in parts])
         return np.concatenate([r for r, _ in parts]), used
+
+    def _innovation_std(self, Y: np.ndarray, residuals: np.ndarray, theta: np.ndarray
+                        ) -> np.ndarray:
+        """Standard deviation (N, n) of the innovations ``residuals`` of rows ``Y`` (N, n, b):
+        the residual's per used row (rows left out, weight 0, hold no residual) and the
+        estimate's own, y P y', which motion the estimate has not seen yet makes large. The
+        latter only widens the gate: it is formed for the samples the former would gate."""
+        noise = self._residuals.rss(theta) / np.maximum(self._rows_used, 1)
+        sigma = np.broadcast_to(np.sqrt(noise), residuals.shape).copy()
+        near = self.gate.beyond(residuals, sigma)
+        if near.any():
+            Yn = Y[near]
+            with np.errstate(over='ignore', invalid='ignore'):
+                sigma[near] = np.sqrt(noise + np.einsum('Njp,Njp->Nj', Yn @ self.covariance, Yn))
+        return sigma
 
     def end_stream(self) -> None:
         """The stream ended (a restart): its rows applied, its unfinished residual block left
