@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -25,17 +25,15 @@ import tempfile
 import time
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 # One BLAS/OpenMP thread per process, set before numpy loads (the workers inherit it; Dask's
 # nanny sets the same for its workers: distributed.nanny.pre-spawn-environ).
 for _name in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ.setdefault(_name, '1')
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_replay import CONFIG, ROOT, make_bag  # noqa: E402
-
-sys.path.insert(0, str(ROOT))   # this checkout's package, here and in the workers
-os.environ['PYTHONPATH'] = os.pathsep.join(
-    [str(ROOT)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p])
+from bench_replay import CONFIG, make_bag  # noqa: E402
 
 
 def vmhwm_kib() -> int:

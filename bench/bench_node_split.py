@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_node import PANDA, REPO  # noqa: E402  (also sets a private ROS domain)
 

@@ -52,6 +52,8 @@ import sys
 import time
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -36,6 +36,8 @@ import sys
 import time
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # as the node's entry point, before numpy
 
 import numpy as np  # noqa: E402

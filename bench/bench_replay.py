@@ -45,6 +45,8 @@ import tracemalloc
 from itertools import repeat
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
 
 import numpy as np  # noqa: E402

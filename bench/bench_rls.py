@@ -6,6 +6,8 @@ compare with OPENBLAS_NUM_THREADS=1.
 """
 import time
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 import numpy as np
 import scipy.linalg as sl
 

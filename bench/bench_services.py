@@ -25,6 +25,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PANDA = REPO / 'test' / 'fixtures' / 'panda_like.urdf'
+
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 os.environ.setdefault('ROS_DOMAIN_ID', str(30 + os.getpid() % 60))
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')

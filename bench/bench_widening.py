@@ -22,6 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

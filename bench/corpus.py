@@ -20,6 +20,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -31,6 +31,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
 
 import numpy as np  # noqa: E402
