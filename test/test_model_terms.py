@@ -4,6 +4,7 @@ The simulated arms: perfectly tracked seeded Fourier excitations (simulate_kinem
 torque carries a known joint friction (or none, or a spring the model lacks), with encoder
 quantisation, velocity and torque noise; identified with the package's defaults."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -220,6 +221,30 @@ def test_a_slow_linear_axis_keeps_its_equations_above_a_tenth_of_the_exclusion_s
         'slide: 95 % of its equations left out near velocity reversals (|qd| < 0.01 m/s, '
         'coulomb_exclusion_speed 0.1 / 10 for a prismatic joint): a slow joint; lower '
         'coulomb_exclusion_speed or set it to 0']
+
+
+def test_a_joint_without_equations_reads_n_a_in_the_errors_and_its_parameters_not_excited(
+        tmp_path, capsys):
+    """A rail that never exceeds 0.008 m/s: coulomb_exclusion_speed leaves out every one of
+    its equations. identify says so in a warning, its parameters are not excited, and the
+    relative errors of the rows fitted read n/a for it (no torque to relate to), not inf."""
+    urdf = tmp_path / 'rail.urdf'
+    urdf.write_text(RAIL)
+    robot = load_robot(str(urdf))
+    traj = FourierTrajectory.random(robot, period=10.0, seed=3)
+    t = np.arange(12000) / 1000.0
+    scale = 0.008 / np.abs(traj.sample(t)[1][:, 0]).max()
+    traj.a[0] *= scale
+    traj.b[0] *= scale
+    sim = simulate_kinematic(robot, None, traj, t, SensorNoise(torque_std=0.2), seed=1)
+    bag = write_bag(tmp_path / 'bag', robot, t, sim.q_meas, sim.qd_meas, sim.tau_meas,
+                    description=RAIL)
+    assert main(['identify', str(bag)]) == 0
+    out = capsys.readouterr().out
+    fitted = next(x for x in out.splitlines() if 'rows fitted, percent:' in x)
+    assert 'slide n/a' in fitted and 'inf' not in fitted, fitted
+    assert re.search(r'warning: slide: 100 % of its equations left out', out), out
+    assert re.search(r'slide\.\w+ +not excited', out), out
 
 
 def test_a_prismatic_joint_smooths_its_coulomb_sign_over_a_tenth_of_coulomb_velocity(tmp_path):

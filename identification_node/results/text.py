@@ -159,7 +159,10 @@ def format_payload_changes(changes: list, warnings: list | None = None) -> str:
 
 
 def _per_joint(errors: dict) -> str:
-    return ', '.join(f'{j} {_number(e, ".2f")}' for j, e in errors.items())
+    """Relative errors per joint; n/a where the document has none (null: no torque in the
+    rows, as when every equation of the joint was left out)."""
+    return ', '.join(f'{j} {"n/a" if e is None else format(e, ".2f")}'
+                     for j, e in errors.items())
 
 
 def paper_table3(fit) -> str:
