@@ -5,12 +5,12 @@ Once the estimate has converged, a sample whose torque residual (measured minus 
 the current estimate) exceeds ``k`` standard deviations of that innovation on any joint is an
 outlier: it is held back from the estimator and counted. The innovation's variance is the
 residual's and the estimate's own on that sample, y P y' (large on motion the fit has not
-seen yet). One sample, or a burst of a few per cent, then
-cannot move a converged estimate. A payload change looks different: most samples miss the
-model, for as long as it lasts. When at least ``shift_fraction`` of the last ``window``
-samples were gated, the gate reports a residual shift (``events``, ``listeners``), gives the
-held-back samples of the window to the estimator after all and stops gating, so the estimate
-follows the new data instead of rejecting it forever. Gating resumes once the gated fraction
+seen yet). One sample, or a burst of a few per cent, then cannot move a converged estimate.
+A payload change looks different: most samples miss the model, for as long as it lasts.
+When at least ``shift_fraction`` of the last ``window`` samples were gated, the gate reports
+a residual shift (``events``, ``listeners``), gives the held-back samples of the window to the
+estimator after all and stops gating, so the estimate follows the new data instead of
+rejecting it forever. Gating resumes once the gated fraction
 falls below half of ``shift_fraction``.
 
 The gate arms once the estimate has converged and predicts the batch at hand: at most
