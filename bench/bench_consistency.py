@@ -14,9 +14,8 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from pathlib import Path
 
-import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+from checkout import ROOT  # noqa: E402  (this checkout's package, here and in subprocesses)
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # as the node's entry point, before numpy
 
@@ -29,7 +28,6 @@ from identification_node.excitation.trajectories import FourierTrajectory  # noq
 from identification_node.model.identifiability import BaseParameters  # noqa: E402
 from identification_node.model.robot import load_robot  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 ARMS = {'6-DOF crs_a465': 'crs_a465',
         '7-DOF panda_like': str(ROOT / 'test' / 'fixtures' / 'panda_like.urdf')}
 

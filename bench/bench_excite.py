@@ -22,13 +22,11 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
-import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+from checkout import ROOT  # noqa: E402  (this checkout's package, here and in subprocesses)
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
 
-ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / 'test'))
 
 from arms import ARMS, arm_urdf, robots_dir  # noqa: E402

@@ -52,12 +52,11 @@ import sys
 import time
 from pathlib import Path
 
-import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+from checkout import ROOT  # noqa: E402  (this checkout's package, here and in subprocesses)
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / 'test')]
+sys.path.insert(0, str(ROOT / 'test'))
 
 import payload_scenarios as ps  # noqa: E402
 from identification_node.replay.stream import identify_bag  # noqa: E402

@@ -45,13 +45,12 @@ import tracemalloc
 from itertools import repeat
 from pathlib import Path
 
-import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+from checkout import ROOT  # noqa: E402  (this checkout's package, here and in subprocesses)
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLAS
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
 CACHE = ROOT / 'bench' / '.cache'
 CONFIG = ROOT / 'config' / 'crs_a465.yaml'
 FRICTION = ROOT / 'bags' / 'crs_a465_friction.yaml'

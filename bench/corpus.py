@@ -20,11 +20,10 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import checkout  # noqa: E402,F401  (this checkout's package, here and in subprocesses)
+from checkout import ROOT  # noqa: E402  (this checkout's package, here and in subprocesses)
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
 sys.path.insert(0, str(ROOT / 'bench'))
 from arms import ARMS, arm_urdf  # noqa: E402

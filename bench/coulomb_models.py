@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 from pathlib import Path
 
@@ -37,7 +36,6 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # before numpy loads OpenBLA
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from identification_node.bags.writer import BagWriter  # noqa: E402
 from identification_node.excitation.trajectories import FourierTrajectory  # noqa: E402
