@@ -103,17 +103,24 @@ def start_node_process(ros, name, params, tmp, remaps=()):
     return proc
 
 
+def exit_log(proc, timeout: float, what: str) -> str:
+    """The node's log (stderr) once it exits, its pipes read while waiting (its output cannot
+    fill them and block it); a node still up after ``timeout`` s (a hang, a bound no busy
+    machine reaches) is killed and fails the test with its log, ``what`` it was waiting for."""
+    try:
+        return proc.communicate(timeout=timeout)[1]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError(f'no exit within {timeout:g} s of {what}; its log:\n'
+                             f'{proc.communicate()[1]}') from None
+
+
 def stop_process(proc) -> str:
     """SIGINT, as Ctrl-C: the node shuts down cleanly with exit code 0, or by the watchdog's
     forced exit (1, said in the log) when a busy machine stretches the shutdown beyond its
     grace (the grace itself: test_node_faults). Returns the node's log (stderr)."""
     proc.send_signal(signal.SIGINT)
-    try:   # the pipes read while waiting: a node's output cannot fill them and block it
-        _, log = proc.communicate(timeout=60)   # a bound for a hang: the watchdog exits first
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise AssertionError(f'no exit within 60 s of SIGINT; its log:\n{proc.communicate()[1]}'
-                             ) from None
+    log = exit_log(proc, 60, 'SIGINT')   # the watchdog exits first
     code = proc.returncode
     assert code == 0 or (code == 1 and 'shutdown did not finish within' in log), (code, log)
     return log
@@ -966,14 +973,7 @@ def test_crs_a465_converges_to_the_truth(ros, diag, tmp_path):
 ])
 def test_invalid_parameters_exit_2_naming_them(ros, tmp_path, params, name):
     proc = ros.start('node', params, tmp_path, 'identification_node')
-    # the node's start-up (imports, the URDF) stretches on a busy machine: its pipes are
-    # read while it runs, and a node still up after 120 s fails with its log
-    try:
-        _, err = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        _, err = proc.communicate()
-        pytest.fail(f'the node did not exit on a bad parameter: {err}')
+    err = exit_log(proc, 120, 'a bad parameter')   # start-up stretches on a busy machine
     assert proc.returncode == 2, err
     assert f'parameter {name}' in err, err
 

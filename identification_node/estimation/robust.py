@@ -10,8 +10,8 @@ A payload change looks different: most samples miss the model, for as long as it
 When at least ``shift_fraction`` of the last ``window`` samples were gated, the gate reports
 a residual shift (``events``, ``listeners``), gives the held-back samples of the window to the
 estimator after all and stops gating, so the estimate follows the new data instead of
-rejecting it forever. Gating resumes once the gated fraction
-falls below half of ``shift_fraction``.
+rejecting it forever. Gating resumes once the gated fraction falls below half of
+``shift_fraction``.
 
 The gate arms once the estimate has converged and predicts the batch at hand: at most
 ``ARM_FRACTION`` of its samples beyond k sigma. A converged fit of the motion so far can still
