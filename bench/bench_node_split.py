@@ -12,7 +12,7 @@ the ROS side. ``relay`` is the textbook rclpy node instead of ours: a raw subscr
 callback that republishes each message's bytes on ~/predicted_effort (EventsExecutor; no
 parameters, services or timers): what any rclpy node costs that passes these messages on.
 Runs of the kinds alternate (this machine's CPU readings drift between runs); the medians are
-printed last.
+printed last, then each mode's CPU over the relay's (medians, and per alternating pair).
 
     .venv/bin/python bench/bench_node_split.py [--rate 1000] [--seconds 6] [--repeat 3]
         [--modes node passthrough relay] [--node-param process_period:=0.01] [--no-listener]
@@ -189,10 +189,15 @@ def measure(mode: str, args: argparse.Namespace) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def cpu_share(r: dict) -> float:
+    """The process's CPU over the measured wall time (cores)."""
+    return r['cpu'] / r['wall']
+
+
 def line(mode: str, r: dict, label: str = '') -> str:
     runs, wall = max(r['runs'], 1), r['wall']
     label = '  ' + label if label else ''
-    node = (f'{mode:11s}: node {100 * r["cpu"] / wall:5.1f} % of a core '
+    node = (f'{mode:11s}: node {100 * cpu_share(r):5.1f} % of a core '
             f'({1e6 * r["cpu"] / max(r["messages"], 1):5.1f} us/msg)')
     if not r['runs']:   # relay: a callback per message, no processing runs
         return node + label
@@ -235,6 +240,13 @@ def main() -> None:
     for mode, runs in results.items():
         med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
         print(line(mode, med, f'median of {args.repeat}'))
+    if 'relay' in results:
+        base = [cpu_share(r) for r in results['relay']]
+        for mode, runs in results.items():
+            if mode != 'relay':
+                ratio = np.median([cpu_share(r) for r in runs]) / np.median(base)
+                pairs = ', '.join(f'{cpu_share(r) / b:.2f}' for r, b in zip(runs, base))
+                print(f'{mode} / relay CPU: {ratio:.2f}x (medians; alternating pairs {pairs})')
 
 
 if __name__ == '__main__':
