@@ -182,11 +182,11 @@ class DriveGains:
 class Consistency:
     """``consistency.*``: the physically consistent solve (estimation/consistency.py)."""
     weight: float = setting(
-        1e-3, "weight of the log-det prior toward the description's inertials where no "
-        'consistent body lies in the confidence region, in chi-square units of the data term')
+        1e-3, "weight of the prior toward the description's inertials in the search for "
+        'the best consistent fit, in chi-square units of the data term')
     confidence: float = setting(
-        0.1, "chi-square level of the data's confidence region inside which the prior "
-        "(closest to the description) chooses; 0: none, the data's best consistent fit")
+        0.1, "chi-square level of the region about the data's best consistent fit inside "
+        "which the prior (closest to the description) chooses; 0: none, that fit itself")
     mass_ratio: float = setting(3.0, "each link's mass within [1/r, r] times the "
                                 "description's (0: no bound); a bound in use is reported")
     mass_weight: float = setting(

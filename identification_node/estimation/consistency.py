@@ -6,7 +6,7 @@ weights w_j are the inverse noise variances). The solve looks for the full stand
 phi (robot.py's order) minimising
 
     sum_i [d(J_i || J0_i) + w |m_i / m0_i - 1|] + sum_k ((x_k - x0_k) / s_k)^2 + t / gamma
-    subject to  (K phi - c)' G_f (K phi - c) <= q + t,  t >= 0
+    subject to  (K phi - c)' G_f (K phi - c) <= q + f + t,  t >= 0
 
 (the prior, then the excess), and, per body i (an identified link with what is merged into
 it), its own pseudo-inertia J_i - eps_i 1 >= 0 (Wensing, Kim and Slotine 2017: mass > 0,
@@ -20,11 +20,16 @@ first moments; d alone spreads a change of such a combination over every link in
 light links the wrong way. The L1 term (``mass_weight`` w, of the description's masses m0_i)
 moves as few masses as the data need. q is
 the chi-square quantile of the stated ``confidence`` level with as many degrees of freedom as
-the data determine: among the parameters the data cannot tell apart from their best fit, the
-one closest to the description. That prior does not fade as the recording grows: the region
-shrinks, and the prior still chooses inside it. When no consistent body lies in the region (a
-model error, a biased sensor) the excess t is paid at 1/gamma per unit of chi-square: then the
-solve is the weighted least squares with a prior of weight gamma. G_f is G with each
+the data determine, and f the chi-square of the best physically consistent fit (a first solve
+with q = f = 0: its excess t): among the bodies the data cannot tell apart from their best
+physical fit (a likelihood-ratio region), the one closest to the description. When the
+unconstrained fit is physical, f = 0 and the region is the data's about it. Without f, a
+recording whose region about the unconstrained fit held no physical body, or a sliver of
+them (noise alone does that), left the prior no room: the solve followed the noise, and link
+masses the data do not determine went to their bounds. That prior does not fade as the
+recording grows: the region shrinks, and the prior still chooses inside it. The excess t
+left in the second solve is the solver's tolerance; in the first, 1/gamma per unit of
+chi-square makes it the best fit, with the prior of weight gamma to break ties. G_f is G with each
 direction's variance floored at ``STDDEV_FLOOR`` of its parameters' typical size (from the
 prior): noise-free data would ask the solver for a resolution below its tolerance. A body's own
 part excludes the links of locked joints merged into it (``fixed`` F, e.g. a hand's fingers):
@@ -89,7 +94,9 @@ class ConsistentEstimate:
     ``method`` the path that gave phi (a solver's name, 'projection', '' when none);
     ``attempts`` the failed attempts before it ('SOLVER: status'); ``solve_time`` s;
     ``notes``: adjustments made (repaired priors, projections, active bounds);
-    ``excess`` the chi-square beyond the confidence region the constraints cost (0 inside)."""
+    ``best_chi_square`` the best physical fit's chi-square about the unconstrained fit (the
+    region's floor), ``excess`` how far beyond the data's confidence region that is (0
+    inside)."""
     status: str
     phi: np.ndarray | None
     theta: np.ndarray | None
@@ -99,6 +106,7 @@ class ConsistentEstimate:
     method: str = ''
     attempts: list[str] = field(default_factory=list)
     excess: float = 0.0
+    best_chi_square: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -337,21 +345,27 @@ class ConsistentSolver:
         start = time.perf_counter()
         M, centre, q, cov = self.region(equations, weights, model_error)
         stddev = np.sqrt(np.diag(cov))
-        self._M.value, self._m.value, self._q.value = M, M @ centre, q
-        first = self.options.solver
-        attempts, phi, method = [], None, ''
-        for solver in [first] + [s for s in SOLVERS if s != first]:
-            status, phi = self._conic(solver, start)
-            if phi is not None:
-                method = solver
-                break
-            attempts.append(f'{solver}: {status}')
+        self._M.value, self._m.value = M, M @ centre
+
+        def chi_square(phi: np.ndarray) -> float:
+            return float(np.sum((M @ (self.base.to_base(phi) - centre)) ** 2))
+
+        # First the best physical fit (region 0: the excess is its chi-square), then the
+        # prior's choice among the bodies the data cannot tell from it (the module doc)
+        self._q.value = 0.0
+        phi, method, attempts = self._conic_any()
+        floor = excess = 0.0
+        if phi is not None:
+            floor = chi_square(phi)
+            excess = max(floor - q, 0.0)
+            self._q.value = q + floor
+            chosen, solver, more = self._conic_any()
+            attempts += more
+            if chosen is not None:   # else the best physical fit stands
+                phi, method = chosen, solver
         notes = list(self.notes)
-        excess = 0.0
         if phi is None:   # the last resort: the unconstrained estimate, made physical
             phi, method = self.base.closest_standard(centre, self._phi_prior), PROJECTION
-        else:
-            excess = float(max(np.sum((M @ (self.base.to_base(phi) - centre)) ** 2) - q, 0.0))
         finite = bool(np.isfinite(phi).all())
         phi, moved = self._projected(phi) if finite else (phi, [])
         problems = self.violations(phi) if finite else ['not finite']
@@ -366,16 +380,27 @@ class ConsistentSolver:
                              'unconstrained estimate projected onto physical bodies is given')
             from scipy.stats import chi2
             q_note = chi2.ppf(NOTE_LEVEL, max(int(np.any(M, axis=1).sum()), 1))
-            beyond = q + excess - q_note
+            beyond = floor - q_note
             if beyond > 1e-3 * q_note:   # not the solver's tolerance on the region's edge
                 notes.append('the consistent bodies lie outside the data\'s '
                              f'{100 * NOTE_LEVEL:g} % confidence region by chi-square '
                              f'{beyond:.3g}: the data disagree with a physical arm')
         return ConsistentEstimate(status, phi, None if phi is None else self.base.to_base(phi),
                                   stddev, time.perf_counter() - start, notes, method, attempts,
-                                  excess)
+                                  excess, floor)
 
-    def _conic(self, solver: str, start: float) -> tuple[str, np.ndarray | None]:
+    def _conic_any(self) -> tuple[np.ndarray | None, str, list[str]]:
+        """(phi or None, the solver that gave it, the failed attempts before it): the
+        configured solver, then the other conic one."""
+        first, attempts = self.options.solver, list[str]()
+        for solver in [first] + [s for s in SOLVERS if s != first]:
+            status, phi = self._conic(solver)
+            if phi is not None:
+                return phi, solver, attempts
+            attempts.append(f'{solver}: {status}')
+        return None, '', attempts
+
+    def _conic(self, solver: str) -> tuple[str, np.ndarray | None]:
         """(status, phi or None) of one conic solver on the current parameters."""
         import cvxpy as cp
 
