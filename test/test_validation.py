@@ -300,3 +300,34 @@ def test_reference_of_a_current_driven_bag_is_the_converted_torque_unfiltered(tm
     assert e.num_samples == len(rows) == len(currents) - 2 * half
     err = relative_error(want, rows[:, 2 + robot.dof:])
     assert err.stacked == pytest.approx(e.errors['estimate'].stacked, rel=1e-9)
+
+
+def test_against_the_smoothed_torque_the_coulomb_sign_is_smoothed_too(tmp_path):
+    """Coulomb friction alone (sign model, 3, 2, 1 N m; no inertia, no noise) and a long
+    pinned window (121 samples at 500 Hz): the smoothed torque is scipy's Savitzky-Golay
+    filter of fc sign(qd). Against it the prediction holds the smoothed sign, as the
+    estimator's rows do: its error is under a third of the one sign(qd) itself has there (each
+    reversal smoothed over the window), which is what was compared before."""
+    from scipy.signal import savgol_filter
+
+    robot = load_robot('mit_dd_arm', extras=EXTRAS)
+    phi = np.zeros(robot.num_params)
+    fc = np.array([3.0, 2.0, 1.0])
+    for j, v in zip(robot.joint_names, fc):
+        phi[robot.param_index(f'{j}.fc')] = v
+    half = 60
+    settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
+                                   'smoother.half_window': half})
+    sim = simulate(robot, phi, 5)
+    sim['measured'] = sim['true']
+    bag = write(tmp_path / 'coulomb', robot, sim)
+    base = settings.build(robot).base
+    e = evaluate(bag, settings, robot, base, {'true': base.to_base(phi)})
+    assert e.num_samples == expected(sim, TimeWindow(), half)[0]
+    np.testing.assert_allclose(sim['true'], fc * np.sign(sim['qd']))
+    idx = np.arange(len(sim['t']))[half:-half]
+    smooth = savgol_filter(sim['true'], 2 * half + 1, 3, axis=0)[idx]
+    hard = 100 * np.linalg.norm(smooth - sim['true'][idx], axis=0) / np.linalg.norm(
+        smooth, axis=0)
+    assert np.all(hard > 5.0), hard     # reversals within the window: a visible difference
+    assert np.all(e.smoothed['true'].per_joint < 0.3 * hard), (e.smoothed['true'], hard)

@@ -444,15 +444,20 @@ class RowBuilder:
         Yt = self._buffer('regressor', (len(t), n, p + 1))
         self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p], checked=True)
         if self.smooth_sign and smooths_sign(self.robot):
-            rate = self.choice.rate if self.choice.rate > 0 else _rate(t)
             smooth_coulomb_columns(self.robot, Yt[:, :, :p], qd, qdd, self.choice.half_window,
-                                   self.order, 1.0 / rate)
+                                   self.order, self.period(t))
         Yt[:, :, p] = tau
         shape = (len(t), n, b + 1)
         reuse = reuse_at is not None and len(t) >= reuse_at
         rows = self._buffer('rows', shape) if reuse else np.empty(shape)
         np.take(Yt, self._columns, axis=2, out=rows, mode='clip')
         return Rows(t, q, qd, qdd, tau, rows)
+
+    def period(self, t: np.ndarray) -> float:
+        """The sample period (s) the smoother's chosen window is at: the choice's rate, else
+        that of the window centres ``t`` (s)."""
+        assert self.choice is not None   # chosen: there are rows
+        return 1.0 / (self.choice.rate if self.choice.rate > 0 else _rate(t))
 
     def _buffer(self, name: str, shape: tuple) -> np.ndarray:
         """A work array of ``shape``, reused across batches (grown when needed): allocating

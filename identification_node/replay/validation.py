@@ -10,7 +10,9 @@ velocity reversals). The prediction is Yb(q, qd, qdd) theta with the smoothed mo
 
 stacked over all joints and samples, and per joint. The same figures against the smoothed
 torque are reported beside, labelled so (``smoothed``): smoothing the reference removes
-noise and so flatters the fit. Units SI; stamps int64 ns.
+noise and so flatters the fit. There the sign-model Coulomb columns hold the smoothed sign,
+as the estimator's rows do (the smoothed torque's sign friction is smoothed across
+reversals). Units SI; stamps int64 ns.
 """
 from __future__ import annotations
 
@@ -27,7 +29,9 @@ from identification_node.errors import IdentificationError
 from identification_node.model.identifiability import BaseParameters, sample_motion
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.pipeline import IdentificationPipeline
-from identification_node.pipeline.signals import half_window_for_cutoff, smoothing_noise_gain
+from identification_node.pipeline.rows import smooths_sign
+from identification_node.pipeline.signals import (half_window_for_cutoff, smoothed_sign,
+                                                  smoothing_noise_gain)
 from identification_node.results.identification import Identification, SERIES_POINTS
 from identification_node.results.torque_error import BagError, ErrorSums
 from identification_node.settings import Settings
@@ -54,6 +58,13 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     pipeline = IdentificationPipeline(robot, settings.pipeline_config(robot.joint_names), base)
     stages, rows = pipeline.samples, pipeline.row_builder
     rows.smooth_sign = False     # the raw torque's own sign friction: sign(qd)
+    # against the smoothed torque, the Coulomb columns as the smoother makes them (the
+    # estimator's rows): base columns of each joint's fc
+    coulomb = None
+    if smooths_sign(robot):
+        where = {k: i for i, k in enumerate(base.base_index)}
+        cols = [where.get(robot.param_index(f'{j}.fc'), -1) for j in robot.joint_names]
+        coulomb = np.array(cols) if min(cols) >= 0 else None
     counters, n, b = stages.counters, robot.dof, base.num_base
     raw, smooth = ErrorSums(n, len(names)), ErrorSums(n, len(names))
     high = np.zeros(n)   # sum of (raw - smoothed torque)^2 per joint
@@ -90,7 +101,14 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         else:
             t, smoothed, q = r.t, r.tau, r.q
         raw.add(tau, pred)
-        smooth.add(smoothed, pred)
+        if coulomb is not None:
+            assert rows.half_window is not None   # rows came out: the window is chosen
+            Ys = Yb.copy()
+            Ys[:, np.arange(n), coulomb] = smoothed_sign(
+                r.qd[ok], r.qdd[ok], rows.half_window, rows.order, rows.period(r.t))
+            smooth.add(smoothed, np.moveaxis(Ys @ Theta, 2, 0))
+        else:
+            smooth.add(smoothed, pred)
         high[:] += np.einsum('ij,ij->j', tau - smoothed, tau - smoothed)
         stamps_ns = counters.stamps_ns(t)
         sampler.add(stamps_ns=stamps_ns, measured=tau, regressor=Yb, q=q)
