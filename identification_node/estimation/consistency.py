@@ -346,17 +346,13 @@ class ConsistentSolver:
         M, centre, q, cov = self.region(equations, weights, model_error)
         stddev = np.sqrt(np.diag(cov))
         self._M.value, self._m.value = M, M @ centre
-
-        def chi_square(phi: np.ndarray) -> float:
-            return float(np.sum((M @ (self.base.to_base(phi) - centre)) ** 2))
-
         # First the best physical fit (region 0: the excess is its chi-square), then the
         # prior's choice among the bodies the data cannot tell from it (the module doc)
         self._q.value = 0.0
         phi, method, attempts = self._conic_any()
         floor = excess = 0.0
         if phi is not None:
-            floor = chi_square(phi)
+            floor = float(np.sum((M @ (self.base.to_base(phi) - centre)) ** 2))
             excess = max(floor - q, 0.0)
             self._q.value = q + floor
             chosen, solver, more = self._conic_any()

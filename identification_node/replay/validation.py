@@ -60,11 +60,13 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     rows.smooth_sign = False     # the raw torque's own sign friction: sign(qd)
     # against the smoothed torque, the Coulomb columns as the smoother makes them (the
     # estimator's rows): base columns of each joint's fc
-    coulomb = None
+    coulomb = fc = None
     if smooths_sign(robot):
         where = {k: i for i, k in enumerate(base.base_index)}
         cols = [where.get(robot.param_index(f'{j}.fc'), -1) for j in robot.joint_names]
-        coulomb = np.array(cols) if min(cols) >= 0 else None
+        if min(cols) >= 0:
+            coulomb = np.array(cols)
+            fc = Theta[coulomb].T[:, None, :]     # (k, 1, n): each set's fc per joint
     counters, n, b = stages.counters, robot.dof, base.num_base
     raw, smooth = ErrorSums(n, len(names)), ErrorSums(n, len(names))
     high = np.zeros(n)   # sum of (raw - smoothed torque)^2 per joint
@@ -101,12 +103,11 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         else:
             t, smoothed, q = r.t, r.tau, r.q
         raw.add(tau, pred)
-        if coulomb is not None:
+        if coulomb is not None:   # pred with each fc column's sign(qd) made smoothed_sign
             assert rows.half_window is not None   # rows came out: the window is chosen
-            Ys = Yb.copy()
-            Ys[:, np.arange(n), coulomb] = smoothed_sign(
-                r.qd[ok], r.qdd[ok], rows.half_window, rows.order, rows.period(r.t))
-            smooth.add(smoothed, np.moveaxis(Ys @ Theta, 2, 0))
+            shift = smoothed_sign(r.qd[ok], r.qdd[ok], rows.half_window, rows.order,
+                                  rows.period(r.t)) - Yb[:, np.arange(n), coulomb]
+            smooth.add(smoothed, pred + shift[None] * fc)
         else:
             smooth.add(smoothed, pred)
         high[:] += np.einsum('ij,ij->j', tau - smoothed, tau - smoothed)
