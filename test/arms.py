@@ -26,6 +26,8 @@ ARMS: dict[str, tuple[str, list[str] | None]] = {
     'talos': ('talos_data/robots/talos_left_arm.urdf',
               [f'arm_left_{i}_joint' for i in range(2, 8)]),
     'tiago': ('tiago_description/robots/tiago.urdf', [f'arm_{i}_joint' for i in range(1, 8)]),
+    'tiago_pro': ('tiago_pro_description/robots/tiago_pro.urdf',   # meshes, no SRDF
+                  [f'arm_left_{i}_joint' for i in range(1, 8)]),
     'baxter': ('baxter_description/urdf/baxter.urdf',
                ['left_s0', 'left_s1', 'left_e0', 'left_e1', 'left_w0', 'left_w1', 'left_w2']),
 }

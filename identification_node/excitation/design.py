@@ -218,6 +218,12 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     if not np.isfinite(f0):
         raise IdentificationError('the initial trajectory does not excite every base '
                                   'parameter: try another seed or more harmonics')
+    held = design.hold_collisions_at(x0)
+    if held.size:
+        pairs = ', '.join(' - '.join(checker.pairs[i]) for i in held[:3])
+        more = f' and {held.size - 3} more' if held.size > 3 else ''
+        watch.say(what=f'{pairs}{more}: closer at the start than the optimiser asks for, held '
+                  f'no closer (the final check keeps {checker.min_distance:g} m)')
     # init is inside the limits (shrunk on the fine grid); collisions at the design's samples
     initial_feasible = design.checker is None or bool(   # None iff checker is
         design.checker.distances(design.collision_configs(x0)).min()

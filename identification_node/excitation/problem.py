@@ -61,7 +61,9 @@ class DesignProblem:
     two of them, the ramps' configurations start + w (q(t) - start) at the criterion samples
     for w in RAMP_BLENDS, and the start (q0 unless ``start`` is given) of
     1 + (d_min + COLLISION_PAD - distance) / COLLISION_SCALE, on the checker's convex hulls
-    (CollisionChecker.hulls: lower bounds of the mesh distances, and much faster).
+    (CollisionChecker.hulls: lower bounds of the mesh distances, and much faster). A pair the
+    start already breaks in that measure is held no worse than there (hold_collisions_at):
+    SLSQP cannot restore it (its distance gradients are not smooth at that scale) and diverges.
     """
 
     def __init__(self, robot, base, limits: ExcitationLimits, harmonics: int, period: float,
@@ -96,6 +98,9 @@ class DesignProblem:
         self.Cc = (weight[:, None] * np.asarray(start, dtype=float)[None] if fixed
                    else np.zeros((len(weight), self.n)))
         self._collision: tuple[bytes, np.ndarray, np.ndarray | None] | None = None
+        # m, per pair: the distance the collision constraints ask for (see hold_collisions_at)
+        self.need = (np.full(self.checker.num_pairs, self.checker.min_distance + COLLISION_PAD)
+                     if self.checker is not None else np.zeros(0))
         limited, centre, half = position_ranges(limits)
         self.pos = np.flatnonzero(limited)
         self.centre, self.half = centre[self.pos], half[self.pos]
@@ -223,8 +228,7 @@ class DesignProblem:
             _, d, g = cached
             if jac and g is None:
                 self.tick()
-        need = self.checker.min_distance + COLLISION_PAD
-        ks, w = ks_max(1.0 + (need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
+        ks, w = ks_max(1.0 + (self.need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if jac and g is None:   # where a sample's KS weight counts (GRADIENT_WEIGHT): (S, P, n)
             g = self.checker.gradients(self.collision_configs(x), w > GRADIENT_WEIGHT)
         self._collision = (key, d, g)
@@ -234,6 +238,18 @@ class DesignProblem:
         # d r / d x[i, :] = -g[s, p, i] Bc[s, :] / scale, weighted by w[s, p]
         dks = -np.einsum('sp,spi,sk->pik', w, g, self.Bc) / COLLISION_SCALE
         return ks, dks.reshape(len(ks), -1)
+
+    def hold_collisions_at(self, x: np.ndarray) -> np.ndarray:
+        """Lower the need of each pair whose collision constraint x breaks by all x lacks, so
+        that x meets it exactly (the pair held no worse than at x); the pairs' indices. The
+        KS maximum overestimates the closest distance, so x may still keep the minimum
+        distance; the final dense check on the meshes decides."""
+        if self.checker is None:
+            return np.zeros(0, dtype=int)
+        lack = (self.collision_ks(x, False)[0] - self.margin) * COLLISION_SCALE   # m
+        held = np.flatnonzero(lack > 0)
+        self.need[held] -= lack[held]
+        return held
 
     def constraint(self, x: np.ndarray) -> np.ndarray:
         return self.margin - self._limits(x, False)[0]
