@@ -154,6 +154,14 @@ class CollisionChecker:
             out[k] = [r.min_distance for r in self.geometry_data.distanceResults]
         return out
 
+    def pair_distances(self, q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        """Signed distances (len(pairs),) in m of the pairs ``pairs`` (indices) at the joint
+        positions q (n,)."""
+        Q = self.robot.configuration(np.atleast_2d(q))[0]
+        pin.updateGeometryPlacements(self.model, self.data, self.geometry, self.geometry_data, Q)
+        return np.array([pin.computeDistance(self.geometry, self.geometry_data,
+                                             int(i)).min_distance for i in pairs])
+
     def distances_and_gradients(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (N, pairs) and their gradients in the joint positions (N, pairs, n)."""
         d = self.distances(q)
@@ -196,30 +204,39 @@ class CollisionChecker:
         grad[ks, ps] = np.einsum('mi,min->mn', normal, Jp[1] - Jp[0])
         return grad
 
-    def clearance(self, q: np.ndarray) -> dict[str, Any]:
+    def clearance(self, q: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray]
+                  | None = None) -> dict[str, Any]:
         """The smallest distance over samples q (N, n) and where: {'distance': m, 'pair':
         (name, name), 'sample': index}; distance inf when no pair is checked. With meshes,
         their exact distance is computed only where the hulls' lower bound does not rule the
-        pair and sample out (branch and bound over the bounds in increasing order)."""
-        if not self.num_pairs or len(q) == 0:
-            return {'distance': math.inf, 'pair': None, 'sample': None}
+        pair and sample out (branch and bound over the bounds in increasing order).
+        ``bounds``: (sample indices, pair indices, the hulls' distances there), the only
+        (sample, pair) entries considered; default every pair at every sample."""
         q = np.atleast_2d(q)
-        if self.hulls() is self:
-            d = self.distances(q)
-            k, i = np.unravel_index(int(np.argmin(d)), d.shape)
-            return {'distance': float(d[k, i]), 'pair': self.pairs[i], 'sample': int(k)}
-        bound = self.hulls().distances(q)
+        if bounds is None:
+            if not self.num_pairs or len(q) == 0:
+                return {'distance': math.inf, 'pair': None, 'sample': None}
+            d = self.hulls().distances(q)
+            ks, ps = (a.ravel() for a in np.indices(d.shape))
+            bound = d.ravel()
+        else:
+            ks, ps, bound = (np.asarray(a).ravel() for a in bounds)
+        if not bound.size:
+            return {'distance': math.inf, 'pair': None, 'sample': None}
+        if self.hulls() is self:   # the bounds are the exact distances
+            j = int(np.argmin(bound))
+            return {'distance': float(bound[j]), 'pair': self.pairs[ps[j]], 'sample': int(ks[j])}
         Q = self.robot.configuration(q)
         best, where = math.inf, (0, 0)
-        for flat in np.argsort(bound, axis=None):
-            k, i = np.unravel_index(int(flat), bound.shape)
-            if bound[k, i] - HULL_TOLERANCE >= best:
+        for j in np.argsort(bound):
+            if bound[j] - HULL_TOLERANCE >= best:
                 break
+            k, i = int(ks[j]), int(ps[j])
             pin.updateGeometryPlacements(self.model, self.data, self.geometry,
                                          self.geometry_data, Q[k])
-            d = pin.computeDistance(self.geometry, self.geometry_data, int(i)).min_distance
+            d = pin.computeDistance(self.geometry, self.geometry_data, i).min_distance
             if d < best:
-                best, where = d, (int(k), int(i))
+                best, where = d, (k, i)
         return {'distance': float(best), 'pair': self.pairs[where[1]], 'sample': where[0]}
 
     def summary(self) -> dict:

@@ -22,6 +22,7 @@ COLLISION_RATE = 100.0      # Hz: collision check of the final trajectory (and 1
 RAMP_MIN = 0.5              # s: shortest ramp tried; then RAMP_GROWTH times longer each try
 RAMP_GROWTH = 1.15
 RAMP_MAX = 120.0            # s: longest ramp tried
+_CHUNK = 4096               # grid times sampled at once by framed_clearance
 
 
 def _ramp(periodic: FourierTrajectory, robot, limits: ExcitationLimits, start: np.ndarray,
@@ -79,12 +80,13 @@ def check_start(start: Sequence[float] | np.ndarray, limits: ExcitationLimits) -
 def framed_clearance(framed: FramedTrajectory, robot, checker, travel: float = 0.005,
                      tick: Callable[[], None] = no_tick) -> dict:
     """CollisionChecker.clearance of a framed trajectory: its ramps and one period (the others
-    repeat it) checked at times that advance conservatively. No point of the arm (reach: the
-    sum of the joint offsets + 0.5 m) moves faster than v = reach * peak summed joint speed,
-    so from a time with distance d (the hulls' lower bound), the next is (d - min_distance) / v
-    later: between them no pair comes closer than the minimum distance. The step is at least
-    ``travel`` / v (no point moves more than ``travel`` m between checked times, as on a
-    uniform grid of that step) and at most 1 / COLLISION_RATE."""
+    repeat it), each pair checked at times that advance conservatively. No point of the arm
+    (reach: the sum of the joint offsets + 0.5 m) moves faster than v = reach * peak summed
+    joint speed, so from a time where a pair's distance is d (the hulls' lower bound), it is
+    next checked (d - min_distance) / v later or sooner: between them it comes no closer
+    than the minimum distance. The times lie on a uniform grid of each part with steps of at
+    most ``travel`` / v (no point moves more than ``travel`` m between a pair's checks) and
+    1 / COLLISION_RATE s at most between a pair's checks: far pairs are checked seldom."""
     t0, t1 = framed.periodic_window
     assert framed.periodic.period is not None   # a framed trajectory's is periodic
     period = float(framed.periodic.period)
@@ -94,14 +96,29 @@ def framed_clearance(framed: FramedTrajectory, robot, checker, travel: float = 0
     v = max(reach * speed, 1e-12)
     shortest, longest = min(travel / v, 1.0 / COLLISION_RATE), 1.0 / COLLISION_RATE
     bounds = checker.hulls()
-    times = []
+    configs: list[np.ndarray] = []
+    entries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (sample, pair, bound)
     for a, b in [(0.0, t0), (t0, t0 + period), (t1, framed.duration)]:
-        t = a
-        while True:
-            times.append(t)
-            if t >= b:
-                break
-            d = float(bounds.distances(framed.sample(np.array([t]))[0]).min())
-            t = min(b, t + min(longest, max(shortest, (d - checker.min_distance) / v)))
+        last = max(1, math.ceil((b - a) / shortest))   # grid a + (b - a) k / last, k <= last
+        h = (b - a) / last
+        most = max(1, int(longest / h)) if h > 0 else 1
+        # each pair is due at the latest by due_at and checked with the others from ready_at
+        # (half its step early: at most twice as often, on far fewer distinct times)
+        due_at = np.zeros(bounds.num_pairs, dtype=int)
+        ready_at = due_at.copy()
+        chunk, first = np.zeros((0, robot.dof)), 0    # the grid's positions from ``first``
+        while due_at.size and (k := int(due_at.min())) <= last:
+            if not first <= k < first + len(chunk):
+                first = k
+                chunk = framed.sample(a + h * np.arange(k, min(k + _CHUNK, last + 1)))[0]
+            due = np.flatnonzero(ready_at <= k)
+            configs.append(chunk[k - first])
+            d = bounds.pair_distances(configs[-1], due)
+            entries.append((np.full(due.size, len(configs) - 1), due, d))
+            steps = np.clip((d - checker.min_distance) // (v * h), 1, most).astype(int)
+            due_at[due] = last + 1 if k == last else np.minimum(last, k + steps)
+            ready_at[due] = np.minimum(due_at[due], k + (steps + 1) // 2)
             tick()
-    return checker.clearance(framed.sample(np.array(times))[0])
+    if not entries:
+        return checker.clearance(np.zeros((0, robot.dof)))
+    return checker.clearance(np.array(configs), tuple(np.concatenate(e) for e in zip(*entries)))
