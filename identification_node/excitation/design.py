@@ -226,8 +226,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                   f'no closer (the final check keeps {checker.min_distance:g} m)')
     # init is inside the limits (shrunk on the fine grid); collisions at the design's samples
     initial_feasible = design.checker is None or bool(   # None iff checker is
-        design.checker.distances(design.collision_configs(x0)).min()
-        >= checker.min_distance)
+        design.collision_distances(x0).min() >= checker.min_distance)
     # SLSQP's first step follows the gradient with a unit Hessian: scale the function so that
     # its gradient has unit norm at the start, or the first steps leave the limits far behind.
     g0 = float(np.linalg.norm(design.jac(x0)))
@@ -254,6 +253,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         try:
             res = minimize(lambda x: design.fun(x) * fscale, x0,
                            jac=lambda x: design.jac(x) * fscale, method='SLSQP',
+                           bounds=design.bounds(),
                            constraints=[{'type': 'ineq', 'fun': design.constraint,
                                          'jac': design.constraint_jac}],
                            callback=track, options={'maxiter': int(maxiter), 'ftol': 1e-9})
@@ -368,12 +368,18 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
 def _out_of_collision(traj: FourierTrajectory, design: DesignProblem, limits: ExcitationLimits,
                       steps: int = 20) -> FourierTrajectory:
     """``traj``, or its motion scaled towards the centre of the position ranges (by 0.8 per
-    step) until it meets the collision constraints (at the design's collision samples); ``traj``
-    unchanged when no scaling does (the optimiser then starts infeasible)."""
-    cur, scale = traj, 1.0
+    step) until it meets the collision constraints (at the design's collision samples); failing
+    that, the least scaled that keeps the minimum distance there (the pairs it brings closer
+    than the constraints ask for are then held: DesignProblem.hold_collisions_at); ``traj``
+    unchanged when none does (the optimiser then starts infeasible)."""
+    assert design.checker is not None   # called only with collision constraints
+    cur, scale, clear = traj, 1.0, None
     for _ in range(steps):
-        if design.collision_ks(to_x(cur), False)[0].max() <= design.margin:
+        x = to_x(cur)
+        if design.collision_ks(x, False)[0].max() <= design.margin:
             return cur
+        if clear is None and design.collision_distances(x).min() >= design.checker.min_distance:
+            clear = cur
         scale *= 0.8
         cur = scale_motion(traj, limits, scale)
-    return traj
+    return traj if clear is None else clear

@@ -11,9 +11,9 @@ from identification_node.excitation.criteria import noise_weights, objective
 from identification_node.excitation.initial_guess import fourier_basis
 from identification_node.excitation.limits import ExcitationLimits, position_ranges, torque_models
 
-__all__ = ['COLLISION_OVERSAMPLE', 'COLLISION_PAD', 'COLLISION_RHO', 'COLLISION_SCALE',
-           'GRADIENT_WEIGHT', 'GRID_PER_HARMONIC', 'KS_RHO', 'RAMP_BLENDS', 'DesignProblem',
-           'ks_max', 'no_tick']
+__all__ = ['BOUND_SLACK', 'COLLISION_OVERSAMPLE', 'COLLISION_PAD', 'COLLISION_RHO',
+           'COLLISION_SCALE', 'GRADIENT_WEIGHT', 'GRID_PER_HARMONIC', 'KS_RHO', 'RAMP_BLENDS',
+           'DesignProblem', 'ks_max', 'no_tick']
 
 COLLISION_PAD = 0.01        # m added to the minimum distance in the optimiser's constraints
 COLLISION_SCALE = 0.05      # m of distance per unit of the collision constraints' ratio
@@ -26,6 +26,7 @@ COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and 
 RAMP_BLENDS = (0.25, 0.5, 0.75)  # ramp configurations start + w (motion - start) constrained
 GRID_PER_HARMONIC = 40      # constraint grid points per period and harmonic
 KS_RHO = 200.0              # sharpness of the smooth maximum of the limit ratios
+BOUND_SLACK = 1.1           # the coefficients' bounds over those of the limits (see bounds)
 _STEP_Q = 1e-6   # rad, finite-difference step of the regressor in q
 _STEP_QD = 1e-6  # rad/s, in qd (qdd enters linearly: exact with step 1)
 
@@ -215,23 +216,26 @@ class DesignProblem:
         """The joint positions (S, n) the collision constraints hold at."""
         return self.Bc @ x.reshape(self.n, self.k).T + self.Cc
 
+    def collision_distances(self, x: np.ndarray) -> np.ndarray:
+        """Distances (S, pairs) in m at the collision samples of x, on the hulls."""
+        assert self.checker is not None   # called only with collision constraints
+        key = x.tobytes()
+        if self._collision is None or self._collision[0] != key:
+            self.tick()
+            self._collision = (key, self.checker.distances(self.collision_configs(x)), None)
+        return self._collision[1]
+
     def collision_ks(self, x: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Per pair, KS over the collision samples of 1 + (d_req - d) / COLLISION_SCALE, and
         its Jacobian (pairs, nx)."""
-        assert self.checker is not None   # called only with collision constraints
-        key = x.tobytes()
-        cached = self._collision
-        if cached is None or cached[0] != key:
-            self.tick()
-            d, g = self.checker.distances(self.collision_configs(x)), None      # (S, P)
-        else:
-            _, d, g = cached
-            if jac and g is None:
-                self.tick()
+        d = self.collision_distances(x)                                     # (S, P)
+        assert self.checker is not None and self._collision is not None   # computed above
+        key, _, g = self._collision
         ks, w = ks_max(1.0 + (self.need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if jac and g is None:   # where a sample's KS weight counts (GRADIENT_WEIGHT): (S, P, n)
+            self.tick()
             g = self.checker.gradients(self.collision_configs(x), w > GRADIENT_WEIGHT)
-        self._collision = (key, d, g)
+            self._collision = (key, d, g)
         if not jac:
             return ks, None
         assert g is not None   # computed above
@@ -250,6 +254,24 @@ class DesignProblem:
         held = np.flatnonzero(lack > 0)
         self.need[held] -= lack[held]
         return held
+
+    def bounds(self) -> list[tuple[float | None, float | None]]:
+        """Box bounds of x that no design within the velocity, acceleration and position limits
+        leaves: a Fourier coefficient of a signal bounded by m is at most 4 m / pi, so
+        |a_l|, |b_l| <= 4 / pi min(qd_max, qdd_max / (l omega)) (with BOUND_SLACK for the
+        grid), and q0, the mean position, lies in the position range. They keep SLSQP's steps
+        from running off (TIAGo Pro's arm: |x| to 60 in two iterations)."""
+        lim = self.limits
+        wl = 2.0 * np.pi / self.period * np.arange(1, self.H + 1)
+        amp = (4.0 / np.pi * BOUND_SLACK
+               * np.minimum(lim.velocity_limits[:, None], lim.acceleration_limits[:, None] / wl))
+        out: list[tuple[float | None, float | None]] = []
+        for i in range(self.n):
+            out += [(-a, a) if np.isfinite(a) else (None, None) for a in np.tile(amp[i], 2)]
+            lo, hi = lim.position_limits[i]
+            out.append((float(lo) if np.isfinite(lo) else None,
+                        float(hi) if np.isfinite(hi) else None))
+        return out
 
     def constraint(self, x: np.ndarray) -> np.ndarray:
         return self.margin - self._limits(x, False)[0]
