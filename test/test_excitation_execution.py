@@ -319,10 +319,10 @@ def test_pairs_the_start_breaks_are_held_no_closer_and_the_design_converges(monk
 @pytest.mark.slow
 def test_a_start_in_collision_is_scaled_until_clear_even_where_the_padding_is_unmet():
     """Unitree Z1 (example-robot-data; meshes, an SRDF that disables no pair): the
-    least-squares start collides, and no scaling towards the centre of the
-    ranges meets the optimiser's padded constraints. The least scaled start that keeps the
-    minimum distance is taken, not the colliding one (from which SLSQP ran off and the
-    initial guess, shrunk to cond 8e4, was all it kept)."""
+    least-squares start collides, and no scaling towards the centre of the ranges meets the
+    optimiser's padded constraints. The least scaled start that keeps the minimum distance is
+    taken, not the colliding one (from which SLSQP ran off and the initial guess, shrunk to
+    cond 8e4, was all it kept)."""
     urdf = arm_urdf('z1')
     robot = load_robot(str(urdf), ARMS['z1'][1])
     checker = CollisionChecker(robot, [robots_dir().parent.parent],
