@@ -388,7 +388,8 @@ class ConsistentSolver:
     def _conic_any(self) -> tuple[np.ndarray | None, str, list[str]]:
         """(phi or None, the solver that gave it, the failed attempts before it): the
         configured solver, then the other conic one."""
-        first, attempts = self.options.solver, list[str]()
+        first = self.options.solver
+        attempts: list[str] = []
         for solver in [first] + [s for s in SOLVERS if s != first]:
             status, phi = self._conic(solver)
             if phi is not None:

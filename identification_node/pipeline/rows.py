@@ -91,6 +91,11 @@ def smooths_sign(robot: RobotModel) -> bool:
     return 'fc' in robot.extras and robot.coulomb_velocity == 0
 
 
+def coulomb_columns(robot: RobotModel) -> list[int]:
+    """The standard-parameter index of each joint's fc, joints in order."""
+    return [robot.param_index(f'{j}.fc') for j in robot.joint_names]
+
+
 def smooth_coulomb_columns(robot: RobotModel, Y: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
                            half_window: int, order: int, period: float) -> None:
     """Y (N, n, p) in place: each joint's fc column sign(qd) replaced by what the smoother
@@ -98,8 +103,8 @@ def smooth_coulomb_columns(robot: RobotModel, Y: np.ndarray, qd: np.ndarray, qdd
     that the Coulomb column matches the smoothed torque at reversals too."""
     if not (period > 0 and math.isfinite(period)):
         return
-    cols = [robot.param_index(f'{j}.fc') for j in robot.joint_names]
-    Y[:, np.arange(robot.dof), cols] = smoothed_sign(qd, qdd, half_window, order, period)
+    Y[:, np.arange(robot.dof), coulomb_columns(robot)] = smoothed_sign(qd, qdd, half_window,
+                                                                       order, period)
 
 
 def _rate(stamps: np.ndarray) -> float:

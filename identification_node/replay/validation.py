@@ -29,7 +29,7 @@ from identification_node.errors import IdentificationError
 from identification_node.model.identifiability import BaseParameters, sample_motion
 from identification_node.model.robot import RobotModel, load_robot
 from identification_node.pipeline import IdentificationPipeline
-from identification_node.pipeline.rows import smooths_sign
+from identification_node.pipeline.rows import coulomb_columns, smooths_sign
 from identification_node.pipeline.signals import (half_window_for_cutoff, smoothed_sign,
                                                   smoothing_noise_gain)
 from identification_node.results.identification import Identification, SERIES_POINTS
@@ -63,7 +63,7 @@ def evaluate(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     coulomb = fc = None
     if smooths_sign(robot):
         where = {k: i for i, k in enumerate(base.base_index)}
-        cols = [where.get(robot.param_index(f'{j}.fc'), -1) for j in robot.joint_names]
+        cols = [where.get(c, -1) for c in coulomb_columns(robot)]
         if min(cols) >= 0:
             coulomb = np.array(cols)
             fc = Theta[coulomb].T[:, None, :]     # (k, 1, n): each set's fc per joint
