@@ -17,7 +17,8 @@ from identification_node.cli import main
 from identification_node.errors import IdentificationError
 from identification_node.excitation.criteria import base_of, criterion_value
 from identification_node.excitation import design as ex
-from identification_node.excitation.initial_guess import initial_trajectory, to_x
+from identification_node.excitation.initial_guess import (REST_TORQUE, initial_trajectory,
+                                                          rest_pose, shrink_into_limits, to_x)
 from identification_node.excitation.problem import COLLISION_SCALE, DesignProblem
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN
 from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits,
@@ -339,6 +340,51 @@ def test_a_start_in_collision_is_scaled_until_clear_even_where_the_padding_is_un
     assert res.initial_feasible and not res.warnings
     assert res.value < 0.2 * res.initial_value < 100.0
     assert res.clearance['distance'] >= checker.min_distance
+
+
+@pytest.mark.slow
+def test_an_arm_the_centre_of_its_ranges_holds_out_is_designed_within_its_torque_limits():
+    """Talos' left arm (example-robot-data, its meshes and SRDF, the shipped defaults): at the
+    centre of its position ranges the static torque of arm_left_2_joint is 1.08 times its
+    limit with the margin, so no motion scaled towards that centre kept the torque limits
+    ("infeasible limits"; --no-effort was the way out). The motion is centred on and scaled
+    towards the rest pose instead: the pose nearest the centre, within the middle three
+    quarters of the ranges, whose static torque keeps within REST_TORQUE of every limit. The
+    UR5's centre (0.44) is kept. The optimiser's last iterates then hold a torque limit that
+    slower motion breaks: shrunk into the limits the first came to 272 (0.21 x the start);
+    later candidates are now verified while they may beat that."""
+    robot = load_robot(str(arm_urdf('talos')), ARMS['talos'][1])
+    work = ExcitationLimits.from_robot(robot).with_margin(DEFAULT_LIMIT_MARGIN)
+    zero = np.zeros(robot.dof)
+    lo, hi = work.position_limits.T
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+
+    def static(q: np.ndarray) -> np.ndarray:   # pinocchio's RNEA, not the regressor
+        return np.abs(robot.rnea(q, zero, zero)[0]) / work.effort_limits
+
+    assert static(centre).max() > 1.0
+    guess = initial_trajectory(robot, None, ExcitationLimits.from_robot(robot, effort=False)
+                               .with_margin(DEFAULT_LIMIT_MARGIN), 5, 10.0, 0)
+    with pytest.raises(IdentificationError, match='near the centre of the position ranges'):
+        shrink_into_limits(guess, robot, work)
+    rest = rest_pose(robot, work)
+    assert np.all(np.abs(rest - centre) <= 0.75 * half + 1e-12)
+    assert static(rest).max() <= REST_TORQUE * (1 + 1e-6)
+    # the nearest such pose: a step towards the centre (down the distance's gradient) breaks it
+    down = (centre - rest) / (0.75 * half) ** 2
+    assert static(rest + 1e-3 * down / np.linalg.norm(down)).max() > REST_TORQUE
+    checker = CollisionChecker(robot, [robots_dir().parent.parent],
+                               robots_dir() / 'talos_data/srdf/talos.srdf')
+    res = ex.optimize_excitation(robot, checker=checker)
+    assert not res.warnings and res.value < 0.05 * res.initial_value
+    assert res.clearance['distance'] >= checker.min_distance
+    keep = 1.0 - DEFAULT_LIMIT_MARGIN
+    f = res.framed
+    q, qd, qdd = f.sample(dense_times(f, DENSE_TORQUE))
+    tau = robot.rnea(q, qd, qdd)
+    assert np.all(np.abs(tau) <= keep * ExcitationLimits.from_robot(robot).effort_limits + 1e-9)
+    ur5 = load_robot(str(arm_urdf('ur5')))
+    assert rest_pose(ur5, ExcitationLimits.from_robot(ur5).with_margin(0.1)) is None
 
 
 def test_coefficient_bounds_hold_every_trajectory_within_the_limits(designs):

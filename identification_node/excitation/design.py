@@ -12,8 +12,10 @@ Kreisselmeier-Steinhauser maximum of its ratios to the limit (see DesignProblem)
 collision.CollisionChecker, one more per checked geometry pair on its distances. Every result is
 verified on a fine grid after the optimisation (torques on EFFORT_POINTS samples) and, where
 needed, its motion is scaled down towards the centre of the position ranges until every ratio
-is below VERIFY_RATIO; then framed by ramps from and back to rest (frame_excitation,
-trajectories.FramedTrajectory) and its collisions verified densely (framed_clearance).
+is below VERIFY_RATIO (towards a pose of lower static torque where the centre holds the arm
+out against gravity: initial_guess.rest_pose); then framed by ramps from and back to rest
+(frame_excitation, trajectories.FramedTrajectory) and its collisions verified densely
+(framed_clearance).
 
 Initial guess: the paper's least squares on random target velocities (III.A,
 least_squares_guess), or Table I (table1_trajectory, offsets moved to our joint zeros).
@@ -41,8 +43,8 @@ from identification_node.excitation.framing import (DEFAULT_PERIODS, check_start
                                                     frame_excitation, framed_clearance)
 from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEFAULT_PERIOD,
                                                           check_harmonics, from_x,
-                                                          initial_trajectory, scale_motion,
-                                                          shrink_into_limits, to_x)
+                                                          initial_trajectory, rest_pose,
+                                                          scale_motion, shrink_into_limits, to_x)
 from identification_node.excitation.limits import ExcitationLimits, as_limits, limit_ratios
 from identification_node.excitation.problem import DesignProblem
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN, ExcitationResult
@@ -210,9 +212,10 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                            noise_std, MARGIN, phis, checker, start_q)
     watch = _Progress(progress, time_limit, start_time, criterion)
     design.tick = watch.tick
-    init = initial_trajectory(robot, initial, work, H, period, seed, phis)
+    rest = rest_pose(robot, work, phis)
+    init = initial_trajectory(robot, initial, work, H, period, seed, phis, rest)
     if checker is not None:
-        init = _out_of_collision(init, design, work)
+        init = _out_of_collision(init, design, work, rest)
     x0 = to_x(init)
     f0 = design.value(x0)[0]
     if not np.isfinite(f0):
@@ -272,7 +275,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
         framed and checked for collisions; None (the reason noted) when it cannot be."""
         try:
             cand, s, _ = shrink_into_limits(from_x(x, robot.dof, period, names), robot, work,
-                                            phis=phis)
+                                            phis=phis, rest=rest)
             framed = frame_excitation(cand, robot, work, start_q, periods, phis)
         except IdentificationError as exc:   # cannot be brought inside the limits
             reasons.append((str(exc), False))
@@ -307,12 +310,16 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     if not initial_feasible:
         candidates.append(x0)   # the shrinking may still bring it inside
     best, initial_kept = None, False
-    for x in candidates[:CANDIDATES]:
+    tried = candidates[:CANDIDATES]
+    # each candidate's criterion as it stands: shrinking into the limits does not better it
+    raw = [report_value(design.value(x)[0], criterion) for x in tried] + [math.inf]
+    for i, x in enumerate(tried):
         found = verified(x)
         if found is not None and (best is None or found[0] < best[0]):
             best, initial_kept = found, x is x0
-        if best is not None and x is not candidates[0]:
-            break   # the iterates come best first
+        if best is not None and x is not candidates[0] and best[0] <= min(raw[i + 1:]):
+            break   # the iterates come best first; a later one is tried only if it may beat
+            # what the shrinking left of this (a torque limit that slower motion breaks)
     if (best is None or best[0] >= f_init) and res is not None and initial_feasible:
         # blend the best near-feasible iterate (else the last) with the feasible initial
         # guess, x0 + alpha (x - x0), and keep the first verified blend improving on it
@@ -366,12 +373,13 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
 
 
 def _out_of_collision(traj: FourierTrajectory, design: DesignProblem, limits: ExcitationLimits,
-                      steps: int = 20) -> FourierTrajectory:
-    """``traj``, or its motion scaled towards the centre of the position ranges (by 0.8 per
-    step) until it meets the collision constraints (at the design's collision samples); failing
-    that, the least scaled that keeps the minimum distance there (the pairs it brings closer
-    than the constraints ask for are then held: DesignProblem.hold_collisions_at); ``traj``
-    unchanged when none does (the optimiser then starts infeasible)."""
+                      rest: np.ndarray | None = None, steps: int = 20) -> FourierTrajectory:
+    """``traj``, or its motion scaled towards the centre of the position ranges or ``rest``
+    (rest_pose; by 0.8 per step) until it meets the collision constraints (at the design's
+    collision samples); failing that, the least scaled that keeps the minimum distance there
+    (the pairs it brings closer than the constraints ask for are then held:
+    DesignProblem.hold_collisions_at); ``traj`` unchanged when none does (the optimiser then
+    starts infeasible)."""
     assert design.checker is not None   # called only with collision constraints
     cur, scale, clear = traj, 1.0, None
     for _ in range(steps):
@@ -381,5 +389,5 @@ def _out_of_collision(traj: FourierTrajectory, design: DesignProblem, limits: Ex
         if clear is None and design.collision_distances(x).min() >= design.checker.min_distance:
             clear = cur
         scale *= 0.8
-        cur = scale_motion(traj, limits, scale)
+        cur = scale_motion(traj, limits, scale, rest)
     return traj if clear is None else clear

@@ -13,19 +13,22 @@ import numpy as np
 from identification_node.config import Excitation
 from identification_node.errors import IdentificationError
 from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, ExcitationLimits,
-                                                   position_ranges, worst_ratio, limit_ratios)
+                                                   position_ranges, static_ratios, worst_ratio,
+                                                   limit_ratios)
 from identification_node.excitation.trajectories import TABLE1_PERIOD, FourierTrajectory
 
-__all__ = ['DEFAULT_HARMONICS', 'DEFAULT_PERIOD', 'INITIAL_MARGIN', 'LSQ_POINTS', 'TABLE1_OFFSET',
-           'VERIFY_RATIO', 'check_harmonics', 'fourier_basis', 'from_x', 'initial_trajectory',
-           'least_squares_guess', 'scale_motion', 'scale_to_limits', 'shrink_into_limits',
-           'table1_trajectory', 'to_x']
+__all__ = ['DEFAULT_HARMONICS', 'DEFAULT_PERIOD', 'INITIAL_MARGIN', 'LSQ_POINTS', 'REST_TORQUE',
+           'TABLE1_OFFSET', 'VERIFY_RATIO', 'check_harmonics', 'fourier_basis', 'from_x',
+           'initial_trajectory', 'least_squares_guess', 'rest_pose', 'scale_motion',
+           'scale_to_limits', 'shrink_into_limits', 'table1_trajectory', 'to_x']
 
 DEFAULT_HARMONICS = Excitation.harmonics
 DEFAULT_PERIOD = Excitation.period
 LSQ_POINTS = 100            # random target velocities of the initial guess (paper: 100)
 INITIAL_MARGIN = 0.95        # the initial guess reaches this fraction of its tightest limit
 VERIFY_RATIO = 0.999        # a verified result stays below this fraction of every limit
+REST_TORQUE = 0.7           # the rest pose's static torque stays within this fraction of a limit
+REST_STARTS = 8             # random starts (besides the centre) of the search for a rest pose
 # Table I's joint zeros -> ours (crs_a465.urdf: arm straight up at zero), q_ours = q_paper +
 # offset. Table I moves joint 2 over [36, 148] deg and joint 3 over [-163, -10] deg: centred on
 # +90 and -90 deg, where our symmetric +-90 / +-110 deg ranges are centred on 0. With the
@@ -84,14 +87,18 @@ def least_squares_guess(limits: ExcitationLimits, harmonics: int = DEFAULT_HARMO
 
 
 def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
-                    margin: float = INITIAL_MARGIN, num_points: int = VERIFY_POINTS
-                    ) -> FourierTrajectory:
+                    margin: float = INITIAL_MARGIN, num_points: int = VERIFY_POINTS,
+                    rest: np.ndarray | None = None) -> FourierTrajectory:
     """Per joint, scale the amplitudes (up or down) so the motion reaches ``margin`` of its
     tightest kinematic limit (position range, velocity, acceleration), with q0 centring the
-    excursion in the position range (unchanged for joints without position limits)."""
+    excursion in the position range (unchanged for joints without position limits), or on
+    ``rest`` (rest_pose) where given."""
     unit = FourierTrajectory(traj.a, traj.b, np.zeros(traj.dof), traj.period)
     q, qd, qdd = unit.sample(np.linspace(0.0, traj.period, num_points))
     limited, centre, half = position_ranges(limits)
+    if rest is not None:   # the room on the nearer side of the rest pose
+        lo, hi = limits.position_limits.T
+        half = np.minimum(hi - rest, rest - lo)
     span = 0.5 * (q.max(axis=0) - q.min(axis=0))
     with np.errstate(divide='ignore'):
         scale = margin * np.min([half / span, limits.velocity_limits / np.abs(qd).max(axis=0),
@@ -100,25 +107,60 @@ def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
         bad = [j for j, s in zip(limits.joint_names, scale) if not np.isfinite(s)]
         raise IdentificationError(f'the trajectory does not move joints {bad}')
     mid = 0.5 * (q.max(axis=0) + q.min(axis=0))
-    q0 = np.where(limited, centre - scale * mid, traj.q0)
+    q0 = np.where(limited, centre - scale * mid, traj.q0) if rest is None else rest - scale * mid
     return FourierTrajectory(traj.a * scale[:, None], traj.b * scale[:, None], q0,
                              traj.period, traj.joint_names)
 
 
+def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None = None,
+              level: float = REST_TORQUE, seed: int = 0) -> np.ndarray | None:
+    """The pose (n,) an excitation is centred on and scaled towards, where the centre of the
+    position ranges will not do: None while the static torque there (under each of ``phis``)
+    stays within ``level`` of every effort limit; else the pose nearest that centre (in half
+    widths of the ranges, pi where unlimited) within the middle three quarters of the ranges
+    whose static torque does (an arm held out against gravity at the centre hangs), or failing
+    that the pose of least static torque found."""
+    from scipy.optimize import minimize
+
+    limited, centre, half = position_ranges(limits)
+    if not np.isfinite(limits.effort_limits).any():
+        return None
+
+    def ratios(q: np.ndarray) -> np.ndarray:
+        return static_ratios(robot, limits, q, phis)
+
+    if ratios(centre).max() <= level:
+        return None
+    width = np.where(limited, 0.75 * half, math.pi)
+    box = list(zip(centre - width, centre + width))
+    starts = [centre, *np.random.default_rng(seed).uniform(centre - width, centre + width,
+                                                           (REST_STARTS, robot.dof))]
+    low = min((minimize(lambda q: float((ratios(q) ** 2).sum()), s, method='L-BFGS-B',
+                        bounds=box).x for s in starts), key=lambda q: ratios(q).max())
+    if ratios(low).max() > level:
+        return low
+    near = minimize(lambda q: float((((q - centre) / width) ** 2).sum()), low, method='SLSQP',
+                    bounds=box, constraints=[{'type': 'ineq',
+                                              'fun': lambda q: level - ratios(q)}])
+    ok = ratios(near.x).max() <= level * (1.0 + 1e-6)
+    return np.clip(near.x, centre - width, centre + width) if ok else low
+
+
 def shrink_into_limits(traj: FourierTrajectory, robot, limits: ExcitationLimits,
                        target: float = VERIFY_RATIO, max_steps: int = 60,
-                       phis: Sequence[np.ndarray] | None = None
-                       ) -> tuple[FourierTrajectory, float, dict]:
+                       phis: Sequence[np.ndarray] | None = None,
+                       rest: np.ndarray | None = None) -> tuple[FourierTrajectory, float, dict]:
     """Scale the motion down until every limit ratio (limit_ratios) is at most ``target``:
     amplitudes times s, and each offset q0 drawn towards the centre of its position range by
-    the same factor (kept where unlimited), so every kinematic ratio scales by s exactly.
-    Returns (trajectory, s, ratios); IdentificationError when even the centre of the ranges
-    at rest exceeds the effort limits. ``phis``: the torque models (see limit_ratios)."""
+    the same factor (kept where unlimited), so every kinematic ratio scales by s exactly; or
+    towards ``rest`` (rest_pose) where given. Returns (trajectory, s, ratios);
+    IdentificationError when even that pose at rest exceeds the effort limits. ``phis``: the
+    torque models (see limit_ratios)."""
     ratios = limit_ratios(traj, robot, limits, phis=phis)
     kinematic = max(ratios[k] for k in LIMIT_KINDS[:3])
     scale = min(1.0, target / kinematic) if kinematic > 0 else 1.0
     for _ in range(max_steps):
-        cur = scale_motion(traj, limits, scale)
+        cur = scale_motion(traj, limits, scale, rest)
         if scale != 1.0:
             ratios = limit_ratios(cur, robot, limits, phis=phis)
         if worst_ratio(ratios) <= target:
@@ -127,18 +169,20 @@ def shrink_into_limits(traj: FourierTrajectory, robot, limits: ExcitationLimits,
     effort = ratios['per_joint']['effort']
     over = ', '.join(f'{name} {r:.3g} x' for name, r in zip(limits.joint_names, effort)
                      if r > target)
+    pose = ('the centre of the position ranges' if rest is None
+            else 'the pose of least static torque found')
     raise IdentificationError('infeasible limits: the trajectory cannot be scaled into the '
-                              'effort limits (with their margin): the static torque near the '
-                              f'centre of the position ranges exceeds them ({over} the limit); '
+                              f'effort limits (with their margin): the static torque near {pose} '
+                              f'exceeds them ({over} the limit); '
                               '--no-effort leaves torque limits out, or narrow the position '
                               'limits (--limits) to where gravity asks less')
 
 
-def scale_motion(traj: FourierTrajectory, limits: ExcitationLimits, scale: float
-                 ) -> FourierTrajectory:
+def scale_motion(traj: FourierTrajectory, limits: ExcitationLimits, scale: float,
+                 rest: np.ndarray | None = None) -> FourierTrajectory:
     """The motion of ``traj`` scaled by ``scale``: amplitudes, and offsets towards the centre
-    of the position ranges (kept where unlimited)."""
-    centre = position_ranges(limits, traj.q0)[1]
+    of the position ranges (kept where unlimited), or towards ``rest`` (rest_pose)."""
+    centre = position_ranges(limits, traj.q0)[1] if rest is None else rest
     return FourierTrajectory(traj.a * scale, traj.b * scale, centre + scale * (traj.q0 - centre),
                              traj.period, traj.joint_names)
 
@@ -171,12 +215,14 @@ def check_harmonics(harmonics: int) -> int:
 
 def initial_trajectory(robot, initial: str | FourierTrajectory | None,
                        limits: ExcitationLimits, harmonics: int, period: float,
-                       seed: int | None, phis: Sequence[np.ndarray] | None = None
-                       ) -> FourierTrajectory:
+                       seed: int | None, phis: Sequence[np.ndarray] | None = None,
+                       rest: np.ndarray | None = None) -> FourierTrajectory:
     """The starting point: 'lsq' (None; least_squares_guess scaled into the limits), 'table1'
-    (table1_trajectory) or a FourierTrajectory, shrunk into every limit."""
+    (table1_trajectory) or a FourierTrajectory, shrunk into every limit; centred on and
+    shrunk towards ``rest`` (rest_pose) where given."""
     if initial is None or (isinstance(initial, str) and initial == 'lsq'):
-        guess = scale_to_limits(least_squares_guess(limits, harmonics, period, seed), limits)
+        guess = scale_to_limits(least_squares_guess(limits, harmonics, period, seed), limits,
+                                rest=rest)
     elif isinstance(initial, str) and initial == 'table1':
         guess = table1_trajectory(robot, harmonics, period)
     elif isinstance(initial, FourierTrajectory):
@@ -189,4 +235,4 @@ def initial_trajectory(robot, initial: str | FourierTrajectory | None,
     else:
         raise IdentificationError(f"unknown initial trajectory {initial!r}: use 'lsq', "
                                   "'table1' or a FourierTrajectory")
-    return shrink_into_limits(guess, robot, limits, phis=phis)[0]
+    return shrink_into_limits(guess, robot, limits, phis=phis, rest=rest)[0]

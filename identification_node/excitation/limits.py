@@ -235,6 +235,15 @@ def limit_ratios(traj: Trajectory, robot, limits: ExcitationLimits | None = None
     return out
 
 
+def static_ratios(robot, limits: ExcitationLimits, q: np.ndarray,
+                  phis: Sequence[np.ndarray] | None = None) -> np.ndarray:
+    """Per joint (n,) |static torque| at pose q (n,) over its effort limit, the largest under
+    the parameter vectors ``phis`` (default: the robot's own); 0 where unlimited."""
+    zero = np.zeros((1, robot.dof))
+    eff = limits.effort_limits
+    return np.where(np.isfinite(eff), _peak_torques(robot, q[None], zero, zero, phis) / eff, 0.0)
+
+
 def _peak_torques(robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
                   phis: Sequence[np.ndarray] | None) -> np.ndarray:
     """Largest |tau| per joint (n,) over the samples and the parameter vectors ``phis``."""
