@@ -19,7 +19,8 @@ from identification_node.excitation.criteria import base_of, criterion_value
 from identification_node.excitation import design as ex
 from identification_node.excitation.initial_guess import (REST_TORQUE, initial_trajectory,
                                                           rest_pose, shrink_into_limits, to_x)
-from identification_node.excitation.problem import COLLISION_SCALE, DesignProblem
+from identification_node.excitation.problem import (COLLISION_CULL_PAIRS, COLLISION_SCALE,
+                                                    DesignProblem)
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN
 from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits,
                                                    estimate_parameters, limit_ratios)
@@ -500,6 +501,33 @@ def test_hulls_bound_the_meshes_and_clearance_is_the_exact_minimum():
         c = exact.clearance(part)
         assert c['distance'] == pytest.approx(d[k, i], abs=1e-6)
         assert c['pair'] == exact.pairs[i] and c['sample'] == k
+
+
+def test_distances_within_leave_out_only_pairs_their_bounding_spheres_keep_farther():
+    """CollisionChecker.distances(q, within): TIAGo Pro's arm (531 pairs on its hulls, no
+    SRDF) and a floor, on a smooth path through its ranges. Every pair closer than ``within``
+    is computed, as without it (GJK's warm starts differ by its tolerance); where a pair is
+    left out, what stands in is a lower bound of its distance above ``within``; the floor,
+    unbounded, is always computed. Most pairs are left out: the excitation optimiser's
+    collision constraints cost a third (COLLISION_CULL_PAIRS)."""
+    robot = load_robot(str(arm_urdf('tiago_pro')), ARMS['tiago_pro'][1])
+    hulls = CollisionChecker(robot, [robots_dir().parent.parent], floor=-0.5).hulls()
+    assert hulls.num_pairs > COLLISION_CULL_PAIRS
+    lo, hi = ExcitationLimits.from_robot(robot).position_limits.T
+    t = np.linspace(0.0, 1.0, 200)[:, None]
+    q = lo + (hi - lo) * (0.5 + 0.4 * np.sin(2 * np.pi * t * np.arange(1, robot.dof + 1)))
+    exact = hulls.distances(q)
+    within = np.random.default_rng(3).uniform(0.05, 0.3, hulls.num_pairs)
+    d = hulls.distances(q, within)
+    close = exact < within - 1e-6
+    np.testing.assert_allclose(d[close], exact[close], atol=2e-6)
+    assert np.all(d <= exact + 2e-6)
+    stand_in = np.abs(d - exact) > 2e-6
+    assert np.all(d[stand_in] > np.broadcast_to(within, d.shape)[stand_in])
+    floor = [i for i, pair in enumerate(hulls.pairs) if 'floor' in pair]
+    assert floor and not stand_in[:, floor].any()
+    assert stand_in.mean() > 0.8
+    np.testing.assert_allclose(hulls.distances(q), exact, atol=2e-6)   # every pair again
 
 
 def test_a_flat_mesh_without_a_hull_stays_a_mesh(tmp_path):

@@ -14,7 +14,8 @@ the same checker with every mesh replaced by its convex hull (coal, Qhull), tens
 faster. A hull contains its mesh, so hull distances are lower bounds of the exact ones: the
 excitation optimiser's constraints use them (conservative), and :meth:`CollisionChecker.clearance`
 computes the exact (mesh) distance only of the pairs and samples whose hull bound could be the
-smallest.
+smallest. ``distances(q, within=...)`` leaves out the pairs whose bounding spheres (each
+geometry's local AABB's) stay farther apart than asked, their spheres' distance standing in.
 """
 from __future__ import annotations
 
@@ -111,9 +112,12 @@ class CollisionChecker:
         self.pairs = [(geom.geometryObjects[p.first].name, geom.geometryObjects[p.second].name)
                       for p in geom.collisionPairs]
         self._own = {geom.geometryObjects[k].name for k in robot_objects}
-        self._joints = np.array([[geom.geometryObjects[p.first].parentJoint,
-                                  geom.geometryObjects[p.second].parentJoint]
-                                 for p in geom.collisionPairs], dtype=int).reshape(-1, 2)
+        self._objects = np.array([[p.first, p.second] for p in geom.collisionPairs],
+                                 dtype=int).reshape(-1, 2)
+        self._joints = np.array([[geom.geometryObjects[int(i)].parentJoint for i in pair]
+                                 for pair in self._objects], dtype=int).reshape(-1, 2)
+        self._active = np.ones(self.num_pairs, dtype=bool)   # geometry_data's flags
+        self._spheres: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def num_pairs(self) -> int:
@@ -145,14 +149,64 @@ class CollisionChecker:
             self._hulls = CollisionChecker(*self._args, convex=True)
         return self._hulls
 
-    def distances(self, q: np.ndarray) -> np.ndarray:
-        """Signed distances (N, pairs) in m for joint positions q (N, n)."""
+    def distances(self, q: np.ndarray, within: np.ndarray | float | None = None) -> np.ndarray:
+        """Signed distances (N, pairs) in m for joint positions q (N, n). With ``within`` (m,
+        per pair or one for all), a pair whose geometries' bounding spheres are farther apart
+        than that at a sample is not computed there: the spheres' distance, a lower bound of
+        its distance above ``within``, stands in."""
         Q = self.robot.configuration(np.atleast_2d(q))
         out = np.empty((Q.shape[0], self.num_pairs))
+        model, data, geom, gdata = self.model, self.data, self.geometry, self.geometry_data
+        if within is None:
+            self._activate(np.ones(self.num_pairs, dtype=bool))
+            for k in range(Q.shape[0]):
+                pin.computeDistances(model, data, geom, gdata, Q[k])
+                out[k] = [r.min_distance for r in gdata.distanceResults]
+            return out
+        joints, centre, radius = self._bounding_spheres()
+        used = [int(j) for j in np.unique(joints)]
+        reach = radius[self._objects].sum(axis=1)   # inf for a floor: always computed
+        results = gdata.distanceResults
         for k in range(Q.shape[0]):
-            pin.computeDistances(self.model, self.data, self.geometry, self.geometry_data, Q[k])
-            out[k] = [r.min_distance for r in self.geometry_data.distanceResults]
+            pin.forwardKinematics(model, data, Q[k])
+            R = np.zeros((model.njoints, 3, 3))
+            p = np.zeros((model.njoints, 3))
+            for j in used:
+                R[j], p[j] = data.oMi[j].rotation, data.oMi[j].translation
+            world = np.einsum('oij,oj->oi', R[joints], centre) + p[joints]
+            a, b = world[self._objects[:, 0]], world[self._objects[:, 1]]
+            bound = np.linalg.norm(a - b, axis=1) - reach
+            near = ~(bound > within)
+            self._activate(near)
+            pin.updateGeometryPlacements(model, data, geom, gdata)
+            pin.computeDistances(geom, gdata)
+            out[k] = bound
+            out[k, near] = [results[int(i)].min_distance for i in np.flatnonzero(near)]
         return out
+
+    def _activate(self, active: np.ndarray) -> None:
+        """Set the pairs computeDistances computes (geometry_data's flags) to ``active``."""
+        for i in np.flatnonzero(active != self._active):
+            if active[i]:
+                self.geometry_data.activateCollisionPair(int(i))
+            else:
+                self.geometry_data.deactivateCollisionPair(int(i))
+        self._active = active.copy()
+
+    def _bounding_spheres(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per geometry object its parent joint, the centre (3,) of its local AABB's bounding
+        sphere in that joint's frame, and its radius (m; inf where unbounded, a floor)."""
+        if self._spheres is None:
+            objects = self.geometry.geometryObjects
+            joints = np.array([o.parentJoint for o in objects], dtype=int)
+            centre, radius = np.zeros((len(objects), 3)), np.full(len(objects), np.inf)
+            for k, o in enumerate(objects):
+                o.geometry.computeLocalAABB()
+                c, r = np.asarray(o.geometry.aabb_center), float(o.geometry.aabb_radius)
+                if np.isfinite(c).all() and math.isfinite(r) and r >= 0:
+                    centre[k], radius[k] = o.placement.act(c), r
+            self._spheres = (joints, centre, radius)
+        return self._spheres
 
     def pair_distances(self, q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Signed distances (len(pairs),) in m of the pairs ``pairs`` (indices) at the joint

@@ -46,7 +46,7 @@ from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEF
                                                           initial_trajectory, rest_pose,
                                                           scale_motion, shrink_into_limits, to_x)
 from identification_node.excitation.limits import ExcitationLimits, as_limits, limit_ratios
-from identification_node.excitation.problem import DesignProblem
+from identification_node.excitation.problem import COLLISION_PAD, DesignProblem
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN, ExcitationResult
 from identification_node.excitation.trajectories import FourierTrajectory
 
@@ -212,7 +212,9 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                            noise_std, MARGIN, phis, checker, start_q)
     watch = _Progress(progress, time_limit, start_time, criterion)
     design.tick = watch.tick
-    rest = rest_pose(robot, work, phis)
+    hulls = design.checker   # the clearance of the rest pose on the hulls, padded
+    rest = rest_pose(robot, work, phis, clearance=None if hulls is None else (
+        lambda q: float(hulls.distances(q[None]).min()) - hulls.min_distance - COLLISION_PAD))
     init = initial_trajectory(robot, initial, work, H, period, seed, phis, rest)
     if checker is not None:
         init = _out_of_collision(init, design, work, rest)

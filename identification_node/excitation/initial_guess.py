@@ -6,7 +6,7 @@ Coefficient vectors x hold per joint [a_1..a_H, b_1..b_H, q0] (rad/s, rad), join
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -113,13 +113,15 @@ def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
 
 
 def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None = None,
-              level: float = REST_TORQUE, seed: int = 0) -> np.ndarray | None:
+              level: float = REST_TORQUE, seed: int = 0,
+              clearance: Callable[[np.ndarray], float] | None = None) -> np.ndarray | None:
     """The pose (n,) an excitation is centred on and scaled towards, where the centre of the
     position ranges will not do: None while the static torque there (under each of ``phis``)
     stays within ``level`` of every effort limit; else the pose nearest that centre (in half
     widths of the ranges, pi where unlimited) within the middle three quarters of the ranges
     whose static torque does (an arm held out against gravity at the centre hangs), or failing
-    that the pose of least static torque found."""
+    that the pose of least static torque found (a clear one where any is). ``clearance(q)``
+    (m, >= 0 where q is free of collisions) keeps it clear where given."""
     from scipy.optimize import minimize
 
     limited, centre, half = position_ranges(limits)
@@ -135,15 +137,19 @@ def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None
     box = list(zip(centre - width, centre + width))
     starts = [centre, *np.random.default_rng(seed).uniform(centre - width, centre + width,
                                                            (REST_STARTS, robot.dof))]
-    low = min((minimize(lambda q: float((ratios(q) ** 2).sum()), s, method='L-BFGS-B',
-                        bounds=box).x for s in starts), key=lambda q: ratios(q).max())
-    if ratios(low).max() > level:
-        return low
+    lows = [minimize(lambda q: float((ratios(q) ** 2).sum()), s, method='L-BFGS-B',
+                     bounds=box).x for s in starts]
+    free = lows if clearance is None else [q for q in lows if clearance(q) >= 0] or lows
+    low = min(free, key=lambda q: ratios(q).max())
+    constraints = [{'type': 'ineq', 'fun': lambda q: level - ratios(q)}]
+    if clearance is not None:
+        constraints.append({'type': 'ineq', 'fun': clearance})
     near = minimize(lambda q: float((((q - centre) / width) ** 2).sum()), low, method='SLSQP',
-                    bounds=box, constraints=[{'type': 'ineq',
-                                              'fun': lambda q: level - ratios(q)}])
-    ok = ratios(near.x).max() <= level * (1.0 + 1e-6)
-    return np.clip(near.x, centre - width, centre + width) if ok else low
+                    bounds=box, constraints=constraints)
+    rest = np.clip(near.x, centre - width, centre + width)
+    ok = ratios(rest).max() <= level * (1.0 + 1e-6) and (
+        clearance is None or clearance(rest) >= 0)
+    return rest if ok else low
 
 
 def shrink_into_limits(traj: FourierTrajectory, robot, limits: ExcitationLimits,
