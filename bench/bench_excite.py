@@ -8,7 +8,7 @@ does: the Panda's 7 arm joints (test/arms.py ARMS) and, with collision, its SRDF
 Printed per case: wall and CPU time, SLSQP iterations, the criterion (initial -> designed),
 the clearance with collision, and wall time / baseline. ``--cases`` also takes
 tiago_pro+collision: TIAGo Pro's left arm, an arm outside the suite's tuning (meshes, no SRDF,
-so 531 pairs), about 5 minutes.
+so 531 pairs), about 2 minutes.
 
 ``--exact`` also times the collision constraints and their Jacobian at the Panda's initial
 guess (one SLSQP iteration's collision work) on the exact meshes, as the optimiser did before
