@@ -167,10 +167,9 @@ class CollisionChecker:
         used = [int(j) for j in np.unique(joints)]
         reach = radius[self._objects].sum(axis=1)   # inf for a floor: always computed
         results = gdata.distanceResults
+        R, p = np.zeros((model.njoints, 3, 3)), np.zeros((model.njoints, 3))
         for k in range(Q.shape[0]):
             pin.forwardKinematics(model, data, Q[k])
-            R = np.zeros((model.njoints, 3, 3))
-            p = np.zeros((model.njoints, 3))
             for j in used:
                 R[j], p[j] = data.oMi[j].rotation, data.oMi[j].translation
             world = np.einsum('oij,oj->oi', R[joints], centre) + p[joints]

@@ -24,8 +24,7 @@ COLLISION_RHO = 20.0        # KS sharpness over the samples: 2.5 mm of distance,
 GRADIENT_WEIGHT = 1e-12
 # m beyond a pair's need where its distance is not computed, its bounding spheres' standing in
 # (CollisionChecker.distances' within): 4 units of the constraint's ratio from its bound; only
-# with more than COLLISION_CULL_PAIRS pairs (the spheres' test costs ~45 us a sample, ~1 us a
-# pair's distance: 72 against 219 us with Baxter's 355 pairs, 57 against 40 us with the Panda's 44)
+# with more than COLLISION_CULL_PAIRS pairs (the spheres' test costs what ~45 pairs' distances do)
 COLLISION_FAR = 0.2
 COLLISION_CULL_PAIRS = 100
 COLLISION_OVERSAMPLE = 4    # collision samples per criterion sample (these and between them)
