@@ -446,9 +446,9 @@ def test_collision_jacobian_skips_only_negligible_samples(monkeypatch):
         checker = CollisionChecker(robot, floor=0.0)   # GJK's warm starts from scratch
         full_gradients = checker.gradients
 
-        def gradients(q, which, full_gradients=full_gradients):
+        def gradients(q, which, within=None, full_gradients=full_gradients):
             asked.append(np.mean(which))
-            return full_gradients(q, which)
+            return full_gradients(q, which, within)
         monkeypatch.setattr(checker, 'gradients', gradients)
         design = DesignProblem(robot, base_of(robot, None), limits, 2, 4.0, 40, 'cond', None,
                                1.0, None, checker)
@@ -507,9 +507,10 @@ def test_distances_within_leave_out_only_pairs_their_bounding_spheres_keep_farth
     """CollisionChecker.distances(q, within): TIAGo Pro's arm (531 pairs on its hulls, no
     SRDF) and a floor, on a smooth path through its ranges. Every pair closer than ``within``
     is computed, as without it (GJK's warm starts differ by its tolerance); where a pair is
-    left out, what stands in is a lower bound of its distance above ``within``; the floor,
-    unbounded, is always computed. Most pairs are left out: the excitation optimiser's
-    collision constraints cost a third (COLLISION_CULL_PAIRS)."""
+    left out, what stands in is a lower bound of its distance above ``within``, and the
+    gradients are those of what stands in; the floor, unbounded, is always computed. Most
+    pairs are left out: the excitation optimiser's collision constraints cost a third
+    (COLLISION_CULL_PAIRS)."""
     robot = load_robot(str(arm_urdf('tiago_pro')), ARMS['tiago_pro'][1])
     hulls = CollisionChecker(robot, [robots_dir().parent.parent], floor=-0.5).hulls()
     assert hulls.num_pairs > COLLISION_CULL_PAIRS
@@ -528,6 +529,20 @@ def test_distances_within_leave_out_only_pairs_their_bounding_spheres_keep_farth
     assert floor and not stand_in[:, floor].any()
     assert stand_in.mean() > 0.8
     np.testing.assert_allclose(hulls.distances(q), exact, atol=2e-6)   # every pair again
+    # gradients: the witness points' where computed, the spheres' (central differences of
+    # what stands in) elsewhere
+    k = slice(0, 200, 10)
+    g = hulls.gradients(q[k], np.ones(d[k].shape, dtype=bool), within)
+    # a warm-started GJK may pick another witness point along a polytope's edge or face
+    same = np.abs(g - hulls.gradients(q[k], ~stand_in[k])).max(axis=2) < 1e-3
+    assert same[~stand_in[k]].mean() > 0.99
+    h = 1e-6
+    for i in range(robot.dof):
+        step = np.eye(robot.dof)[i] * h
+        up, down = hulls.distances(q[k] + step, within), hulls.distances(q[k] - step, within)
+        both = stand_in[k] & (np.abs(up - down) < 1e-3)   # stood in on both sides
+        assert both.sum() > 1000
+        np.testing.assert_allclose(g[..., i][both], ((up - down) / (2 * h))[both], atol=1e-7)
 
 
 def test_a_flat_mesh_without_a_hull_stays_a_mesh(tmp_path):

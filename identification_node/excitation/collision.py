@@ -163,18 +163,10 @@ class CollisionChecker:
                 pin.computeDistances(model, data, geom, gdata, Q[k])
                 out[k] = [r.min_distance for r in gdata.distanceResults]
             return out
-        joints, centre, radius = self._bounding_spheres()
-        used = [int(j) for j in np.unique(joints)]
-        reach = radius[self._objects].sum(axis=1)   # inf for a floor: always computed
         results = gdata.distanceResults
-        R, p = np.zeros((model.njoints, 3, 3)), np.zeros((model.njoints, 3))
         for k in range(Q.shape[0]):
             pin.forwardKinematics(model, data, Q[k])
-            for j in used:
-                R[j], p[j] = data.oMi[j].rotation, data.oMi[j].translation
-            world = np.einsum('oij,oj->oi', R[joints], centre) + p[joints]
-            a, b = world[self._objects[:, 0]], world[self._objects[:, 1]]
-            bound = np.linalg.norm(a - b, axis=1) - reach
+            bound = self._sphere_bounds()[0]
             near = ~(bound > within)
             self._activate(near)
             pin.updateGeometryPlacements(model, data, geom, gdata)
@@ -207,6 +199,20 @@ class CollisionChecker:
             self._spheres = (joints, centre, radius)
         return self._spheres
 
+    def _sphere_bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """At the joint placements in ``data`` (forward kinematics done): per pair the
+        distance of its bounding spheres (m; -inf or NaN where one is unbounded), and their
+        world centres (pairs, 3) on each side."""
+        joints, centre, radius = self._bounding_spheres()
+        R, p = np.zeros((self.model.njoints, 3, 3)), np.zeros((self.model.njoints, 3))
+        for j in {int(j) for j in joints}:
+            placement = self.data.oMi[j]
+            R[j], p[j] = placement.rotation, placement.translation
+        world = np.einsum('oij,oj->oi', R[joints], centre) + p[joints]
+        a, b = world[self._objects[:, 0]], world[self._objects[:, 1]]
+        reach = radius[self._objects].sum(axis=1)   # inf for a floor: always computed
+        return np.linalg.norm(a - b, axis=1) - reach, a, b
+
     def pair_distances(self, q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Signed distances (len(pairs),) in m of the pairs ``pairs`` (indices) at the joint
         positions q (n,)."""
@@ -220,11 +226,13 @@ class CollisionChecker:
         d = self.distances(q)
         return d, self.gradients(q, np.ones(d.shape, dtype=bool))
 
-    def gradients(self, q: np.ndarray, which: np.ndarray) -> np.ndarray:
+    def gradients(self, q: np.ndarray, which: np.ndarray,
+                  within: np.ndarray | float | None = None) -> np.ndarray:
         """Gradients (N, pairs, n) of the distances in the joint positions q (N, n), where
         ``which`` (N, pairs) is true (0 elsewhere): d(distance)/dq = normal . (J_p2 - J_p1),
         J_p the Jacobian of each witness point. Only those pairs' distances are recomputed,
-        at only those samples."""
+        at only those samples. With ``within`` (as for distances), where the bounding
+        spheres' distance stands in, its gradient (the witness points their centres)."""
         Q = self.robot.configuration(np.atleast_2d(q))
         N, n, P = Q.shape[0], self.robot.dof, self.num_pairs
         grad = np.zeros((N, P, n))
@@ -235,22 +243,30 @@ class CollisionChecker:
         geom, gdata, world = self.geometry, self.geometry_data, pin.ReferenceFrame.WORLD
         M = len(ks)
         normal, points = np.empty((M, 3)), np.empty((2, M, 3))
-        J = np.zeros((2, M, 6, n))
+        J = np.empty((2, M, 6, n))
+        joint_J = np.zeros((model.njoints, 6, n))   # the world (0) is still
+        used = sorted({int(j) for j in self._joints.ravel()} - {0})
+        far = np.broadcast_to(np.inf if within is None else within, (P,))
         bounds = np.searchsorted(ks, np.arange(N + 1))
         for k in np.flatnonzero(np.diff(bounds)):   # only the calls into pinocchio per entry
             pin.updateGeometryPlacements(model, data, geom, gdata, Q[k])
             pin.computeJointJacobians(model, data, Q[k])
-            jacobians: dict[int, np.ndarray] = {}
-            for e in range(bounds[k], bounds[k + 1]):
+            for j in used:
+                joint_J[j] = pin.getJointJacobian(model, data, j, world)[:, cols]
+            es = np.arange(bounds[k], bounds[k + 1])
+            stand_in = np.zeros(len(es), dtype=bool)
+            if within is not None:
+                bound, a, b = self._sphere_bounds()
+                stand_in = bound[ps[es]] > far[ps[es]]
+                e, i = es[stand_in], ps[es[stand_in]]
+                u = b[i] - a[i]
+                normal[e] = u / np.linalg.norm(u, axis=1)[:, None]
+                points[0, e], points[1, e] = a[i], b[i]
+            for e in es[~stand_in]:
                 r = pin.computeDistance(geom, gdata, int(ps[e]))
                 normal[e] = r.normal
                 points[0, e], points[1, e] = r.getNearestPoint1(), r.getNearestPoint2()
-                for side in (0, 1):
-                    j = int(self._joints[ps[e], side])
-                    if j:   # the world (0) is still
-                        if j not in jacobians:
-                            jacobians[j] = pin.getJointJacobian(model, data, j, world)[:, cols]
-                        J[side, e] = jacobians[j]
+            J[:, es] = joint_J[self._joints[ps[es]].T]
         # velocity of the world point p carried by each side's joint: v + w x p
         Jp = J[:, :, :3] - np.cross(points[:, :, :, None], J[:, :, 3:], axisa=2, axisb=2,
                                     axisc=2)

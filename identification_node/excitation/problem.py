@@ -228,10 +228,16 @@ class DesignProblem:
         key = x.tobytes()
         if self._collision is None or self._collision[0] != key:
             self.tick()
-            cull = self.checker.num_pairs > COLLISION_CULL_PAIRS
-            self._collision = (key, self.checker.distances(
-                self.collision_configs(x), self.need + COLLISION_FAR if cull else None), None)
+            self._collision = (key, self.checker.distances(self.collision_configs(x),
+                                                           self._within()), None)
         return self._collision[1]
+
+    def _within(self) -> np.ndarray | None:
+        """Per pair the distance (m) beyond which its bounding spheres stand in for it (the
+        checker's ``within``), with more than COLLISION_CULL_PAIRS pairs; else None."""
+        assert self.checker is not None   # called only with collision constraints
+        cull = self.checker.num_pairs > COLLISION_CULL_PAIRS
+        return self.need + COLLISION_FAR if cull else None
 
     def collision_ks(self, x: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Per pair, KS over the collision samples of 1 + (d_req - d) / COLLISION_SCALE, and
@@ -242,7 +248,8 @@ class DesignProblem:
         ks, w = ks_max(1.0 + (self.need - d) / COLLISION_SCALE, COLLISION_RHO)  # (P,), (S, P)
         if jac and g is None:   # where a sample's KS weight counts (GRADIENT_WEIGHT): (S, P, n)
             self.tick()
-            g = self.checker.gradients(self.collision_configs(x), w > GRADIENT_WEIGHT)
+            g = self.checker.gradients(self.collision_configs(x), w > GRADIENT_WEIGHT,
+                                       self._within())
             self._collision = (key, d, g)
         if not jac:
             return ks, None
