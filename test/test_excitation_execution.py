@@ -376,7 +376,9 @@ def test_an_arm_the_centre_of_its_ranges_holds_out_is_designed_within_its_torque
     assert static(rest + 1e-3 * down / np.linalg.norm(down)).max() > REST_TORQUE
     checker = CollisionChecker(robot, [robots_dir().parent.parent],
                                robots_dir() / 'talos_data/srdf/talos.srdf')
-    res = ex.optimize_excitation(robot, checker=checker)
+    lines: list[str] = []
+    res = ex.optimize_excitation(robot, checker=checker, progress=lines.append)
+    assert any('holds arm_left_2_joint at 1.08 x its torque limit' in line for line in lines)
     assert not res.warnings and res.value < 0.05 * res.initial_value
     assert res.clearance['distance'] >= checker.min_distance
     keep = 1.0 - DEFAULT_LIMIT_MARGIN

@@ -45,7 +45,8 @@ from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEF
                                                           check_harmonics, from_x,
                                                           initial_trajectory, rest_pose,
                                                           scale_motion, shrink_into_limits, to_x)
-from identification_node.excitation.limits import ExcitationLimits, as_limits, limit_ratios
+from identification_node.excitation.limits import (ExcitationLimits, as_limits, limit_ratios,
+                                                   position_ranges, static_ratios)
 from identification_node.excitation.problem import COLLISION_PAD, DesignProblem
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN, ExcitationResult
 from identification_node.excitation.trajectories import FourierTrajectory
@@ -215,6 +216,12 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     hulls = design.checker   # the clearance of the rest pose on the hulls, padded
     rest = rest_pose(robot, work, phis, clearance=None if hulls is None else (
         lambda q: float(hulls.distances(q[None]).min()) - hulls.min_distance - COLLISION_PAD))
+    if rest is not None:
+        at = static_ratios(robot, work, position_ranges(work)[1], phis)
+        j = int(np.argmax(at))
+        watch.say(what=f'the centre of the position ranges holds {robot.joint_names[j]} at '
+                  f'{at[j]:.2f} x its torque limit (with the margin): the motion is centred on '
+                  f'[{", ".join(f"{v:.4g}" for v in rest)}] rad instead')
     init = initial_trajectory(robot, initial, work, H, period, seed, phis, rest)
     if checker is not None:
         init = _out_of_collision(init, design, work, rest)
