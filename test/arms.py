@@ -30,6 +30,9 @@ ARMS: dict[str, tuple[str, list[str] | None]] = {
                   [f'arm_left_{i}_joint' for i in range(1, 8)]),
     'baxter': ('baxter_description/urdf/baxter.urdf',
                ['left_s0', 'left_s1', 'left_e0', 'left_e1', 'left_w0', 'left_w1', 'left_w2']),
+    'alex': ('alex_description/urdf/alex_nub_hands.urdf',   # a humanoid's arm, no SRDF
+             ['LeftShoulderPitch', 'LeftShoulderRoll', 'LeftShoulderYaw', 'LeftElbowPitch',
+              'LeftWristYaw', 'LeftWristRoll', 'LeftGripperYaw']),
 }
 
 

@@ -19,8 +19,8 @@ from identification_node.excitation.criteria import base_of, criterion_value
 from identification_node.excitation import design as ex
 from identification_node.excitation.initial_guess import (REST_TORQUE, initial_trajectory,
                                                           rest_pose, shrink_into_limits, to_x)
-from identification_node.excitation.problem import (COLLISION_CULL_PAIRS, COLLISION_SCALE,
-                                                    DesignProblem)
+from identification_node.excitation.problem import (COLLISION_CULL_PAIRS, COLLISION_PAD,
+                                                    COLLISION_SCALE, DesignProblem)
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN
 from identification_node.excitation.limits import (LIMIT_KINDS, ExcitationLimits,
                                                    estimate_parameters, limit_ratios)
@@ -388,6 +388,33 @@ def test_an_arm_the_centre_of_its_ranges_holds_out_is_designed_within_its_torque
     assert np.all(np.abs(tau) <= keep * ExcitationLimits.from_robot(robot).effort_limits + 1e-9)
     ur5 = load_robot(str(arm_urdf('ur5')))
     assert rest_pose(ur5, ExcitationLimits.from_robot(ur5).with_margin(0.1)) is None
+
+
+@pytest.mark.slow
+def test_an_arm_in_collision_at_the_centre_of_its_ranges_is_centred_on_a_clear_pose():
+    """Alex's left arm (example-robot-data; meshes, no SRDF: 118 pairs): at the centre of its
+    position ranges the shoulder's and the wrist's links are 5.6 mm apart, under the 10 mm
+    minimum distance, so no motion scaled towards that centre was clear ("no feasible
+    excitation found"). The rest pose is the nearest clear one (COLLISION_PAD beyond the
+    minimum on the hulls, which bound the meshes), and the design starts there."""
+    robot = load_robot(str(arm_urdf('alex')), ARMS['alex'][1])
+    checker = CollisionChecker(robot, [robots_dir().parent.parent])
+    work = ExcitationLimits.from_robot(robot).with_margin(DEFAULT_LIMIT_MARGIN)
+    lo, hi = work.position_limits.T
+    centre = checker.clearance(0.5 * (lo + hi)[None])
+    assert centre['distance'] < checker.min_distance
+    assert centre['pair'] == ('LeftShoulderYawLink_0', 'LeftWristYawLink_0')
+    hulls = checker.hulls()
+    rest = rest_pose(robot, work, clearance=lambda q: float(hulls.distances(q[None]).min())
+                     - hulls.min_distance, pad=COLLISION_PAD)
+    assert checker.clearance(rest[None])['distance'] >= checker.min_distance + COLLISION_PAD
+    lines: list[str] = []
+    res = ex.optimize_excitation(robot, 3, 10.0, maxiter=15, num_samples=60, periods=1,
+                                 checker=checker, progress=lines.append)
+    assert any('is in collision (LeftShoulderYawLink_0 - LeftWristYawLink_0)' in line
+               for line in lines)
+    assert res.clearance['distance'] >= checker.min_distance
+    assert res.value < res.initial_value
 
 
 def test_coefficient_bounds_hold_every_trajectory_within_the_limits(designs):

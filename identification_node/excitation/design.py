@@ -42,7 +42,7 @@ from identification_node.excitation.criteria import (DEFAULT_SAMPLES, base_of, c
 from identification_node.excitation.framing import (DEFAULT_PERIODS, check_start,
                                                     frame_excitation, framed_clearance)
 from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEFAULT_PERIOD,
-                                                          check_harmonics, from_x,
+                                                          REST_TORQUE, check_harmonics, from_x,
                                                           initial_trajectory, rest_pose,
                                                           scale_motion, shrink_into_limits, to_x)
 from identification_node.excitation.limits import (ExcitationLimits, as_limits, limit_ratios,
@@ -213,14 +213,19 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                            noise_std, MARGIN, phis, checker, start_q)
     watch = _Progress(progress, time_limit, start_time, criterion)
     design.tick = watch.tick
-    hulls = design.checker   # the clearance of the rest pose on the hulls, padded
+    hulls = design.checker   # clearances on the hulls
     rest = rest_pose(robot, work, phis, clearance=None if hulls is None else (
-        lambda q: float(hulls.distances(q[None]).min()) - hulls.min_distance - COLLISION_PAD))
+        lambda q: float(hulls.distances(q[None]).min()) - hulls.min_distance), pad=COLLISION_PAD)
     if rest is not None:
-        at = static_ratios(robot, work, position_ranges(work)[1], phis)
+        centre = position_ranges(work)[1]
+        at = static_ratios(robot, work, centre, phis)
         j = int(np.argmax(at))
-        watch.say(what=f'the centre of the position ranges holds {robot.joint_names[j]} at '
-                  f'{at[j]:.2f} x its torque limit (with the margin): the motion is centred on '
+        if at[j] > REST_TORQUE or hulls is None:
+            why = (f'holds {robot.joint_names[j]} at {at[j]:.2f} x its torque limit (with the '
+                   'margin)')
+        else:
+            why = f'is in collision ({" - ".join(hulls.clearance(centre[None])["pair"])})'
+        watch.say(what=f'the centre of the position ranges {why}: the motion is centred on '
                   f'[{", ".join(f"{v:.4g}" for v in rest)}] rad instead')
     init = initial_trajectory(robot, initial, work, H, period, seed, phis, rest)
     if checker is not None:

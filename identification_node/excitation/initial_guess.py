@@ -114,24 +114,24 @@ def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
 
 def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None = None,
               level: float = REST_TORQUE, seed: int = 0,
-              clearance: Callable[[np.ndarray], float] | None = None) -> np.ndarray | None:
+              clearance: Callable[[np.ndarray], float] | None = None,
+              pad: float = 0.0) -> np.ndarray | None:
     """The pose (n,) an excitation is centred on and scaled towards, where the centre of the
     position ranges will not do: None while the static torque there (under each of ``phis``)
-    stays within ``level`` of every effort limit; else the pose nearest that centre (in half
-    widths of the ranges, pi where unlimited) within the middle three quarters of the ranges
-    whose static torque does (an arm held out against gravity at the centre hangs), or failing
-    that the pose of least static torque found (a clear one where any is). ``clearance(q)``
-    (m, >= 0 where q is free of collisions) keeps it clear where given."""
+    stays within ``level`` of every effort limit and ``clearance(q)`` (m beyond the minimum
+    distance, where given) is >= 0; else the pose nearest that centre (in half widths of the
+    ranges, pi where unlimited) within the middle three quarters of the ranges whose static
+    torque does, ``pad`` clear (an arm held out against gravity at the centre hangs, one in
+    collision there unfolds), or failing that the pose of least static torque found (a clear
+    one where any is)."""
     from scipy.optimize import minimize
 
     limited, centre, half = position_ranges(limits)
-    if not np.isfinite(limits.effort_limits).any():
-        return None
 
     def ratios(q: np.ndarray) -> np.ndarray:
         return static_ratios(robot, limits, q, phis)
 
-    if ratios(centre).max() <= level:
+    if ratios(centre).max() <= level and (clearance is None or clearance(centre) >= 0):
         return None
     width = np.where(limited, 0.75 * half, math.pi)
     box = list(zip(centre - width, centre + width))
@@ -139,16 +139,16 @@ def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None
                                                            (REST_STARTS, robot.dof))]
     lows = [minimize(lambda q: float((ratios(q) ** 2).sum()), s, method='L-BFGS-B',
                      bounds=box).x for s in starts]
-    free = lows if clearance is None else [q for q in lows if clearance(q) >= 0] or lows
+    free = lows if clearance is None else [q for q in lows if clearance(q) >= pad] or lows
     low = min(free, key=lambda q: ratios(q).max())
     constraints = [{'type': 'ineq', 'fun': lambda q: level - ratios(q)}]
     if clearance is not None:
-        constraints.append({'type': 'ineq', 'fun': clearance})
+        constraints.append({'type': 'ineq', 'fun': lambda q: clearance(q) - pad})
     near = minimize(lambda q: float((((q - centre) / width) ** 2).sum()), low, method='SLSQP',
                     bounds=box, constraints=constraints)
     rest = np.clip(near.x, centre - width, centre + width)
     ok = ratios(rest).max() <= level * (1.0 + 1e-6) and (
-        clearance is None or clearance(rest) >= 0)
+        clearance is None or clearance(rest) >= pad)
     return rest if ok else low
 
 
