@@ -118,6 +118,7 @@ class CollisionChecker:
                                  for pair in self._objects], dtype=int).reshape(-1, 2)
         self._active = np.ones(self.num_pairs, dtype=bool)   # geometry_data's flags
         self._spheres: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._probe: tuple[Any, Any] | None = None   # closest_pair's own data
 
     @property
     def num_pairs(self) -> int:
@@ -212,6 +213,21 @@ class CollisionChecker:
         a, b = world[self._objects[:, 0]], world[self._objects[:, 1]]
         reach = radius[self._objects].sum(axis=1)   # inf for a floor: always computed
         return np.linalg.norm(a - b, axis=1) - reach, a, b
+
+    def closest_pair(self, q: np.ndarray) -> tuple[float, tuple[str, str] | None]:
+        """The smallest distance (m) over the pairs at one pose q (n,) and its pair (inf and
+        None without pairs). Computed on data of its own: GJK's warm starts of the other
+        methods (which the optimiser's path follows) are left as they were."""
+        if self._probe is None:
+            self._probe = (self.model.createData(), pin.GeometryData(self.geometry))
+        data, gdata = self._probe
+        Q = self.robot.configuration(np.atleast_2d(q))[0]
+        pin.computeDistances(self.model, data, self.geometry, gdata, Q)
+        d = [r.min_distance for r in gdata.distanceResults]
+        if not d:
+            return math.inf, None
+        i = int(np.argmin(d))
+        return float(d[i]), self.pairs[i]
 
     def pair_distances(self, q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Signed distances (len(pairs),) in m of the pairs ``pairs`` (indices) at the joint

@@ -215,7 +215,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
     design.tick = watch.tick
     hulls = design.checker   # clearances on the hulls
     rest = rest_pose(robot, work, phis, clearance=None if hulls is None else (
-        lambda q: float(hulls.distances(q[None]).min()) - hulls.min_distance), pad=COLLISION_PAD)
+        lambda q: hulls.closest_pair(q)[0] - hulls.min_distance), pad=COLLISION_PAD)
     if rest is not None:
         centre = position_ranges(work)[1]
         at = static_ratios(robot, work, centre, phis)
@@ -224,7 +224,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
             why = (f'holds {robot.joint_names[j]} at {at[j]:.2f} x its torque limit (with the '
                    'margin)')
         else:
-            why = f'is in collision ({" - ".join(hulls.clearance(centre[None])["pair"])})'
+            why = f'is in collision ({" - ".join(hulls.closest_pair(centre)[1] or ())})'
         watch.say(what=f'the centre of the position ranges {why}: the motion is centred on '
                   f'[{", ".join(f"{v:.4g}" for v in rest)}] rad instead')
     init = initial_trajectory(robot, initial, work, H, period, seed, phis, rest)
