@@ -117,7 +117,7 @@ class CollisionChecker:
         self._joints = np.array([[geom.geometryObjects[int(i)].parentJoint for i in pair]
                                  for pair in self._objects], dtype=int).reshape(-1, 2)
         self._active = np.ones(self.num_pairs, dtype=bool)   # geometry_data's flags
-        self._spheres: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._spheres: tuple[np.ndarray, np.ndarray, np.ndarray, list[int]] | None = None
         self._probe: tuple[Any, Any] | None = None   # closest_pair's own data
 
     @property
@@ -156,14 +156,11 @@ class CollisionChecker:
         than that at a sample is not computed there: the spheres' distance, a lower bound of
         its distance above ``within``, stands in."""
         Q = self.robot.configuration(np.atleast_2d(q))
-        out = np.empty((Q.shape[0], self.num_pairs))
         model, data, geom, gdata = self.model, self.data, self.geometry, self.geometry_data
         if within is None:
             self._activate(np.ones(self.num_pairs, dtype=bool))
-            for k in range(Q.shape[0]):
-                pin.computeDistances(model, data, geom, gdata, Q[k])
-                out[k] = [r.min_distance for r in gdata.distanceResults]
-            return out
+            return self._every_pair(Q, data, gdata)
+        out = np.empty((Q.shape[0], self.num_pairs))
         results = gdata.distanceResults
         for k in range(Q.shape[0]):
             pin.forwardKinematics(model, data, Q[k])
@@ -176,6 +173,15 @@ class CollisionChecker:
             out[k, near] = [results[int(i)].min_distance for i in np.flatnonzero(near)]
         return out
 
+    def _every_pair(self, Q: np.ndarray, data, gdata) -> np.ndarray:
+        """Distances (N, pairs) of every active pair at pinocchio configurations Q (N, nq),
+        on ``data`` and ``gdata`` (GJK warm-starts from what they computed last)."""
+        out = np.empty((Q.shape[0], self.num_pairs))
+        for k in range(Q.shape[0]):
+            pin.computeDistances(self.model, data, self.geometry, gdata, Q[k])
+            out[k] = [r.min_distance for r in gdata.distanceResults]
+        return out
+
     def _activate(self, active: np.ndarray) -> None:
         """Set the pairs computeDistances computes (geometry_data's flags) to ``active``."""
         for i in np.flatnonzero(active != self._active):
@@ -185,9 +191,10 @@ class CollisionChecker:
                 self.geometry_data.deactivateCollisionPair(int(i))
         self._active = active.copy()
 
-    def _bounding_spheres(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per geometry object its parent joint, the centre (3,) of its local AABB's bounding
-        sphere in that joint's frame, and its radius (m; inf where unbounded, a floor)."""
+    def _bounding_spheres(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+        """Per geometry object its parent joint and the centre (3,) of its local AABB's
+        bounding sphere in that joint's frame; per pair the sum of its two radii (m; inf where
+        one is unbounded, a floor: always computed); the joints they ride on."""
         if self._spheres is None:
             objects = self.geometry.geometryObjects
             joints = np.array([o.parentJoint for o in objects], dtype=int)
@@ -197,35 +204,32 @@ class CollisionChecker:
                 c, r = np.asarray(o.geometry.aabb_center), float(o.geometry.aabb_radius)
                 if np.isfinite(c).all() and math.isfinite(r) and r >= 0:
                     centre[k], radius[k] = o.placement.act(c), r
-            self._spheres = (joints, centre, radius)
+            self._spheres = (joints, centre, radius[self._objects].sum(axis=1),
+                             sorted({int(j) for j in joints}))
         return self._spheres
 
     def _sphere_bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """At the joint placements in ``data`` (forward kinematics done): per pair the
         distance of its bounding spheres (m; -inf or NaN where one is unbounded), and their
         world centres (pairs, 3) on each side."""
-        joints, centre, radius = self._bounding_spheres()
+        joints, centre, reach, used = self._bounding_spheres()
         R, p = np.zeros((self.model.njoints, 3, 3)), np.zeros((self.model.njoints, 3))
-        for j in {int(j) for j in joints}:
+        for j in used:
             placement = self.data.oMi[j]
             R[j], p[j] = placement.rotation, placement.translation
         world = np.einsum('oij,oj->oi', R[joints], centre) + p[joints]
         a, b = world[self._objects[:, 0]], world[self._objects[:, 1]]
-        reach = radius[self._objects].sum(axis=1)   # inf for a floor: always computed
         return np.linalg.norm(a - b, axis=1) - reach, a, b
 
     def closest_pair(self, q: np.ndarray) -> tuple[float, tuple[str, str] | None]:
         """The smallest distance (m) over the pairs at one pose q (n,) and its pair (inf and
         None without pairs). Computed on data of its own: GJK's warm starts of the other
         methods (which the optimiser's path follows) are left as they were."""
+        if not self.num_pairs:
+            return math.inf, None
         if self._probe is None:
             self._probe = (self.model.createData(), pin.GeometryData(self.geometry))
-        data, gdata = self._probe
-        Q = self.robot.configuration(np.atleast_2d(q))[0]
-        pin.computeDistances(self.model, data, self.geometry, gdata, Q)
-        d = [r.min_distance for r in gdata.distanceResults]
-        if not d:
-            return math.inf, None
+        d = self._every_pair(self.robot.configuration(np.atleast_2d(q)), *self._probe)[0]
         i = int(np.argmin(d))
         return float(d[i]), self.pairs[i]
 
