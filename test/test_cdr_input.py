@@ -159,3 +159,33 @@ def test_decode_joint_states_equals_rosbags_message_by_message():
             for f in range(2, 5):
                 np.testing.assert_array_equal(row[f], ref[f])
                 assert np.array_equal(np.signbit(row[f]), np.signbit(ref[f]))
+
+
+def test_a_decoder_takes_no_layout_for_another_of_the_same_length():
+    """The decoder keeps the last block's layout across polls: messages of the same length
+    but other names, frame id or counts (in one poll and in the next) are decoded as
+    rosbags decodes them, not read with the layout kept."""
+    rng = np.random.default_rng(5)
+    stamps = 10**18 + np.arange(4) * 10**6
+
+    def batch(names, frame='ab', counts=(2, 2, 2)):
+        return [_stamped(encode_joint_state(0.0, names, *(rng.standard_normal(c) for c in counts),
+                                            frame_id=frame), t) for t in stamps]
+    batches = [batch(('j1', 'j2')), batch(('k1', 'k2')), batch(('j1', 'j2'), 'cd'),
+               batch(('j1', 'j2', 'j3'), counts=(3, 0, 3))]
+    assert len({len(b[0]) for b in batches}) == 1   # one length: only the bytes tell them apart
+    polls = batches + [batches[0][:2] + batches[1][:2] + batches[3][:1] + batches[0][2:]]
+    dec = JointStateDecoder()
+    for poll in polls:
+        rows = []
+        for item in decode_joint_states(poll, dec):
+            assert not isinstance(item, IdentificationError)
+            stamps_ns = np.atleast_1d(item.stamp_ns)
+            arrays = [np.atleast_2d(a) if np.ndim(item.stamp_ns) == 0 else a for a in item[2:]]
+            rows += [(t, item.names, *(a[i] for a in arrays)) for i, t in enumerate(stamps_ns)]
+        assert len(rows) == len(poll)
+        for raw, (stamp, names, *arrays) in zip(poll, rows):
+            ref = decode_joint_state_reference(raw)
+            assert names == ref.names and stamp == ref.stamp_ns
+            for got, want in zip(arrays, ref[2:]):
+                np.testing.assert_array_equal(got, want)

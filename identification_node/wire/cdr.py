@@ -116,6 +116,10 @@ class JointStateDecoder:
     def __init__(self) -> None:
         # (CDR bytes of the name sequence, decoded names); the sentinel never matches
         self._names: tuple[bytes, tuple[str, ...]] = (b'\xff' * 9, ())
+        # the last block layout decode_rows saw: (row length, bytes that must match (mask),
+        # their values, the arrays' (byte offset, count), names)
+        self._layout: tuple[int, np.ndarray, np.ndarray, list[tuple[int, int]],
+                            tuple[str, ...]] | None = None
 
     def __call__(self, raw: bytes | memoryview) -> JointStateRecord:
         """Decode one message; falls back to the rosbags deserializer if needed."""
@@ -205,43 +209,52 @@ def decode_joint_state(raw: bytes | memoryview) -> JointStateRecord:
 def decode_rows(rows: np.ndarray, decoder: JointStateDecoder
                 ) -> Iterator[tuple[int, int, JointStateRecord | IdentificationError]]:
     """JointState messages of equal length, rows (M, L) uint8, as (start, stop, record):
-    runs of rows whose bytes agree everywhere but in the stamp and the array values share the
-    first one's layout and come as one block record (stamp_ns (M,) int64, (M, k) arrays);
-    other rows one by one (a plain record), or the IdentificationError that says why a row
-    cannot be decoded."""
-    k = 0
+    runs of rows whose bytes agree everywhere but in the stamp and the array values share
+    one layout and come as one block record (stamp_ns (M,) int64, (M, k) arrays); other rows
+    one by one (a plain record), or the IdentificationError that says why a row cannot be
+    decoded. The decoder keeps the last layout: rows of it are not parsed again."""
+    k, L = 0, rows.shape[1]
     while k < len(rows):
-        raw = rows[k].tobytes()
-        spans: list = []
-        record: JointStateRecord | IdentificationError | None
-        try:
-            record = decoder._fast(raw, spans) if raw[:2] == b'\x00\x01' else None
-        except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
-            record = None
-        if record is None:  # the reference decoder decides (and words the error)
+        known = decoder._layout
+        ahead = rows[k:k + _MAX_BLOCK]
+        m = 0
+        if known is not None and known[0] == L:
+            same = (ahead[:, known[1]] == known[2]).all(axis=1)
+            m = len(same) if same.all() else int(np.argmin(same))
+        if m == 0:   # a new layout: the first row parsed (the reference decoder decides)
+            raw = rows[k].tobytes()
+            spans: list[tuple[int, int]] = []
+            record: JointStateRecord | IdentificationError | None
             try:
-                record = decoder(raw)
-            except IdentificationError as err:
-                record = err
-            yield k, k + 1, record
-            k += 1
-            continue
-        layout = np.ones(rows.shape[1], dtype=bool)
-        layout[4:12] = False  # header.stamp
-        for offset, count in spans:
-            layout[offset:offset + 8 * count] = False
-        ahead = rows[k + 1:k + _MAX_BLOCK]
-        same = (ahead[:, layout] == rows[k, layout]).all(axis=1)
-        m = 1 + (len(same) if same.all() else int(np.argmin(same)))
+                record = decoder._fast(raw, spans) if raw[:2] == b'\x00\x01' else None
+            except (_Malformed, struct.error, ValueError, UnicodeDecodeError):
+                record = None
+            if record is None:
+                try:
+                    record = decoder(raw)
+                except IdentificationError as err:
+                    record = err
+                yield k, k + 1, record
+                k += 1
+                continue
+            mask = np.ones(L, dtype=bool)
+            mask[4:12] = False  # header.stamp
+            for offset, count in spans:
+                mask[offset:offset + 8 * count] = False
+            known = decoder._layout = (L, mask, rows[k, mask], spans, record.names)
+            same = (ahead[1:, mask] == known[2]).all(axis=1)
+            m = 1 + (len(same) if same.all() else int(np.argmin(same)))
+        assert known is not None   # kept or just parsed
+        *_, spans, names = known
+        block = np.ascontiguousarray(ahead[:m])   # strided views of it, then copied
+        stamps = (np.ndarray((m,), '<i4', block, 4, (L,)).astype(np.int64) * 1_000_000_000
+                  + np.ndarray((m,), '<u4', block, 8, (L,)))
+        arrays = [np.ndarray((m, c), _F8, block, o, (L, 8)).copy() if c else np.empty((m, 0))
+                  for o, c in spans]
         if m == 1:
-            yield k, k + 1, record
+            yield k, k + 1, JointStateRecord(int(stamps[0]), names, *(a[0] for a in arrays))
         else:
-            block = np.ascontiguousarray(rows[k:k + m])
-            stamps = (block[:, 4:8].copy().view('<i4')[:, 0].astype(np.int64) * 1_000_000_000
-                      + block[:, 8:12].copy().view('<u4')[:, 0])
-            arrays = [block[:, o:o + 8 * c].copy().view('<f8') if c else np.empty((m, 0))
-                      for o, c in spans]
-            yield k, k + m, JointStateRecord(stamps, record.names, *arrays)
+            yield k, k + m, JointStateRecord(stamps, names, *arrays)
         k += m
 
 
