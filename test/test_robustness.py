@@ -141,6 +141,27 @@ def test_huge_finite_values_are_rejected_with_finite_results(clean, value, cdr):
     assert moved(est, ref) < 0.2
 
 
+@pytest.mark.parametrize('cdr', [False, True], ids=['records', 'cdr'])
+def test_non_finite_and_absurd_rows_of_one_block_are_told_apart(clean, cdr):
+    """A NaN velocity, an infinite position and an absurd finite velocity in one block: two
+    rows counted non_finite, one implausible, and the others of the block used."""
+    sim, _ = clean
+    q, qd = sim.q_meas.copy(), sim.qd_meas.copy()
+    qd[5010, 0], q[5020, 1], qd[5030, 2] = np.nan, np.inf, 1e5
+    p = run(sim, position=q, velocity=qd, cdr=cdr)
+    assert p.rejected['non_finite'] == 2 and p.rejected['implausible'] == 1
+    assert p.received == len(q) and np.isfinite(p.estimate().values).all()
+
+
+def test_an_infinite_value_fails_an_unbounded_gate():
+    """Bounds of inf (no bound) pass every finite value, and not inf or NaN."""
+    n = 2
+    b = PlausibilityBounds(np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf),
+                           np.full(n, np.inf), np.full(n, np.inf), np.full(n, np.inf))
+    qd = np.array([[1e300, -1e300], [np.inf, 0.0], [0.0, -np.inf], [np.nan, 0.0]])
+    np.testing.assert_array_equal(b.ok(qd=qd), [True, False, False, False])
+
+
 def test_absurd_currents_and_an_infinite_electrical_angle_are_counted():
     conv = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
     sim = simulate(duration=6.0, converter=conv, torque_std=0.0)

@@ -120,17 +120,19 @@ class PlausibilityBounds:
     def ok(self, q: np.ndarray | None = None, qd: np.ndarray | None = None,
            qdd: np.ndarray | None = None, tau: np.ndarray | None = None,
            columns: np.ndarray | None = None) -> np.ndarray:
-        """Samples (rows of the (M, n) arrays given) within every bound; NaN fails. ``tau``
-        may hold the joints ``columns`` only (the measured ones). One comparison of all the
-        values side by side (the check runs on every batch)."""
+        """Samples (rows of the (M, n) arrays given) within every bound, and finite: NaN
+        and inf fail, also where the bound is inf. ``tau`` may hold the joints ``columns`` only
+        (the measured ones). One comparison of all the values side by side (the check runs on
+        every batch)."""
         given = (q is not None, qd is not None, qdd is not None, tau is not None)
         key = given + (None if columns is None else tuple(columns),)
         limit = self._limits.get(key)
-        if limit is None:   # the bounds side by side, as the values will be
+        if limit is None:   # the bounds side by side, as the values will be (inf: the largest)
             effort = self.effort if columns is None else self.effort[columns]
             parts = (0.5 * (self.position_upper - self.position_lower), self.velocity,
                      self.acceleration, effort)
-            limit = self._limits[key] = np.concatenate([b for b, g in zip(parts, given) if g])
+            limit = self._limits[key] = np.minimum(
+                np.concatenate([b for b, g in zip(parts, given) if g]), np.finfo(float).max)
         values = [a for a in (None if q is None else q - self._centre, qd, qdd, tau)
                   if a is not None]
         x = values[0] if len(values) == 1 else np.concatenate(values, axis=1)

@@ -167,22 +167,20 @@ class JointStateValidator:
                     np.asarray(b.position, dtype=float)[:, idx],
                     np.asarray(b.velocity, dtype=float)[:, idx] if vel or nan is None else nan,
                     np.asarray(b.effort, dtype=float)[:, idx] if eff or nan is None else nan)
-        finite = np.isfinite(s.q).all(axis=1)
-        if self.velocity_measured:
-            finite &= np.isfinite(s.qd).all(axis=1)
-        if len(self._measured_columns):
-            finite &= np.isfinite(s.eff[:, self._measured_columns]).all(axis=1)
-        if not finite.all():
-            self.counters.reject('non_finite', np.count_nonzero(~finite))
-            s = s.select(finite)
         measured = self._measured_columns
         plausible = self.bounds.ok(s.q, s.qd if self.velocity_measured else None,
                                    tau=s.eff[:, measured] if len(measured) else None,
-                                   columns=measured)
-        if not plausible.all():
-            self.counters.reject('implausible', np.count_nonzero(~plausible))
-            s = s.select(plausible)
-        return s
+                                   columns=measured)   # False where not finite too
+        if plausible.all():
+            return s
+        finite = np.isfinite(s.q).all(axis=1)
+        if self.velocity_measured:
+            finite &= np.isfinite(s.qd).all(axis=1)
+        if len(measured):
+            finite &= np.isfinite(s.eff[:, measured]).all(axis=1)
+        self.counters.reject('non_finite', np.count_nonzero(~finite))
+        self.counters.reject('implausible', np.count_nonzero(finite & ~plausible))
+        return s.select(plausible)
 
 
 class CurrentValidator:
