@@ -422,6 +422,27 @@ def test_smoothed_sign_is_what_the_smoother_makes_of_sign_friction(order, L):
     assert np.abs(np.sign(v[idx]) - smoothed[:, 0])[crossing].max() > 0.5   # sign(qd) is not
 
 
+@pytest.mark.parametrize('order,L', [(3, 4), (2, 19), (3, 100)])
+def test_smoothed_sign_is_its_weighted_sum(order, L):
+    """signals.smoothed_sign against its definition, sum_i w_i sign(v + a i period) over the
+    window's value weights, for crossings anywhere in and beyond the window (none on a
+    sample), velocities at rest and accelerations of 0 and inf."""
+    rng = np.random.default_rng(L)
+    period, M = 1e-3, 4000
+    a = rng.normal(0.0, 10.0, M)
+    x = rng.uniform(-L - 3, L + 3, M)            # the crossing, in samples from the centre
+    x[np.abs(x - np.round(x)) < 1e-6] += 0.5     # not on a sample
+    v = -x * a * period
+    v[:20], a[20:40], a[40:50] = 0.0, 0.0, np.inf
+    i = np.arange(-L, L + 1)
+    with np.errstate(invalid='ignore'):
+        inside = np.where(i == 0, v[:, None], v[:, None] + a[:, None] * i * period)
+    expected = np.where(np.abs(v[:, None]) > 1e-9, np.sign(inside), 0.0) @ signals.value_weights(
+        L, order)
+    got = signals.smoothed_sign(v, a, L, order, period)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+
+
 def test_a_joint_at_rest_has_no_coulomb_sign():
     """A joint held still (constant position) under jittered stamps: the smoother's velocity is
     rounding noise, of both signs, whose np.sign flips the Coulomb column of a resting joint at

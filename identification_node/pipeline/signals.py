@@ -94,8 +94,11 @@ def value_weights(half_window: int, order: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=64)
 def _cumulative_value_weights(half_window: int, order: int) -> np.ndarray:
-    """(2L + 2,) read-only: [0, cumsum(value_weights)], once per window (every run asks)."""
-    cum = np.concatenate([[0.0], np.cumsum(value_weights(half_window, order))])
+    """(L + 1,) read-only: cum[k] the sum of the value weights of i < k - L (k <= L), the
+    weights made exactly symmetric; once per window (every run asks)."""
+    w = value_weights(half_window, order)
+    w = 0.5 * (w + w[::-1])   # symmetric in exact arithmetic: so in rounding too
+    cum = np.concatenate([[0.0], np.cumsum(w[:half_window])])
     cum.flags.writeable = False
     return cum
 
@@ -109,14 +112,13 @@ def smoothed_sign(v: np.ndarray, a: np.ndarray, half_window: int, order: int,
     the window, 0 at rest (coulomb_sign); a Coulomb column of it is what the smoothed torque
     holds of sign friction."""
     L = int(half_window)
-    cum = _cumulative_value_weights(L, int(order))   # cum[k]: weights of i < k - L
+    cum = _cumulative_value_weights(L, int(order))
     with np.errstate(divide='ignore', invalid='ignore'):
-        x = -v / (a * period)        # the zero crossing, in samples from the centre
-    x = np.where(np.isfinite(x), np.clip(x, -L - 1.0, L + 1.0), L + 1.0)
-    before = np.clip(np.ceil(x) + L, 0, 2 * L + 1).astype(np.int64)      # samples i < x
-    through = np.clip(np.floor(x) + L + 1, 0, 2 * L + 1).astype(np.int64)  # samples i <= x
-    # the other sign lies before the crossing when it is behind (x < 0), after it when ahead
-    other = np.where(x < 0, cum[before], cum[-1] - cum[through])
+        # |x|, x the zero crossing in samples from the centre; none within reach: L + 1
+        x = np.fmin(np.abs(v / (a * period)), L + 1.0)
+    # the samples of the other sign, i < x for x < 0 and i > x for x >= 0: by the weights'
+    # symmetry, those of i < -|x| either way
+    other = cum[np.maximum(L - np.floor(x), 0).astype(np.int64)]
     return coulomb_sign(v) * (1.0 - 2.0 * other)
 
 
