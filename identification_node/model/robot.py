@@ -333,6 +333,10 @@ class RobotModel:
         self._identity_q = (m.nq == len(jms) and not self.continuous.any()
                             and np.array_equal(self.idx_q, np.arange(m.nq)))
         self._identity_v = m.nv == len(jms) and np.array_equal(self.idx_v, np.arange(m.nv))
+        # each extra's column of each joint (its row): (extra, rows, columns)
+        rows, ne = np.arange(n), len(self.extras)
+        self._extra_columns = [(e, rows, self.n_inertial + rows * ne + k)
+                               for k, e in enumerate(self.extras)]
         lower, upper = m.lowerPositionLimit[self.idx_q], m.upperPositionLimit[self.idx_q]
         lower = np.where(self.continuous, -np.inf, lower)
         upper = np.where(self.continuous, np.inf, upper)
@@ -468,12 +472,10 @@ class RobotModel:
                 b - a, self.dof, ni)
         if self.extras:
             out[:, :, ni:] = 0.0
-            ne = len(self.extras)
-            cols = {'fv': qd, 'fo': np.ones_like(qd), 'Ia': qdd,
-                    'fc': coulomb_column(qd, self.in_joint_units(self.coulomb_velocity))}
-            rows = np.arange(self.dof)
-            for k, e in enumerate(self.extras):
-                out[:, rows, ni + rows * ne + k] = cols[e]
+            for e, rows, columns in self._extra_columns:
+                out[:, rows, columns] = (
+                    qd if e == 'fv' else qdd if e == 'Ia' else 1.0 if e == 'fo'
+                    else coulomb_column(qd, self.in_joint_units(self.coulomb_velocity)))
         return out
 
     def inverse_dynamics(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
