@@ -178,6 +178,13 @@ def test_extra_columns_closed_forms(coulomb_velocity):
     tau = tau_rb + coef[:, 0] * qd + coef[:, 1] * fc + coef[:, 2] + coef[:, 3] * qdd
     assert_rel_close(Y @ phi, tau)
     assert_rel_close(robot.rnea(q, qd, qdd, phi), tau)
+    # given Coulomb column values (the smoothed sign) take the fc columns' place only
+    given = np.random.default_rng(7).uniform(-1.0, 1.0, qd.shape)
+    Yg = robot.regressor(q, qd, qdd, coulomb=given)
+    fc_columns = ni + 4 * np.arange(n) + 1
+    np.testing.assert_array_equal(Yg[:, np.arange(n), fc_columns], given)
+    Yg[:, np.arange(n), fc_columns] = Y[:, np.arange(n), fc_columns]
+    np.testing.assert_array_equal(Yg, Y)
 
 
 def test_extras_keep_canonical_order():

@@ -446,11 +446,13 @@ class RobotModel:
 
     # -- dynamics ---------------------------------------------------------------------------------
     def regressor(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-                  out: np.ndarray | None = None, *, checked: bool = False) -> np.ndarray:
+                  out: np.ndarray | None = None, *, checked: bool = False,
+                  coulomb: np.ndarray | None = None) -> np.ndarray:
         """Regressor Y (N, n, p) with tau = Y @ phi, for N samples of (q, qd, qdd): pinocchio's
         ``computeJointTorqueRegressor`` per sample, mapped to this package's parameter order,
         plus the friction and rotor columns. ``checked``: the samples are (N, n) finite float
-        arrays already (the pipeline's), so they are not checked again."""
+        arrays already (the pipeline's), so they are not checked again. ``coulomb`` (N, n):
+        the fc columns' values instead of coulomb_column(qd) (the smoothed sign)."""
         if not checked:
             q, qd, qdd = self.check_samples(q, qd, qdd)
         N = q.shape[0]
@@ -475,6 +477,7 @@ class RobotModel:
             for e, rows, columns in self._extra_columns:
                 out[:, rows, columns] = (
                     qd if e == 'fv' else qdd if e == 'Ia' else 1.0 if e == 'fo'
+                    else coulomb if coulomb is not None
                     else coulomb_column(qd, self.in_joint_units(self.coulomb_velocity)))
         return out
 

@@ -96,15 +96,15 @@ def coulomb_columns(robot: RobotModel) -> list[int]:
     return [robot.param_index(f'{j}.fc') for j in robot.joint_names]
 
 
-def smooth_coulomb_columns(robot: RobotModel, Y: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-                           half_window: int, order: int, period: float) -> None:
-    """Y (N, n, p) in place: each joint's fc column sign(qd) replaced by what the smoother
-    of ``half_window`` and ``order`` at ``period`` (s) makes of it (signals.smoothed_sign), so
-    that the Coulomb column matches the smoothed torque at reversals too."""
+def smoothed_coulomb(qd: np.ndarray, qdd: np.ndarray, half_window: int, order: int,
+                     period: float) -> np.ndarray | None:
+    """The Coulomb column values (N, n) the smoother of ``half_window`` and ``order`` at
+    ``period`` (s) makes of sign(qd) (signals.smoothed_sign), so that the Coulomb column
+    matches the smoothed torque at reversals too (RobotModel.regressor's ``coulomb``); None
+    without a period (the plain sign then)."""
     if not (period > 0 and math.isfinite(period)):
-        return
-    Y[:, np.arange(robot.dof), coulomb_columns(robot)] = smoothed_sign(qd, qdd, half_window,
-                                                                       order, period)
+        return None
+    return smoothed_sign(qd, qdd, half_window, order, period)
 
 
 def _rate(stamps: np.ndarray) -> float:
@@ -159,10 +159,9 @@ class WindowSearch:
         v, d, dd = FixedLagSmoother(self.x.shape[1], L // k, self.order).fit_at(
             self.t[::k], self.x[::k], self.centres // k)
         qd, qdd = (v[:, n:2 * n], d[:, n:2 * n]) if self.measured else (d[:, :n], dd[:, :n])
-        Y = self.robot.regressor(v[:, :n], qd, qdd)
         smooth = smooths_sign(self.robot)
-        if smooth:
-            smooth_coulomb_columns(self.robot, Y, qd, qdd, L // k, self.order, k * self.period)
+        Y = self.robot.regressor(v[:, :n], qd, qdd, coulomb=smoothed_coulomb(
+            qd, qdd, L // k, self.order, k * self.period) if smooth else None)
         Yb = self.base.base_regressor(Y)
         y = v[:, -n:]
         if self.root is not None:
@@ -447,10 +446,10 @@ class RowBuilder:
         # [Y | tau] (N, n, p + 1): the regressor and the torque, for the base rows at once
         p, b = self.robot.num_params, self.base.num_base
         Yt = self._buffer('regressor', (len(t), n, p + 1))
-        self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p], checked=True)
-        if self.smooth_sign and smooths_sign(self.robot):
-            smooth_coulomb_columns(self.robot, Yt[:, :, :p], qd, qdd, self.choice.half_window,
-                                   self.order, self.period(t))
+        coulomb = (smoothed_coulomb(qd, qdd, self.choice.half_window, self.order,
+                                    self.period(t))
+                   if self.smooth_sign and smooths_sign(self.robot) else None)
+        self.robot.regressor(q, qd, qdd, out=Yt[:, :, :p], checked=True, coulomb=coulomb)
         Yt[:, :, p] = tau
         shape = (len(t), n, b + 1)
         reuse = reuse_at is not None and len(t) >= reuse_at
