@@ -367,9 +367,7 @@ class FixedLagSmoother:
         sample x channel) Hankel matrix of X."""
         L, K, c = self.half_window, 2 * self.half_window + 1, X.shape[1]
         X = np.ascontiguousarray(X[first:first + count + K - 1])
-        view = np.lib.stride_tricks.as_strided(X, shape=(K, count * c),
-                                               strides=(X.strides[0], X.strides[1]),
-                                               writeable=False)
+        view = np.ndarray((K, count * c), X.dtype, X, 0, X.strides)   # row j: X[j:j + count]
         # a copy: BLAS takes no overlapping rows, and numpy's own loop is slower than copying
         coef = (self._uniform_weights @ view.copy()).reshape(3, count, c)
         h = 0.5 * (T[first + K - 1:first + K - 1 + count] - T[first:first + count])
