@@ -430,7 +430,7 @@ class RowBuilder:
         # chosen by now (or returned above); the rows' samples carry their torques
         assert self.choice is not None and s.tau is not None
         n = self.robot.dof
-        x = np.hstack([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau])
+        x = np.concatenate([s.q, s.qd, s.tau] if measured_velocity else [s.q, s.tau], axis=1)
         if self._smoother is None:
             self._smoother = FixedLagSmoother(x.shape[1], half_window=self.choice.half_window,
                                               order=self.order, max_gap=self.max_gap)
@@ -454,7 +454,7 @@ class RowBuilder:
         shape = (len(t), n, b + 1)
         reuse = reuse_at is not None and len(t) >= reuse_at
         rows = self._buffer('rows', shape) if reuse else np.empty(shape)
-        np.take(Yt, self._columns, axis=2, out=rows, mode='clip')
+        Yt.take(self._columns, axis=2, out=rows, mode='clip')
         return Rows(t, q, qd, qdd, tau, rows)
 
     def period(self, t: np.ndarray) -> float:

@@ -265,7 +265,7 @@ class FixedLagSmoother:
         T = np.concatenate([self._t, t])
         X = np.concatenate([self._x, x])
         L, K = self.half_window, 2 * self.half_window + 1
-        d = np.diff(T)
+        d = T[1:] - T[:-1]
         starts = np.arange(max(T.size - K + 1, 0))
         last = 0                                             # first sample of the last segment
         if d.size and d.max() > self.max_gap:

@@ -58,7 +58,7 @@ class Counters:
     def stamps_ns(self, seconds: np.ndarray) -> np.ndarray:
         """Seconds since the epoch back to int64 ns."""
         assert self.epoch_ns is not None   # set by the stream's first stamps (seconds)
-        return self.epoch_ns + np.round(seconds * 1e9).astype(np.int64)
+        return self.epoch_ns + (seconds * 1e9).round().astype(np.int64)
 
 
 class LayoutCache:
