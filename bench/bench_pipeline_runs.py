@@ -11,7 +11,7 @@ itself are measured the same two ways, so the machine's own wake-up penalty show
 pipeline's. Kinds alternate.
 
     .venv/bin/python bench/bench_pipeline_runs.py [--runs 4000] [--period 0.0025] [--repeat 3]
-        [--warmup 400] [--profile 30] [--startup 12]
+        [--warmup 400] [--profile 30] [--startup 12] [--against REV]
 
 ``--warmup R``: runs before the measured ones (the smoother's window filled, caches warm). The
 default 400 (4 s at 10 ms) measures while the automatic smoother is chosen (the first 5 s) and
@@ -21,6 +21,11 @@ the time offset checked (the first 10 s); 2000 measures the steady state after b
 functions with the most time of their own (cProfile's overhead inflates Python-level calls;
 the figures above are the unprofiled ones).
 
+``--against REV`` then alternates paced runs, run by run in this process, of this checkout's
+pipeline and of the one at git revision REV (its package copied under another name): on a
+machine whose speed drifts by 20 % between invocations, the ratio of a change is measured
+within it.
+
 ``--startup S`` then runs a new stream's first S s back to back and prints the pipeline's CPU
 per second of data and its longest runs, the smoother's choice (at 5 s) and the time offset
 check (10 s) among them: what a live stream's first seconds cost, and the longest wait a run
@@ -29,10 +34,18 @@ puts on the outputs.
 from __future__ import annotations
 
 import argparse
+import atexit
 import cProfile
+import importlib
+import io
 import os
 import pstats
+import re
+import shutil
+import subprocess
 import sys
+import tarfile
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,6 +57,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_node import PANDA  # noqa: E402
+
+PARAMETERS = {'robot': str(PANDA), 'torque_source': ['measured']}   # else the node's defaults
 
 
 def reference_work() -> float:
@@ -83,6 +98,9 @@ def main() -> None:
                         help='then profile the paced pipeline runs, print the top N functions')
     parser.add_argument('--startup', type=float, default=0.0, metavar='S',
                         help='then time a new stream\'s first S s, run by run')
+    parser.add_argument('--against', metavar='REV',
+                        help='then alternate paced runs in this process with the pipeline of '
+                        'git revision REV')
     args = parser.parse_args()
 
     from identification_node.excitation.trajectories import FourierTrajectory
@@ -91,7 +109,7 @@ def main() -> None:
     from identification_node.wire.cdr import encode_joint_states
 
     # the node's defaults (friction and offset columns, the automatic smoother, ...)
-    settings = Settings.from_dict({'robot': str(PANDA), 'torque_source': ['measured']})
+    settings = Settings.from_dict(PARAMETERS)
     robot = settings.load_robot()
     warm = args.warmup
     per = 1000 * args.period     # messages per run, on average
@@ -150,6 +168,52 @@ def main() -> None:
         pstats.Stats(profile).sort_stats('tottime').print_stats(args.profile)
     if args.startup:
         startup(pipeline_work(), int(1000 * args.startup / per), per)
+    if args.against:
+        against(args.against, messages, starts, warm, args.runs, args.period)
+
+
+def against(rev: str, messages: list, starts: np.ndarray, warm: int, runs: int,
+            period: float) -> None:
+    """Paced runs of this checkout's pipeline and of ``rev``'s (package_at) alternated run by
+    run, in alternating order, each after ``period`` s of sleep: median thread CPU per run."""
+    pipelines = {}
+    for label, package in (('now', 'identification_node'), (rev, package_at(rev))):
+        settings = importlib.import_module(package + '.settings').Settings.from_dict(PARAMETERS)
+        pipeline = settings.build(settings.load_robot())
+        for k in range(warm):
+            pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
+            pipeline.process()
+        pipelines[label] = pipeline
+    cpu: dict[str, list[float]] = {label: [] for label in pipelines}
+    both = list(pipelines.items())
+    for k in range(warm, warm + runs):
+        for label, pipeline in both if k % 2 else both[::-1]:
+            time.sleep(period)
+            start = time.thread_time()
+            pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
+            pipeline.process()
+            cpu[label].append(time.thread_time() - start)
+    now, before = (1e6 * float(np.median(cpu[label])) for label in ('now', rev))
+    print(f'paced runs alternating with {rev} in this process: median {before:.1f} us at '
+          f'{rev}, {now:.1f} us now: {now / before:.3f}x')
+
+
+def package_at(rev: str) -> str:
+    """This checkout's package at git revision ``rev``, copied into a temporary directory under
+    another name (its own imports renamed) and put on sys.path: that name, importable beside
+    this checkout's package."""
+    name = '_identification_node_' + re.sub(r'\W', '_', rev)
+    root = Path(tempfile.mkdtemp(prefix='bench_against_'))
+    atexit.register(shutil.rmtree, root, True)
+    archive = subprocess.run(['git', '-C', str(checkout.ROOT), 'archive', rev,
+                              'identification_node'], check=True, capture_output=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(root, filter='data')
+    (root / 'identification_node').rename(root / name)
+    for path in (root / name).rglob('*.py'):
+        path.write_text(path.read_text().replace('identification_node', name))
+    sys.path.insert(0, str(root))
+    return name
 
 
 def startup(work, runs: int, per: float) -> None:
