@@ -116,6 +116,7 @@ class CollisionChecker:
                                  dtype=int).reshape(-1, 2)
         self._joints = np.array([[geom.geometryObjects[int(i)].parentJoint for i in pair]
                                  for pair in self._objects], dtype=int).reshape(-1, 2)
+        self._moving = sorted(set(self._joints.ravel().tolist()) - {0})   # the pairs' joints
         self._active = np.ones(self.num_pairs, dtype=bool)   # geometry_data's flags
         self._spheres: tuple[np.ndarray, np.ndarray, np.ndarray, list[int]] | None = None
         self._probe: tuple[Any, Any] | None = None   # closest_pair's own data
@@ -265,13 +266,12 @@ class CollisionChecker:
         normal, points = np.empty((M, 3)), np.empty((2, M, 3))
         J = np.empty((2, M, 6, n))
         joint_J = np.zeros((model.njoints, 6, n))   # the world (0) is still
-        used = sorted({int(j) for j in self._joints.ravel()} - {0})
         far = np.broadcast_to(np.inf if within is None else within, (P,))
         bounds = np.searchsorted(ks, np.arange(N + 1))
         for k in np.flatnonzero(np.diff(bounds)):   # only the calls into pinocchio per entry
             pin.updateGeometryPlacements(model, data, geom, gdata, Q[k])
             pin.computeJointJacobians(model, data, Q[k])
-            for j in used:
+            for j in self._moving:
                 joint_J[j] = pin.getJointJacobian(model, data, j, world)[:, cols]
             es = np.arange(bounds[k], bounds[k + 1])
             stand_in = np.zeros(len(es), dtype=bool)
