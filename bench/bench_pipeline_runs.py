@@ -121,8 +121,13 @@ def main() -> None:
                                    sim.q_meas, sim.qd_meas, sim.tau_meas)
     starts = np.round(per * np.arange((N - 3) / per + 1)).astype(int)
 
-    def pipeline_work():
-        pipeline = settings.build(robot)
+    def pipeline_work(package: str | None = None):
+        """A run of a new pipeline: this checkout's, or that of ``package`` (package_at)."""
+        s, r = settings, robot
+        if package is not None:
+            s = importlib.import_module(package + '.settings').Settings.from_dict(PARAMETERS)
+            r = s.load_robot()
+        pipeline = s.build(r)
 
         def work(k: int) -> None:
             pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
@@ -169,33 +174,25 @@ def main() -> None:
     if args.startup:
         startup(pipeline_work(), int(1000 * args.startup / per), per)
     if args.against:
-        against(args.against, messages, starts, warm, args.runs, args.period)
+        against(args.against, pipeline_work(), pipeline_work(package_at(args.against)), warm,
+                args.runs, args.period)
 
 
-def against(rev: str, messages: list, starts: np.ndarray, warm: int, runs: int,
-            period: float) -> None:
-    """Paced runs of this checkout's pipeline and of ``rev``'s (package_at) alternated run by
-    run, in alternating order, each after ``period`` s of sleep: median thread CPU per run."""
-    pipelines = {}
-    for label, package in (('now', 'identification_node'), (rev, package_at(rev))):
-        settings = importlib.import_module(package + '.settings').Settings.from_dict(PARAMETERS)
-        pipeline = settings.build(settings.load_robot())
-        for k in range(warm):
-            pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
-            pipeline.process()
-        pipelines[label] = pipeline
-    cpu: dict[str, list[float]] = {label: [] for label in pipelines}
-    both = list(pipelines.items())
+def against(rev: str, now, before, warm: int, runs: int, period: float) -> None:
+    """Paced runs of this checkout's pipeline (``now``) and of ``rev``'s (``before``, from
+    package_at) alternated run by run, in alternating order, each after ``period`` s of sleep:
+    median thread CPU per run."""
+    works = {'now': now, rev: before}
+    for work in works.values():
+        per_run(work, warm, 0.0)
+    cpu: dict[str, list[float]] = {label: [] for label in works}
+    both = list(works.items())
     for k in range(warm, warm + runs):
-        for label, pipeline in both if k % 2 else both[::-1]:
-            time.sleep(period)
-            start = time.thread_time()
-            pipeline.add_joint_state_cdr(messages[starts[k]:starts[k + 1]])
-            pipeline.process()
-            cpu[label].append(time.thread_time() - start)
-    now, before = (1e6 * float(np.median(cpu[label])) for label in ('now', rev))
-    print(f'paced runs alternating with {rev} in this process: median {before:.1f} us at '
-          f'{rev}, {now:.1f} us now: {now / before:.3f}x')
+        for label, work in both if k % 2 else both[::-1]:
+            cpu[label].append(per_run(lambda _, w=work, k=k: w(k), 1, period))
+    us_now, us_before = (float(np.median(cpu[label])) for label in ('now', rev))
+    print(f'paced runs alternating with {rev} in this process: median {us_before:.1f} us at '
+          f'{rev}, {us_now:.1f} us now: {us_now / us_before:.3f}x')
 
 
 def package_at(rev: str) -> str:
