@@ -12,10 +12,10 @@ Kreisselmeier-Steinhauser maximum of its ratios to the limit (see DesignProblem)
 collision.CollisionChecker, one more per checked geometry pair on its distances. Every result is
 verified on a fine grid after the optimisation (torques on EFFORT_POINTS samples) and, where
 needed, its motion is scaled down towards the centre of the position ranges until every ratio
-is below VERIFY_RATIO (towards a pose of lower static torque where the centre holds the arm
-out against gravity: initial_guess.rest_pose); then framed by ramps from and back to rest
-(frame_excitation, trajectories.FramedTrajectory) and its collisions verified densely
-(framed_clearance).
+is below VERIFY_RATIO (towards a pose of lower static torque, clear, where the centre holds
+the arm out against gravity or collides: initial_guess.centre_fault, nearest_rest_pose); then
+framed by ramps from and back to rest (frame_excitation, trajectories.FramedTrajectory) and its
+collisions verified densely (framed_clearance).
 
 Initial guess: the paper's least squares on random target velocities (III.A,
 least_squares_guess), or Table I (table1_trajectory, offsets moved to our joint zeros).
@@ -42,11 +42,10 @@ from identification_node.excitation.criteria import (DEFAULT_SAMPLES, base_of, c
 from identification_node.excitation.framing import (DEFAULT_PERIODS, check_start,
                                                     frame_excitation, framed_clearance)
 from identification_node.excitation.initial_guess import (DEFAULT_HARMONICS, DEFAULT_PERIOD,
-                                                          REST_TORQUE, check_harmonics, from_x,
-                                                          initial_trajectory, rest_pose,
+                                                          centre_fault, check_harmonics, from_x,
+                                                          initial_trajectory, nearest_rest_pose,
                                                           scale_motion, shrink_into_limits, to_x)
-from identification_node.excitation.limits import (ExcitationLimits, as_limits, limit_ratios,
-                                                   position_ranges, static_ratios)
+from identification_node.excitation.limits import ExcitationLimits, as_limits, limit_ratios
 from identification_node.excitation.problem import COLLISION_PAD, DesignProblem
 from identification_node.excitation.result import DEFAULT_LIMIT_MARGIN, ExcitationResult
 from identification_node.excitation.trajectories import FourierTrajectory
@@ -213,18 +212,16 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
                            noise_std, MARGIN, phis, checker, start_q)
     watch = _Progress(progress, time_limit, start_time, criterion)
     design.tick = watch.tick
-    hulls = design.checker   # clearances on the hulls
-    rest = rest_pose(robot, work, phis, clearance=None if hulls is None else (
-        lambda q: hulls.closest_pair(q)[0] - hulls.min_distance), pad=COLLISION_PAD)
-    if rest is not None:
-        centre = position_ranges(work)[1]
-        at = static_ratios(robot, work, centre, phis)
-        j = int(np.argmax(at))
-        if at[j] > REST_TORQUE or hulls is None:
-            why = (f'holds {robot.joint_names[j]} at {at[j]:.2f} x its torque limit (with the '
-                   'margin)')
-        else:
-            why = f'is in collision ({" - ".join(hulls.closest_pair(centre)[1] or ())})'
+    hulls, rest = design.checker, None   # clearances on the hulls
+
+    def closest(q: np.ndarray) -> tuple[float, tuple[str, str] | None]:
+        assert hulls is not None
+        distance, pair = hulls.closest_pair(q)
+        return distance - hulls.min_distance, pair
+    why = centre_fault(robot, work, phis, closest=None if hulls is None else closest)
+    if why is not None:
+        rest = nearest_rest_pose(robot, work, phis, clearance=None if hulls is None else (
+            lambda q: closest(q)[0]), pad=COLLISION_PAD)
         watch.say(what=f'the centre of the position ranges {why}: the motion is centred on '
                   f'[{", ".join(f"{v:.4g}" for v in rest)}] rad instead')
     init = initial_trajectory(robot, initial, work, H, period, seed, phis, rest)
@@ -389,7 +386,7 @@ def optimize_excitation(robot, harmonics: int = DEFAULT_HARMONICS,
 def _out_of_collision(traj: FourierTrajectory, design: DesignProblem, limits: ExcitationLimits,
                       rest: np.ndarray | None = None, steps: int = 20) -> FourierTrajectory:
     """``traj``, or its motion scaled towards the centre of the position ranges or ``rest``
-    (rest_pose; by 0.8 per step) until it meets the collision constraints (at the design's
+    (nearest_rest_pose; by 0.8 per step) until it meets the collision constraints (at the design's
     collision samples); failing that, the least scaled that keeps the minimum distance there
     (the pairs it brings closer than the constraints ask for are then held:
     DesignProblem.hold_collisions_at); ``traj`` unchanged when none does (the optimiser then

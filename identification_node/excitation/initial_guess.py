@@ -18,9 +18,10 @@ from identification_node.excitation.limits import (LIMIT_KINDS, VERIFY_POINTS, E
 from identification_node.excitation.trajectories import TABLE1_PERIOD, FourierTrajectory
 
 __all__ = ['DEFAULT_HARMONICS', 'DEFAULT_PERIOD', 'INITIAL_MARGIN', 'LSQ_POINTS', 'REST_TORQUE',
-           'TABLE1_OFFSET', 'VERIFY_RATIO', 'check_harmonics', 'fourier_basis', 'from_x',
-           'initial_trajectory', 'least_squares_guess', 'rest_pose', 'scale_motion',
-           'scale_to_limits', 'shrink_into_limits', 'table1_trajectory', 'to_x']
+           'TABLE1_OFFSET', 'VERIFY_RATIO', 'centre_fault', 'check_harmonics', 'fourier_basis',
+           'from_x', 'initial_trajectory', 'least_squares_guess', 'nearest_rest_pose',
+           'rest_pose', 'scale_motion', 'scale_to_limits', 'shrink_into_limits',
+           'table1_trajectory', 'to_x']
 
 DEFAULT_HARMONICS = Excitation.harmonics
 DEFAULT_PERIOD = Excitation.period
@@ -112,18 +113,51 @@ def scale_to_limits(traj: FourierTrajectory, limits: ExcitationLimits,
                              traj.period, traj.joint_names)
 
 
+Closest = Callable[[np.ndarray], 'tuple[float, tuple[str, str] | None]']
+
+
+def centre_fault(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None = None,
+                 level: float = REST_TORQUE, closest: Closest | None = None) -> str | None:
+    """Why an excitation cannot be centred on the centre of the position ranges, or None: the
+    static torque there (under each of ``phis``) beyond ``level`` of an effort limit ('holds
+    <joint> at <ratio> x its torque limit (with the margin)'), or the clearance ``closest(q)``
+    gives (m beyond the minimum distance, and its pair or None) below 0 ('is in collision
+    (<a> - <b>)')."""
+    centre = position_ranges(limits)[1]
+    at = static_ratios(robot, limits, centre, phis)
+    j = int(np.argmax(at))
+    if at[j] > level:
+        return f'holds {robot.joint_names[j]} at {at[j]:.2f} x its torque limit (with the margin)'
+    if closest is not None:
+        clearance, pair = closest(centre)
+        if clearance < 0:
+            return 'is in collision' + (f' ({pair[0]} - {pair[1]})' if pair else '')
+    return None
+
+
 def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None = None,
               level: float = REST_TORQUE, seed: int = 0,
               clearance: Callable[[np.ndarray], float] | None = None,
               pad: float = 0.0) -> np.ndarray | None:
     """The pose (n,) an excitation is centred on and scaled towards, where the centre of the
-    position ranges will not do: None while the static torque there (under each of ``phis``)
-    stays within ``level`` of every effort limit and ``clearance(q)`` (m beyond the minimum
-    distance, where given) is >= 0; else the pose nearest that centre (in half widths of the
-    ranges, pi where unlimited) within the middle three quarters of the ranges whose static
-    torque does, ``pad`` clear (an arm held out against gravity at the centre hangs, one in
-    collision there unfolds), or failing that the pose of least static torque found (a clear
-    one where any is)."""
+    position ranges will not do (centre_fault; ``clearance(q)``: m beyond the minimum
+    distance): None where it does, else nearest_rest_pose."""
+    closest = None if clearance is None else (lambda q: (clearance(q), None))
+    if centre_fault(robot, limits, phis, level, closest) is None:
+        return None
+    return nearest_rest_pose(robot, limits, phis, level, seed, clearance, pad)
+
+
+def nearest_rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None = None,
+                      level: float = REST_TORQUE, seed: int = 0,
+                      clearance: Callable[[np.ndarray], float] | None = None,
+                      pad: float = 0.0) -> np.ndarray:
+    """The pose nearest the centre of the position ranges (in half widths of the ranges, pi
+    where unlimited) within their middle three quarters whose static torque (under each of
+    ``phis``) stays within ``level`` of every effort limit, ``pad`` beyond ``clearance(q)``'s
+    0 where given (an arm held out against gravity at the centre hangs, one in collision there
+    unfolds), or failing that the pose of least static torque found (a clear one where any
+    is)."""
     from scipy.optimize import minimize
 
     limited, centre, half = position_ranges(limits)
@@ -131,8 +165,6 @@ def rest_pose(robot, limits: ExcitationLimits, phis: Sequence[np.ndarray] | None
     def ratios(q: np.ndarray) -> np.ndarray:
         return static_ratios(robot, limits, q, phis)
 
-    if ratios(centre).max() <= level and (clearance is None or clearance(centre) >= 0):
-        return None
     width = np.where(limited, 0.75 * half, math.pi)
     box = list(zip(centre - width, centre + width))
     starts = [centre, *np.random.default_rng(seed).uniform(centre - width, centre + width,
