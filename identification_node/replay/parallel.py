@@ -107,14 +107,17 @@ def parallel_identify(bag: str | os.PathLike, settings: Settings, robot: RobotMo
         parts = list(pool.map(_segment, jobs))
     merged: BagStatistics | None = None
     history = []
+    ident = None    # the identification of the segments merged so far, once they have samples
     for part in parts:
         merged = part if merged is None else merged + part
-        if merged.num_samples:
-            step = identification(merged, settings, robot, str(bag), physical_consistency=False)
-            history.append(Checkpoint(step.num_samples, (merged.last_ns or 0) * 1e-9,
-                                      step.theta, step.stddev))
+        ident = (identification(merged, settings, robot, str(bag), physical_consistency=False)
+                 if merged.num_samples else None)
+        if ident is not None:
+            history.append(Checkpoint(ident.num_samples, (merged.last_ns or 0) * 1e-9,
+                                      ident.theta, ident.stddev))
     assert merged is not None   # two segments at least
-    ident = identification(merged, settings, robot, str(bag), physical_consistency=False)
+    if ident is None:
+        ident = identification(merged, settings, robot, str(bag), physical_consistency=False)
     ident.history = history
     if choice is not None:   # reported as the serial run reports it
         ident.pipeline.row_builder.choice = choice
