@@ -7,7 +7,8 @@ from types import SimpleNamespace
 
 from std_srvs.srv import Trigger
 
-from identification_node.ros.service_requests import Outcome, RequestQueue, ServiceThread
+from identification_node.ros.service_requests import (MAX_SWEEPS, Outcome, RequestQueue,
+                                                      ServiceThread)
 
 REFUSAL = 'failed to send response (timeout): client will not receive response'
 
@@ -112,3 +113,64 @@ def test_a_request_that_waits_wakes_the_processing_thread():
     assert len(woken) == 1 and [o.estimate for o in log] == ['first', 'first']
     queue.command('reset', None, log.append)
     assert len(woken) == 2
+
+
+class QueuedHandle:
+    """An rclpy service handle whose requests are what the test put in ``queue``;
+    ``on_take()`` runs before each take (the middleware delivering meanwhile)."""
+
+    def __init__(self) -> None:
+        self.queue: list = []
+        self.on_take = lambda: None
+
+    def __enter__(self) -> 'QueuedHandle':
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        return False
+
+    def service_take_request(self, request_type):
+        self.on_take()
+        return self.queue.pop(0) if self.queue else (None, None)
+
+
+def _services(thread, *names):
+    srvs = [SimpleNamespace(srv_type=Trigger, handle=QueuedHandle()) for _ in names]
+    thread._services = [(srv, None, name) for srv, name in zip(srvs, names)]
+    return srvs
+
+
+def _request(stamp):
+    return Trigger.Request(), SimpleNamespace(source_timestamp=stamp)
+
+
+def test_a_request_is_taken_with_those_sent_before_it_to_services_swept_earlier():
+    """The thread takes each service's requests in turn. A burst of (save, reset) pairs that
+    arrives between the two (the thread paused: another thread held the GIL) left the resets
+    for the next poll, and the saves went first: a frozen node's save after a reset wrote
+    the estimate before it. Every request taken comes with those sent before it."""
+    thread = ServiceThread(None, lambda name, exc: None)
+    reset, save = _services(thread, 'reset', 'save')
+
+    def burst():   # arrives once the reset queue was found empty
+        save.handle.on_take = lambda: None
+        for k in range(6):     # save 0, reset 1, save 2, ...: stamps in the order sent
+            (reset if k % 2 else save).handle.queue.append(_request(k))
+    save.handle.on_take = burst
+    taken = thread._take()
+    assert [(t[3], t[0]) for t in taken] == [('save', 0), ('reset', 1), ('save', 2),
+                                             ('reset', 3), ('save', 4), ('reset', 5)]
+    assert thread._take() == []
+
+
+def test_requests_that_never_stop_coming_end_the_poll():
+    """A request arrives for one service at every sweep over the others: the poll ends
+    after MAX_SWEEPS sweeps, in stamp order, what it took of the others among it."""
+    thread = ServiceThread(None, lambda name, exc: None)
+    busy, other = _services(thread, 'busy', 'other')
+    stamps = iter(range(1, 100))
+    other.handle.queue.append(_request(0))
+    other.handle.on_take = lambda: busy.handle.queue.append(_request(next(stamps)))
+    taken = thread._take()
+    assert [t[0] for t in taken] == list(range(MAX_SWEEPS + 1))
+    assert taken[0][3] == 'other' and {t[3] for t in taken[1:]} == {'busy'}

@@ -1,9 +1,10 @@
 """The node's services on a thread of their own, answered from published snapshots.
 
 :class:`ServiceThread` takes the requests of its services itself (they sit in a PolledGroup,
-which no executor dispatches) on a daemon thread, in the order they were sent (the requests
-of one poll sorted by source timestamp), and sends every response from that same thread. A
-handler may answer later: it gets a ``reply`` callable that any thread may call.
+which no executor dispatches) on a daemon thread, in the order they were sent (a poll sweeps
+the services until all are empty and sorts what it took by source timestamp), and sends every
+response from that same thread. A handler may answer later: it gets a ``reply`` callable
+that any thread may call.
 
 :class:`RequestQueue` is what the handlers hand work to, so that no service waits on the
 processing thread's work (nor on its lock): commands (reset, freeze, save, payload) are
@@ -38,6 +39,7 @@ SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          reliability=ReliabilityPolicy.RELIABLE)
 POLL_ACTIVE = 0.002     # s between polls while requests come
 POLL_IDLE = 0.02        # s between polls once none came for a while
+MAX_SWEEPS = 8          # sweeps over the services per poll while requests keep coming
 # rmw_fastrtps refuses a response while the caller's reply reader is not matched yet (a new
 # client's first call, discovery slow on a busy machine): it is sent again for this long.
 RESEND_FOR = 10.0
@@ -117,17 +119,26 @@ class ServiceThread:
             self._wake.clear()
 
     def _take(self) -> list[tuple]:
-        taken = []
-        for srv, handler, name in self._services:
-            with contextlib.suppress(Exception):   # a destroyed service (shutdown)
-                with srv.handle:
-                    while True:
-                        request, header = srv.handle.service_take_request(
-                            srv.srv_type.Request)
-                        if header is None:
-                            break
-                        taken.append((header.source_timestamp, srv, handler, name, request,
-                                      header))
+        """The requests of every service, sorted by source timestamp: swept until a sweep
+        finds every service empty (at most MAX_SWEEPS), so that a request taken comes with
+        those sent before it to services swept earlier. One sweep could take a save and leave
+        the reset sent before it, which arrived while the thread was between the two, for
+        the next poll."""
+        taken: list[tuple] = []
+        for _ in range(MAX_SWEEPS):
+            count = len(taken)
+            for srv, handler, name in self._services:
+                with contextlib.suppress(Exception):   # a destroyed service (shutdown)
+                    with srv.handle:
+                        while True:
+                            request, header = srv.handle.service_take_request(
+                                srv.srv_type.Request)
+                            if header is None:
+                                break
+                            taken.append((header.source_timestamp, srv, handler, name,
+                                          request, header))
+            if len(taken) == count:
+                break
         taken.sort(key=lambda t: t[0])   # stable: one service's requests stay in order
         return taken
 
