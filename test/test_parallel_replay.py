@@ -13,8 +13,9 @@ from identification_node.cli import main
 from identification_node.excitation.trajectories import FourierTrajectory
 from identification_node.model.robot import load_robot
 from identification_node.replay.parallel import parallel_identify, segments
-from identification_node.replay.segments import BagSegment, balanced_segments
-from identification_node.replay.stream import replay_identify
+from identification_node.pipeline.rows import RowBuilder
+from identification_node.replay.segments import BagSegment, balanced_segments, chosen_smoother
+from identification_node.replay.stream import identify_bag, replay_identify
 from identification_node.settings import Settings
 from test_offline import simulate, write_bag
 
@@ -114,3 +115,23 @@ def test_the_gate_of_each_segment_is_reported(long_bag, robot):
     forgetting = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
                                      'forgetting_factor': 0.999})
     assert parallel_identify(long_bag, forgetting, robot, 2) is None
+
+
+def test_the_smoother_is_chosen_without_rows_as_the_serial_run(long_bag, robot, monkeypatch):
+    """The parent's read for the smoother (segments.chosen_smoother) stops once it is chosen
+    and makes no rows of what it read (the estimate and the time-offset check are the
+    segments' work), and chooses what the serial run does."""
+    settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS})
+    serial = identify_bag(long_bag, settings, robot).pipeline.smoother
+    made = []
+    call = RowBuilder.__call__
+
+    def rows(self, *args, **kwargs):
+        out = call(self, *args, **kwargs)
+        made.append(len(out.t))
+        return out
+    monkeypatch.setattr(RowBuilder, '__call__', rows)
+    choice = chosen_smoother(long_bag, settings, robot)
+    assert choice is not None and choice.source == 'automatic'
+    assert choice.document() == serial.document()
+    assert made and not any(made)

@@ -293,6 +293,9 @@ class RowBuilder:
         # the Coulomb column as the smoother makes of sign(qd) (smooths_sign); False: sign(qd)
         # itself (predictions of the raw torque)
         self.smooth_sign = True
+        # True: the choice is all the caller wants (segments.chosen_smoother): the samples
+        # held for it stay held, no rows are made of them
+        self.choose_only = False
         self.choice: SmootherChoice | None = (
             SmootherChoice(int(half_window), self.order) if half_window else None)
         self._held: list[Samples] = []     # samples waiting for the choice
@@ -420,7 +423,7 @@ class RowBuilder:
         if self.choice is None:
             if len(s):
                 self._hold(s)
-            if not self._held or not self._choose(flush, len(s)):
+            if not self._held or not self._choose(flush, len(s)) or self.choose_only:
                 return self._empty()
             s, self._held, self._moved_at = self._held[0], [], math.nan
         elif math.isnan(self.choice.rate) and len(s) > 1:

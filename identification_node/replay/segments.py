@@ -129,12 +129,13 @@ def bag_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
 def chosen_smoother(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
                     joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS):
     """The smoother (rows.SmootherChoice) the pipeline of ``settings`` chooses on ``bag``, the
-    bag read until chosen; None when the settings fix the half window. The torque's time
-    offset is not checked on the way (the run given the choice checks it)."""
+    bag read until chosen; None when the settings fix the half window. No rows are made of
+    what is read (rows.RowBuilder.choose_only): the run given the choice estimates and checks
+    the torque's time offset."""
     if settings['smoother.half_window']:
         return None
-    settings = pinned(settings, (('time_offset.warn', 0.0),))
     pipeline = settings.build(robot)
+    pipeline.row_builder.choose_only = True
     identify_bag(bag, settings, robot, joint_states, motor_currents, checkpoints=1,
                  pipeline=pipeline, until=lambda p: p.smoother is not None)
     return pipeline.smoother

@@ -115,7 +115,8 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
     torque sources need them). ``on_output`` sees every batch the pipeline outputs;
     ``pipeline``: the one to feed (default: the settings' own, new); ``window``: only the
     messages recorded in it (windows.py); ``until``: reading stops after the batch for which
-    it is true (e.g. once the smoother is chosen)."""
+    it is true (e.g. once the smoother is chosen), and what was read is not checked for
+    usable samples (check_usable): the caller has what it read for."""
     pipeline = pipeline or settings.build(robot)
     topics = input_topics(pipeline, joint_states, motor_currents)
     result = ReplayResult(str(bag), pipeline, 0)
@@ -123,6 +124,7 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
         counts = reader.topic_counts
         every = max(batch, counts.get(joint_states, 0) // max(checkpoints, 1))
         next_checkpoint = [every]
+        stopped = [False]
 
         def step(flush: bool) -> bool:
             out = pipeline.process(flush=flush)
@@ -131,10 +133,12 @@ def identify_bag(bag: str | os.PathLike, settings: Settings, robot: RobotModel,
             if not flush and pipeline.used >= next_checkpoint[0]:
                 result.history.append(_checkpoint(pipeline))
                 next_checkpoint[0] = pipeline.used + every
-            return until is not None and until(pipeline)
+            stopped[0] = until is not None and until(pipeline)
+            return stopped[0]
         result.messages = feed_bag(reader, pipeline, topics, batch, step, window)
-    check_usable(pipeline.used, pipeline.rejected, bag, topics, counts,
-                 pipeline.samples.counters, pipeline.robot.joint_names)
+    if not stopped[0]:
+        check_usable(pipeline.used, pipeline.rejected, bag, topics, counts,
+                     pipeline.samples.counters, pipeline.robot.joint_names)
     result.history.append(_checkpoint(pipeline))
     return result
 
