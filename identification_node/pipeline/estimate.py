@@ -90,6 +90,13 @@ class _Pending(NamedTuple):
     q: np.ndarray | None
 
 
+def _finite_samples(rows: np.ndarray) -> np.ndarray:
+    """Mask (N,) of the samples whose rows (N, n, k) have a finite sum of squares (the
+    information and residual sums take them without overflow)."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        return np.isfinite(np.einsum('njk,njk->n', rows, rows))
+
+
 def _joined(arrays) -> np.ndarray:
     """The arrays of the queued parts, one after the other (the one itself when alone)."""
     return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
@@ -198,13 +205,12 @@ class OnlineEstimate:
             root = np.sqrt(np.broadcast_to(w, rows.shape[:2]))
             rows *= root[:, :, None]
             used = root > 0
+        finite = _finite_samples(rows)
         if all(u.q is not None for u in parts):   # rows that overflow are left out here too
             f = features(_joined([u.q for u in parts]), qd)
             if used is not None:
                 f *= used[:, :, None]
-            with np.errstate(over='ignore', invalid='ignore'):
-                ok = np.isfinite(np.square(rows).sum(axis=(1, 2)))
-            self.terms.add(f[ok], rows[ok])
+            self.terms.add(f[finite], rows[finite])
         cuts: list[int] = []
         if all(u.stamps_ns is not None for u in parts):
             cell = _joined([np.asarray(u.stamps_ns, dtype=np.int64) for u in parts]
@@ -216,12 +222,12 @@ class OnlineEstimate:
             if a in cuts:     # a new cell: its open residual block closed
                 self._residuals.close_block()
             if b > a:
-                self._update(rows[a:b], None if used is None else used[a:b])
+                self._update(rows[a:b], None if used is None else used[a:b], finite[a:b])
 
-    def _update(self, rows: np.ndarray, used: np.ndarray | None) -> None:
+    def _update(self, rows: np.ndarray, used: np.ndarray | None, finite: np.ndarray) -> None:
         """One batch of weighted rows into the RLS and the residual statistics (rolled back
-        and counted when it fails)."""
-        rows, used = self._screened(rows, used)
+        and counted when it fails); ``finite``: their samples' _finite_samples."""
+        rows, used = self._screened(rows, used, finite)
         if len(rows) == 0:
             return
         saved = _state(self._rls), _state(self._residuals)
@@ -240,12 +246,11 @@ class OnlineEstimate:
             return
         self._rows_used += len(rows) if used is None else used.sum(axis=0)
 
-    def _screened(self, rows: np.ndarray, used: np.ndarray | None
+    def _screened(self, rows: np.ndarray, used: np.ndarray | None, finite: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray | None]:
         """The rows of a batch the estimator may take: samples whose sums would overflow
-        dropped, and, once the estimate has converged, the robust gate's decision."""
-        with np.errstate(over='ignore', invalid='ignore'):
-            finite = np.isfinite(np.square(rows).sum(axis=(1, 2)))
+        (not ``finite``) dropped, and, once the estimate has converged, the robust gate's
+        decision."""
         if not finite.all():
             self._reject('regressor_overflow', np.count_nonzero(~finite))
             rows, used = rows[finite], None if used is None else used[finite]
