@@ -466,10 +466,8 @@ class RobotModel:
         model, data, flat = self.model, self.data, self._flat
         for a in range(0, N, _REGRESSOR_CHUNK):
             b = min(N, a + _REGRESSOR_CHUNK)
-            # one pinocchio call per sample, mapped (no Python statement per sample); the
-            # package's rows and columns of the whole chunk then picked in one take
-            Ypin = np.array(list(map(pin.computeJointTorqueRegressor, repeat(model),
-                                     repeat(data), Q[a:b], V[a:b], A[a:b])))
+            # the package's rows and columns of the whole chunk picked in one take
+            Ypin = joint_torque_regressors(model, data, Q[a:b], V[a:b], A[a:b])
             out[a:b, :, :ni] = Ypin.reshape(b - a, -1).take(flat, axis=1).reshape(
                 b - a, self.dof, ni)
         if self.extras:
@@ -507,6 +505,16 @@ class RobotModel:
         if 'fc' in extra:
             tau += extra['fc'] * coulomb_column(qd, self.in_joint_units(self.coulomb_velocity))
         return tau
+
+
+def joint_torque_regressors(model: pin.Model, data: pin.Data, Q: np.ndarray, V: np.ndarray,
+                            A: np.ndarray) -> np.ndarray:
+    """pinocchio's ``computeJointTorqueRegressor`` of samples (Q (N, nq), V and A (N, nv)):
+    (N, nv, 10 (njoints - 1)), in pinocchio's joint and parameter order. The one call of
+    pinocchio's regressor (RobotModel.regressor maps it); one binding call per sample, mapped
+    (no Python statement per sample)."""
+    return np.array(list(map(pin.computeJointTorqueRegressor, repeat(model), repeat(data),
+                             Q, V, A)))
 
 
 def load_robot(robot: str | os.PathLike, joints: Sequence[str] | None = None,
