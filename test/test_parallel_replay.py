@@ -4,6 +4,7 @@ serial run's estimate and stddev (robust gate off), or say how many samples the 
 held back (gate on)."""
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -135,3 +136,64 @@ def test_the_smoother_is_chosen_without_rows_as_the_serial_run(long_bag, robot, 
     assert choice is not None and choice.source == 'automatic'
     assert choice.document() == serial.document()
     assert made and not any(made)
+
+
+def test_the_merged_counters_are_the_serial_runs(robot, tmp_path):
+    """Messages rejected next to a cut (in both segments' margins) and undecodable ones are
+    counted once, as the serial run counts them: each segment counts the messages stamped
+    inside it, and an undecodable one by its log time."""
+    from identification_node.bags.writer import BagWriter
+    t, q, qd, tau = simulate(robot, FourierTrajectory.random(robot, seed=7, period=10.0), 40.0,
+                             rate=100.0, seed=23)
+    q[[500, 1997, 2002]] = np.nan                      # non-finite: far from the cut, next to it
+    repeated = {1999, 2003}                            # written twice: a repeated stamp
+    garbage = {1000, 1998, 2001}                       # undecodable messages before these
+    bag = tmp_path / 'faults'
+    with BagWriter(bag) as out:
+        out.write_string('/robot_description', 0, robot.description)
+        for k in range(len(t)):
+            ns = int(round(t[k] * 1e9))
+            if k in garbage:
+                out.write_raw('/joint_states', ns, b'\x00\x01\x00\x00' + b'\xff' * 9)
+            for _ in range(2 if k in repeated else 1):
+                out.write_joint_state('/joint_states', ns, ns * 1e-9, robot.joint_names,
+                                      q[k], qd[k], tau[k])
+    settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
+                                   'robust': {'enabled': False}})
+    assert [t.stop_ns for t in segments(bag, 2)] == [20 * 10**9, None]   # cut at 20 s
+    serial = identify_bag(bag, settings, robot)
+    parallel = parallel_identify(bag, settings, robot, 2)
+    counted = {k: v for k, v in serial.pipeline.rejected.items() if v}
+    assert counted == {'non_finite': 3, 'repeated_stamp': 2, 'malformed': 3}
+    assert {k: v for k, v in parallel.rejected.items() if v} == counted
+    assert parallel.messages == serial.messages == len(t) + 5
+    assert parallel.pipeline.received == serial.pipeline.received == len(t) + 5
+    assert parallel.num_samples == serial.pipeline.rls.num_samples
+
+
+def test_joint_states_without_currents_next_to_a_cut_are_counted_once(tmp_path):
+    """The currents of 60 ms around the cut dropped: the joint states there are rejected
+    'no_current' once, as in the serial run, not again in the neighbouring segment's margin."""
+    from identification_node.bags.reader import open_bag
+    from identification_node.bags.writer import BagWriter
+    from identification_node.replay.stream import bag_robot
+    from identification_node.settings import read_parameter_file
+    config = Path(__file__).resolve().parents[1] / 'config' / 'identification.yaml'
+    assert main(['simulate', '--config', str(config), '--duration', '25', '--seed', '3',
+                 '--out', str(tmp_path / 'sim')]) == 0
+    cut = 10 * 10**9
+    with open_bag(tmp_path / 'sim') as reader, BagWriter(tmp_path / 'gap') as out:
+        for topic, msgtype in reader.topics.items():
+            out.add_topic(topic, msgtype, latched=topic == '/robot_description')
+        for topic, _, t_ns, raw in reader.raw_messages():
+            if topic != '/motor_currents' or abs(t_ns - cut) > 30_000_000:
+                out.write_raw(topic, t_ns, raw)
+    settings = Settings.from_dict({**read_parameter_file(config), 'robust.enabled': False})
+    robot = bag_robot(tmp_path / 'gap', settings)
+    assert [t.stop_ns for t in segments(tmp_path / 'gap', 2)] == [cut, None]
+    serial = identify_bag(tmp_path / 'gap', settings, robot).pipeline
+    parallel = parallel_identify(tmp_path / 'gap', settings, robot, 2)
+    counted = {k: v for k, v in serial.rejected.items() if v}
+    assert set(counted) == {'no_current'} and 50 <= counted['no_current'] <= 62
+    assert {k: v for k, v in parallel.rejected.items() if v} == counted
+    assert parallel.pipeline.received == serial.received == 25001

@@ -131,7 +131,8 @@ def test_a_segment_window_gives_the_whole_streams_rows_inside_it():
     """Three-phase currents offset from the joint states, a fixed smoother: the windowed
     pipeline, fed the whole stream, takes only the messages within its margin, and its rows
     are the unwindowed pipeline's rows inside [start, stop), no more; the messages inside are
-    counted. CDR input (the node's) is refused: its stamps are known only once decoded."""
+    counted, and received. CDR input (the node's) is refused: its stamps are known only once
+    decoded."""
     converter = TorqueConverter(ROBOT.joint_names, [THREE_PHASE[j] for j in ROBOT.joint_names])
     sim = simulate(duration=4.0, noise=SensorNoise(current_std=0.02), converter=converter)
     js, cur = joint_records(sim, effort=False), current_records(sim, converter)
@@ -147,7 +148,8 @@ def test_a_segment_window_gives_the_whole_streams_rows_inside_it():
         np.testing.assert_allclose(part[key], whole[key][inside], rtol=0, atol=1e-9)
     both = [r.stamp_ns for r in js + cur]
     assert p.window.messages == sum(start <= s < stop for s in both)
-    assert p.received == 1200    # the joint states of [start - 0.1 s, stop + 0.1 s) at 1 kHz
+    # received: the joint states of [start, stop) at 1 kHz; the margins' are its neighbours'
+    assert p.received == 1000
     with pytest.raises(IdentificationError, match='segment window takes decoded'):
         p.add_joint_state_cdr([b''])
 

@@ -91,7 +91,7 @@ def _records(reader, pipeline, topics: list[str], batch: int, bounds: tuple[int,
 
     def skip(topic: str, t_ns: int, err: IdentificationError) -> None:
         if bounds is None or bounds[0] <= t_ns < bounds[1]:
-            malformed.append(pipeline.add_malformed)
+            malformed.append(functools.partial(pipeline.add_malformed, t_ns))
     if len(topics) > 1:
         add = {topics[0]: pipeline.add_joint_state, topics[1]: pipeline.add_currents}
         for topic, t_ns, record in iter_joint_states(reader, topics, skip):

@@ -106,8 +106,9 @@ class CurrentAlignment:
         match = self._nearest(cur.stamps, ready.stamps)
         ok = match >= 0
         early = ready.stamps < self._first_current - self.align_tolerance
-        self.counters.reject('before_currents', np.count_nonzero(~ok & early))
-        self.counters.reject('no_current', np.count_nonzero(~ok & ~early))
+        among = self.counters.among_seconds
+        self.counters.reject('before_currents', among(ready.stamps, ~ok & early))
+        self.counters.reject('no_current', among(ready.stamps, ~ok & ~early))
         used = np.zeros(len(cur), dtype=bool)
         used[match[ok]] = True
         # Currents older than what the next joint state could still match are done with.
@@ -119,8 +120,8 @@ class CurrentAlignment:
         stale = done & ~used & ~cur.used
         # older than the stream's first joint state, which took the nearest: none could match
         early = cur.stamps < self._first_js
-        self.counters.reject('before_joint_states', np.count_nonzero(stale & early))
-        self.counters.reject('unmatched_current', np.count_nonzero(stale & ~early))
+        self.counters.reject('before_joint_states', among(cur.stamps, stale & early))
+        self.counters.reject('unmatched_current', among(cur.stamps, stale & ~early))
         cur.used |= used
         self.currents = cur.select(~done) if done.any() else cur
         if not ok.all():
@@ -144,10 +145,10 @@ class CurrentAlignment:
         s.tau = self.converter.torque(s.q, measured=s.eff, currents=currents, theta_e=theta)
         ok = np.isfinite(s.tau).all(axis=1)
         if not ok.all():
-            self.counters.reject('non_finite', np.count_nonzero(~ok))
+            self.counters.reject('non_finite', self.counters.among_seconds(s.stamps, ~ok))
             s = s.select(ok)
         plausible = self.bounds.ok(tau=s.tau) if self.bounds is not None else None
         if plausible is None or plausible.all():
             return s
-        self.counters.reject('implausible', np.count_nonzero(~plausible))
+        self.counters.reject('implausible', self.counters.among_seconds(s.stamps, ~plausible))
         return s.select(plausible)

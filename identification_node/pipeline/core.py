@@ -91,10 +91,20 @@ class IdentificationPipeline:
         # the estimator's batch update left to update() (the node: after publishing the run's
         # outputs, which do not need it: they are predicted before it)
         self.defer_updates = False
-        # window.SegmentWindow: one time segment of the stream only (None: all of it); set
-        # before the first message (parallel replay and fleet)
-        self.window: SegmentWindow | None = None
+        self._window: SegmentWindow | None = None
         self.reset()
+
+    @property
+    def window(self) -> SegmentWindow | None:
+        """window.SegmentWindow: one time segment of the stream only (None: all of it); set
+        before the first message (parallel replay and fleet). Its messages' rejections are
+        counted here, its margins' by its neighbours."""
+        return self._window
+
+    @window.setter
+    def window(self, window: SegmentWindow | None) -> None:
+        self._window = window
+        self.samples.counters.inside = None if window is None else window.keep
 
     # -- input: called on the ROS side, so nothing but a copy ------------------------------------
     def add_joint_state(self, record: JointStateRecord) -> None:
@@ -133,9 +143,12 @@ class IdentificationPipeline:
         if self.window is not None:   # their stamps are known only once decoded
             raise IdentificationError(f'a segment window takes decoded {what}, not CDR bytes')
 
-    def add_malformed(self) -> None:
-        """Count a message that could not even be decoded (received, and rejected)."""
-        self.samples.add_malformed()
+    def add_malformed(self, log_ns: int | None = None) -> None:
+        """Count a message that could not even be decoded (received, and rejected; in a
+        segment window, by its log time ``log_ns`` as its stamp)."""
+        if self.window is not None and log_ns is not None:
+            self.window.feed(log_ns)   # counted in the window's messages when inside
+        self.samples.add_malformed(log_ns)
 
     @property
     def pending(self) -> int:

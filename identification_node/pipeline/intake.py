@@ -61,12 +61,12 @@ class Intake:
                 continue
             for record in decode_joint_states(item, self._decoder):
                 if isinstance(record, IdentificationError):
-                    self.malformed()
+                    self._counters.malformed()
                 else:
                     out.append(record)
         return out
 
-    def malformed(self) -> None:
-        """Count a message that could not even be decoded (received, and rejected)."""
-        self._counters.received += 1
-        self._counters.reject('malformed')
+    def malformed(self, log_ns: int | None = None) -> None:
+        """Count a message that could not even be decoded (received, and rejected; by its
+        log time ``log_ns`` when given: Counters.malformed)."""
+        self._counters.malformed(log_ns)

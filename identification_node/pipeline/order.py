@@ -43,8 +43,9 @@ class StampOrder:
             k = int(jump[0]) if len(jump) else len(s.stamps)
             head, prior = s.head(k), prior[:k]
             keep = head.stamps > prior
-            reject('repeated_stamp', np.count_nonzero(head.stamps == prior))
-            reject('out_of_order', np.count_nonzero(head.stamps < prior))
+            among = self.counters.among_seconds
+            reject('repeated_stamp', among(head.stamps, head.stamps == prior))
+            reject('out_of_order', among(head.stamps, head.stamps < prior))
             parts.append(head.select(keep))
             if len(head.stamps):
                 self.last_stamp = max(self.last_stamp, float(head.stamps.max()))

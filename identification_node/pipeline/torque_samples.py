@@ -67,9 +67,10 @@ class TorqueSamples:
     def add_currents_cdr(self, messages: list[bytes]) -> None:
         self.motor_currents.add_cdr(messages)
 
-    def add_malformed(self) -> None:
-        """Count a message that could not even be decoded (received, and rejected)."""
-        self.joint_states.malformed()
+    def add_malformed(self, log_ns: int | None = None) -> None:
+        """Count a message that could not even be decoded (received, and rejected; by its
+        log time ``log_ns`` when given: Counters.malformed)."""
+        self.joint_states.malformed(log_ns)
 
     @property
     def pending(self) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Callable
 
 import numpy as np
 
@@ -31,9 +32,14 @@ REJECT_REASONS = (
 
 class Counters:
     """Messages received, rejected per reason, stream restarts; and the stream's epoch, the
-    first stamp (ns), shared by both streams so their stamps compare."""
+    first stamp (ns), shared by both streams so their stamps compare.
+
+    ``inside``: the mask of the stamps (int64 ns, (M,)) whose messages are counted here, a
+    segment window's (window.py: each message is counted by the one segment its stamp lies in,
+    not again in its neighbours' margins); None: all."""
 
     def __init__(self) -> None:
+        self.inside: Callable[[np.ndarray], np.ndarray] | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -47,6 +53,27 @@ class Counters:
 
     def reject(self, reason: str, count: int | np.integer = 1) -> None:
         self.rejected[reason] += int(count)
+
+    def among(self, stamps_ns, marked: np.ndarray | None = None) -> int:
+        """How many of the messages stamped ``stamps_ns`` (int ns, (M,)), those ``marked``
+        when given, are counted here (``inside``)."""
+        if self.inside is None:
+            return int(np.size(stamps_ns) if marked is None else np.count_nonzero(marked))
+        keep = self.inside(np.atleast_1d(np.asarray(stamps_ns, dtype=np.int64)))
+        return int(np.count_nonzero(keep if marked is None else keep & marked))
+
+    def among_seconds(self, seconds: np.ndarray, marked: np.ndarray | None = None) -> int:
+        """``among`` for stamps in s since the epoch."""
+        if self.inside is None:
+            return int(np.size(seconds) if marked is None else np.count_nonzero(marked))
+        return self.among(self.stamps_ns(np.atleast_1d(seconds)), marked)
+
+    def malformed(self, log_ns: int | None = None) -> None:
+        """A message that could not even be decoded: received, and rejected 'malformed';
+        counted here by its log time ``log_ns`` when given (its stamp is unknown)."""
+        count = 1 if log_ns is None else self.among([log_ns])
+        self.received += count
+        self.reject('malformed', count)
 
     def seconds(self, stamps_ns) -> np.ndarray:
         """Stamps (int ns) as float seconds since the epoch, exact to the nanosecond for spans
@@ -133,7 +160,7 @@ class JointStateValidator:
     def __call__(self, b: JointStateRecord) -> Samples:
         """One block (rows sharing names and layout) validated; rejects counted."""
         n, M = self.robot.dof, np.size(b.stamp_ns)
-        self.counters.received += M
+        self.counters.received += self.counters.among(b.stamp_ns)
         if M == 0:
             return Samples.empty(n)
         k = len(b.names)
@@ -155,7 +182,7 @@ class JointStateValidator:
         if reason is None and len(self._measured_columns) and not eff:
             reason = 'missing_effort'
         if reason is not None:
-            self.counters.reject(reason, M)
+            self.counters.reject(reason, self.counters.among(b.stamp_ns))
             if reason == 'missing_joints':
                 names = set(b.names)
                 self.counters.missing_joints.update(
@@ -178,8 +205,9 @@ class JointStateValidator:
             finite &= np.isfinite(s.qd).all(axis=1)
         if len(measured):
             finite &= np.isfinite(s.eff[:, measured]).all(axis=1)
-        self.counters.reject('non_finite', np.count_nonzero(~finite))
-        self.counters.reject('implausible', np.count_nonzero(finite & ~plausible))
+        self.counters.reject('non_finite', self.counters.among(b.stamp_ns, ~finite))
+        self.counters.reject('implausible',
+                             self.counters.among(b.stamp_ns, finite & ~plausible))
         return s.select(plausible)
 
 
@@ -236,7 +264,7 @@ class CurrentValidator:
             else:
                 layout = self.layout(tuple(b.names))
             if isinstance(layout, str):
-                self.counters.reject(layout, M)
+                self.counters.reject(layout, self.counters.among(b.stamp_ns))
                 if layout == 'missing_joints':
                     names = set(b.names)
                     self.counters.missing_current_joints.update(
@@ -255,12 +283,13 @@ class CurrentValidator:
             # an electrical angle is NaN where not given, but never infinite
             finite = np.isfinite(values).all(axis=1) & ~np.isinf(theta).any(axis=1)
             if not finite.all():
-                self.counters.reject('non_finite', np.count_nonzero(~finite))
+                self.counters.reject('non_finite', self.counters.among(b.stamp_ns, ~finite))
                 part = tuple(a[finite] for a in part)
             plausible = (self.bounds.currents_ok(part[1])
                          & ~(np.abs(part[2]) > self._angle_bound).any(axis=1))
             if not plausible.all():
-                self.counters.reject('implausible', np.count_nonzero(~plausible))
+                self.counters.reject('implausible',
+                                     self.counters.among_seconds(part[0], ~plausible))
                 part = tuple(a[plausible] for a in part)
             parts.append(part)
         if not parts:

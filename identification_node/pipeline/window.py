@@ -3,8 +3,9 @@
 
 Its pipeline is fed the messages within ``margin_ns`` of [start_ns, stop_ns) (the smoother, the
 currents' alignment and hold time reach that far) and keeps only the rows whose stamps lie
-inside, so a segment's rows are those the whole stream gives there. Stamps are header stamps,
-int64 ns; None is an open end.
+inside, so a segment's rows are those the whole stream gives there; the messages it counts
+(received, rejected) are those inside too, those of the margins being its neighbours'. Stamps
+are header stamps, int64 ns; None is an open end.
 """
 from __future__ import annotations
 

@@ -11,7 +11,9 @@ and pinned in every segment. The normal equations and residual statistics add
 serial run; so are its warnings: the missing-term sums and the equations left out per joint
 add, and the torque's time offset is checked by the first segment only, on the stream's first
 ``time_offset.seconds`` as the serial run checks it (when that segment is shorter, on all of
-it).
+it). So are its counters: a segment counts the messages stamped inside it as received or
+rejected, not those of its margins (validate.Counters.inside), and an undecodable message
+by its log time; only a stream restart seen in a margin is counted by both segments.
 
 Why a result can differ from the serial run: the robust gate (robust.py) arms once the running
 estimate has converged and then holds back samples beyond k sigma of it. Its decisions depend
