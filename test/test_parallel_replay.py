@@ -197,3 +197,33 @@ def test_joint_states_without_currents_next_to_a_cut_are_counted_once(tmp_path):
     assert set(counted) == {'no_current'} and 50 <= counted['no_current'] <= 62
     assert {k: v for k, v in parallel.rejected.items() if v} == counted
     assert parallel.pipeline.received == serial.received == 25001
+
+
+def test_a_bag_stamped_by_a_simulators_clock_is_cut_in_its_stamps(robot, tmp_path):
+    """Header stamps from 0 s (a simulator's clock) logged at wall-clock time: the segments
+    are cut in the stamps, where the rows lie, so each worker gets half of them (cut in log
+    time, one segment took them all); the merge equals the serial run. Fleet cuts alike."""
+    from identification_node.bags.writer import BagWriter
+    from identification_node.fleet import fleet
+    t, q, qd, tau = simulate(robot, FourierTrajectory.random(robot, seed=8, period=10.0), 60.0,
+                             rate=100.0, seed=24)
+    wall = 1_733_000_000_123_000_000
+    bag = tmp_path / 'sim_time'
+    with BagWriter(bag) as out:
+        out.write_string('/robot_description', wall, robot.description)
+        for k in range(len(t)):
+            ns = int(round(t[k] * 1e9))
+            out.write_joint_state('/joint_states', wall + ns + 2_000_000, ns * 1e-9,
+                                  robot.joint_names, q[k], qd[k], tau[k])
+    grid = 10 * 10**9
+    assert segments(bag, 2) == [BagSegment(None, 3 * grid), BagSegment(3 * grid, None)]
+    settings = Settings.from_dict({'robot': 'mit_dd_arm', 'extras': EXTRAS,
+                                   'robust': {'enabled': False}})
+    serial = identify_bag(bag, settings, robot).pipeline
+    parallel = parallel_identify(bag, settings, robot, 2)
+    np.testing.assert_allclose(parallel.theta, serial.rls.theta, rtol=1e-9, atol=1e-12)
+    first, whole = (c.num_samples for c in parallel.history)
+    assert whole == serial.rls.num_samples and abs(first - whole / 2) < 0.01 * whole
+    tasks = fleet.plan_tasks([fleet.FleetEntry(str(bag), 'arm', 'day1')], segment_seconds=20.0)
+    assert [(k.start_ns, k.stop_ns) for k in tasks] == [
+        (None, 2 * grid), (2 * grid, 4 * grid), (4 * grid, None)]

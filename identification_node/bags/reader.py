@@ -37,7 +37,7 @@ _STORAGE_FILES = ('.mcap', '.db3')
 
 __all__ = [
     'STORAGES', 'BagReader', 'open_bag', 'iter_joint_states', 'iter_joint_state_blocks',
-    'iter_messages', 'iter_raw', 'read_string_topic',
+    'iter_messages', 'iter_raw', 'read_string_topic', 'stamp_span',
 ]
 
 
@@ -226,9 +226,10 @@ class BagReader:
                     f'{self.topics[topic]}, expected {msgtype}')
         return topics
 
-    def raw_messages(self, topics: Iterable[str] | None = None
+    def raw_messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None
                      ) -> Iterator[tuple[str, str, int, bytes]]:
-        """Yield (topic, msgtype, log_time_ns, cdr_bytes) in log-time order (all if None)."""
+        """Yield (topic, msgtype, log_time_ns, cdr_bytes) in log-time order (all if None),
+        from log time ``start_ns`` on when given."""
         if self._reader is None:
             raise IdentificationError(f'bag {str(self.path)!r} is closed')
         wanted = None if topics is None else set(self.check_topics(topics))
@@ -236,7 +237,7 @@ class BagReader:
         if not conns:
             return
         try:
-            for conn, t_ns, raw in self._reader.messages(conns):
+            for conn, t_ns, raw in self._reader.messages(conns, start=start_ns):
                 yield conn.topic, conn.msgtype, t_ns, raw
         except IdentificationError:
             raise
@@ -319,6 +320,32 @@ def iter_joint_states(reader: BagReader, topics: str | Iterable[str],
             _undecodable(topic, t_ns, err, on_malformed)
             continue
         yield topic, t_ns, record
+
+
+def stamp_span(reader: BagReader, topic: str) -> tuple[int, int] | None:
+    """Header stamps (int ns) of the first and the last decodable message of the JointState
+    ``topic`` in log-time order, or None when it has none; the last found reading back from
+    the bag's end over spans of log time growing tenfold from 0.1 s."""
+    decoder = JointStateDecoder()
+
+    def stamps(start_ns: int | None = None) -> Iterator[int]:
+        for _, _, _, raw in reader.raw_messages([topic], start_ns):
+            try:
+                yield int(decoder(raw).stamp_ns)
+            except IdentificationError:
+                continue
+    first = next(stamps(), None)
+    if first is None:
+        return None
+    span = 10**8
+    while True:
+        after = reader.end_ns - span
+        last = None
+        for last in stamps(after if after > reader.start_ns else None):
+            pass
+        if last is not None:
+            return first, last
+        span *= 10
 
 
 def read_string_topic(reader: BagReader, topic: str = '/robot_description') -> str | None:

@@ -55,7 +55,7 @@ import numpy as np
 from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.errors import IdentificationError
 from identification_node.model.robot import RobotModel
-from identification_node.replay.segments import (BagStatistics, Solve, bag_smoother,
+from identification_node.replay.segments import (BagStatistics, Solve, bag_smoother, bag_span,
                                                  bag_statistics, consistent_solver, grid_segments,
                                                  identification, model_key, pinned,
                                                  solve_unconstrained)
@@ -225,9 +225,9 @@ def run_task(task: MapTask) -> BagStatistics | MapFailure:
 def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = None,
                joint_states: str = JOINT_STATES, motor_currents: str = MOTOR_CURRENTS,
                smoothers: dict[str, tuple] | None = None) -> list[MapTask]:
-    """One task per bag, or per ``segment_seconds`` of its log time, rounded to a multiple of
-    the residual grid (estimate.RESIDUAL_GRID, 10 s) and cut at multiples of it, where the
-    residual blocks restart, so the segments' statistics merge to the whole bag's exactly
+    """One task per bag, or per ``segment_seconds`` of its stamps (bag_span), rounded to a
+    multiple of the residual grid (estimate.RESIDUAL_GRID, 10 s) and cut at multiples of it,
+    where the residual blocks restart, so the segments' statistics merge to the whole bag's exactly
     (the first and last segment open-ended, so every row belongs to exactly one);
     ``smoothers``: per robot the smoother parameters of its tasks (choose_smoother)."""
     from identification_node.bags.reader import open_bag
@@ -241,7 +241,7 @@ def plan_tasks(entries: Sequence[FleetEntry], segment_seconds: float | None = No
             continue
         try:
             with open_bag(e.bag) as reader:
-                start, end = reader.start_ns, reader.end_ns
+                start, end = bag_span(reader, joint_states)
         except Exception:           # the map task reports it
             tasks.append(base)
             continue

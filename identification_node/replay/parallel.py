@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 from identification_node.bags.feed import JOINT_STATES, MOTOR_CURRENTS
 from identification_node.model.robot import RobotModel
-from identification_node.replay.segments import (BagSegment, BagStatistics, bag_statistics,
-                                                 balanced_segments, chosen_smoother,
-                                                 identification, pinned)
+from identification_node.replay.segments import (BagSegment, BagStatistics, bag_span,
+                                                 bag_statistics, balanced_segments,
+                                                 chosen_smoother, identification, pinned)
 from identification_node.results.identification import Checkpoint
 from identification_node.settings import Settings
 
@@ -73,14 +73,15 @@ def _segment(job: _Job) -> BagStatistics:
                           job.joint_states, job.motor_currents)
 
 
-def segments(bag: str | os.PathLike, workers: int) -> list[BagSegment]:
+def segments(bag: str | os.PathLike, workers: int, joint_states: str = JOINT_STATES
+             ) -> list[BagSegment]:
     """The segments of ``bag`` for ``workers`` processes: as many as workers, about equally
-    long, cut at multiples of the residual grid (segments.balanced_segments); fewer when the
-    bag spans fewer grid multiples."""
+    long in its joint states' stamps (segments.bag_span), cut at multiples of the residual
+    grid (segments.balanced_segments); fewer when the bag spans fewer grid multiples."""
     from identification_node.bags.reader import open_bag
 
     with open_bag(bag) as reader:
-        start, end = reader.start_ns, reader.end_ns
+        start, end = bag_span(reader, joint_states)
     return balanced_segments(start, max(end, start), workers)
 
 
@@ -93,7 +94,7 @@ def parallel_identify(bag: str | os.PathLike, settings: Settings, robot: RobotMo
     do not add up)."""
     if settings['forgetting_factor'] != 1.0 or workers < 2:
         return None
-    tasks = segments(bag, workers)
+    tasks = segments(bag, workers, joint_states)
     if len(tasks) < 2:
         return None
     choice = chosen_smoother(bag, settings, robot, joint_states, motor_currents)

@@ -28,7 +28,7 @@ from identification_node.settings import Settings
 
 __all__ = ['SMOOTHER', 'model_key', 'BagStatistics', 'segment_margin_ns', 'pinned',
            'bag_smoother', 'chosen_smoother', 'bag_statistics', 'Solve', 'solve_unconstrained',
-           'identification', 'consistent_solver', 'BagSegment', 'grid_segments',
+           'identification', 'consistent_solver', 'BagSegment', 'bag_span', 'grid_segments',
            'balanced_segments']
 
 SMOOTHER = ('smoother.half_window', 'smoother.cutoff')   # BagStatistics.smoother
@@ -240,22 +240,36 @@ def consistent_solver(settings: Settings, robot: RobotModel) -> ConsistentSolver
 
 @dataclass(frozen=True)
 class BagSegment:
-    """A time segment [start_ns, stop_ns) of a bag's log time (None: open-ended)."""
+    """A time segment [start_ns, stop_ns) of a bag's header stamps (None: open-ended)."""
     start_ns: int | None
     stop_ns: int | None
 
 
+def bag_span(reader, joint_states: str = JOINT_STATES) -> tuple[int, int]:
+    """The span (int ns) of an open bag's (bags.reader.BagReader) stamps to cut segments in:
+    the first and last header stamps of its joint states (bags.reader.stamp_span), where its
+    rows lie also when its stamps are not its log times (a simulator's clock); its log times
+    when those cannot be read (the segments' reads then name the fault)."""
+    from identification_node.bags.reader import stamp_span
+    try:
+        span = stamp_span(reader, joint_states)
+    except IdentificationError:
+        span = None
+    return span or (reader.start_ns, reader.end_ns)
+
+
 def grid_segments(start_ns: int, end_ns: int, segment_seconds: float) -> list[BagSegment]:
-    """The segments of a bag logged from ``start_ns`` to ``end_ns``: ``segment_seconds``
-    rounded to a multiple of the residual grid (estimate.RESIDUAL_GRID, 10 s) and cut at
-    multiples of it, where the residual blocks restart, so the segments' statistics merge to
-    the whole bag's exactly; the first and last open-ended, so every row belongs to one."""
+    """The segments of a bag stamped from ``start_ns`` to ``end_ns`` (bag_span):
+    ``segment_seconds`` rounded to a multiple of the residual grid (estimate.RESIDUAL_GRID,
+    10 s) and cut at multiples of it, where the residual blocks restart, so the segments'
+    statistics merge to the whole bag's exactly; the first and last open-ended, so every row
+    belongs to one."""
     step = max(1, round(segment_seconds * 1e9 / RESIDUAL_GRID)) * RESIDUAL_GRID
     return _cut(list(range((start_ns // step + 1) * step, end_ns, step)))
 
 
 def balanced_segments(start_ns: int, end_ns: int, parts: int) -> list[BagSegment]:
-    """At most ``parts`` segments of a bag logged from ``start_ns`` to ``end_ns``, about equally
+    """At most ``parts`` segments of a bag stamped from ``start_ns`` to ``end_ns``, about equally
     long: each cut at the multiple of the residual grid nearest to an equal split (so they merge
     exactly, as grid_segments'); the first and last open-ended."""
     ideal = start_ns + (end_ns - start_ns) * np.arange(1, max(parts, 1)) / max(parts, 1)
