@@ -61,7 +61,7 @@ class Intake:
                 continue
             for record in decode_joint_states(item, self._decoder):
                 if isinstance(record, IdentificationError):
-                    self._counters.malformed()
+                    self.malformed()
                 else:
                     out.append(record)
         return out
