@@ -26,9 +26,8 @@ should not grow with the bag. BLAS runs single-threaded (OPENBLAS_NUM_THREADS=1,
 tests; set it to override): on 2 shared cores, BLAS threads spin against each other and make
 both pipelines several times slower and erratic.
 
-Last, pinocchio's regressor alone as ours calls it (RobotModel.regressor, us per sample) and
-the Python binding's own cost per call (a one-joint model): what a compiled loop over samples
-calling pinocchio's C++ regressor could save at most.
+Last, pinocchio's regressor alone as ours calls it (RobotModel.regressor, us per sample);
+bench_compiled_regressor.py measures a compiled loop over samples in its place.
 
     .venv/bin/python bench/bench_replay.py [--samples 100000] [--repeat 3] [--workers N]
 """
@@ -42,7 +41,6 @@ import subprocess
 import sys
 import time
 import tracemalloc
-from itertools import repeat
 from pathlib import Path
 
 from checkout import ROOT  # noqa: E402  (this checkout's package, here and in subprocesses)
@@ -211,31 +209,19 @@ def _rss_child(name: str, bag: Path) -> None:
     print((_status_kib('VmHWM') - base) / 1024)
 
 
-def regressor_cost(samples: int = 20_000) -> tuple[float, float]:
-    """(us per sample of RobotModel.regressor on the bench's arm, us per call of pinocchio's
-    computeJointTorqueRegressor on a one-joint model: the Python binding's own cost, what a
-    compiled loop over samples would save at most), best of 3."""
-    import pinocchio as pin
+def regressor_cost(samples: int = 20_000) -> float:
+    """us per sample of RobotModel.regressor on the bench's arm, best of 3."""
     from identification_node.settings import Settings, read_parameter_file
 
     robot = Settings.from_dict(read_parameter_file(CONFIG)).load_robot()
     rng = np.random.default_rng(0)
     q, qd, qdd = (rng.uniform(-1, 1, (samples, robot.dof)) for _ in range(3))
-    one = pin.Model()
-    joint = one.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), 'j')
-    one.appendBodyToJoint(joint, pin.Inertia.Random(), pin.SE3.Identity())
-    data, x = one.createData(), rng.uniform(-1, 1, (samples, 1))
-    best = [np.inf, np.inf]
+    best = np.inf
     for _ in range(3):
         start = time.perf_counter()
         robot.regressor(q, qd, qdd, checked=True)
-        best[0] = min(best[0], time.perf_counter() - start)
-        start = time.perf_counter()
-        for a in range(0, samples, 128):   # as RobotModel.regressor calls it, results dropped
-            list(map(pin.computeJointTorqueRegressor, repeat(one), repeat(data),
-                     x[a:a + 128], x[a:a + 128], x[a:a + 128]))
-        best[1] = min(best[1], time.perf_counter() - start)
-    return best[0] / samples * 1e6, best[1] / samples * 1e6
+        best = min(best, time.perf_counter() - start)
+    return best / samples * 1e6
 
 
 def main() -> None:
@@ -288,12 +274,9 @@ def main() -> None:
         r = rows[name]
         print(f'{name} on {half_n} samples: tracemalloc peak {traced:.1f} MiB, peak RSS '
               f'{rss:.1f} MiB (on {r[0]}: {r[3]:.1f} MiB, {r[4]:.1f} MiB)')
-    per_sample, binding = regressor_cost()
     total = ours[1] / ours[0] * 1e6
-    print(f'pinocchio\'s regressor in ours: {per_sample:.2f} us per sample of ours\' '
-          f'{total:.2f} us; the binding\'s own cost (a one-joint model\'s call) {binding:.2f} '
-          f'us: a compiled loop over samples would make ours at most '
-          f'{total / (total - binding):.2f}x faster')
+    print(f'pinocchio\'s regressor in ours: {regressor_cost():.2f} us per sample of ours\' '
+          f'{total:.2f} us (a compiled loop in its place: bench_compiled_regressor.py)')
 
 
 if __name__ == '__main__':
