@@ -160,6 +160,7 @@ def test_an_infinite_value_fails_an_unbounded_gate():
                            np.full(n, np.inf), np.full(n, np.inf), np.full(n, np.inf))
     qd = np.array([[1e300, -1e300], [np.inf, 0.0], [0.0, -np.inf], [np.nan, 0.0]])
     np.testing.assert_array_equal(b.ok(qd=qd), [True, False, False, False])
+    np.testing.assert_array_equal(b.ok(q=qd), [True, False, False, False])
 
 
 def test_absurd_currents_and_an_infinite_electrical_angle_are_counted():

@@ -64,7 +64,10 @@ class PlausibilityBounds:
     _limits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        self._centre = 0.5 * (self.position_lower + self.position_upper)
+        # the position range's centre; 0 where an end is inf (its half range is inf: no bound)
+        with np.errstate(invalid='ignore'):
+            centre = 0.5 * (self.position_lower + self.position_upper)
+        self._centre = np.where(np.isfinite(centre), centre, 0.0)
 
     @classmethod
     def from_robot(cls, robot, settings: PlausibilitySettings | None = None,
