@@ -63,10 +63,9 @@ class Counters:
         return int(np.count_nonzero(keep if marked is None else keep & marked))
 
     def among_seconds(self, seconds: np.ndarray, marked: np.ndarray | None = None) -> int:
-        """``among`` for stamps in s since the epoch."""
-        if self.inside is None:
-            return int(np.size(seconds) if marked is None else np.count_nonzero(marked))
-        return self.among(self.stamps_ns(np.atleast_1d(seconds)), marked)
+        """``among`` for stamps in s since the epoch (converted only for ``inside``)."""
+        stamps = seconds if self.inside is None else self.stamps_ns(np.atleast_1d(seconds))
+        return self.among(stamps, marked)
 
     def malformed(self, log_ns: int | None = None) -> None:
         """A message that could not even be decoded: received, and rejected 'malformed';

@@ -26,7 +26,7 @@ import threading
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -53,6 +53,16 @@ Reply = Callable[[Any], None]
 
 def _never(_request: Any, response: Any) -> Any:   # pragma: no cover - never dispatched
     return response
+
+
+def _requests(srv) -> Iterator[tuple]:
+    """(request, header) of everything waiting at service ``srv``, in the order received."""
+    with srv.handle:
+        while True:
+            request, header = srv.handle.service_take_request(srv.srv_type.Request)
+            if header is None:
+                return
+            yield request, header
 
 
 class ServiceThread:
@@ -129,14 +139,8 @@ class ServiceThread:
             count = len(taken)
             for srv, handler, name in self._services:
                 with contextlib.suppress(Exception):   # a destroyed service (shutdown)
-                    with srv.handle:
-                        while True:
-                            request, header = srv.handle.service_take_request(
-                                srv.srv_type.Request)
-                            if header is None:
-                                break
-                            taken.append((header.source_timestamp, srv, handler, name,
-                                          request, header))
+                    taken += ((header.source_timestamp, srv, handler, name, request, header)
+                              for request, header in _requests(srv))
             if len(taken) == count:
                 break
         taken.sort(key=lambda t: t[0])   # stable: one service's requests stay in order
